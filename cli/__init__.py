@@ -1,0 +1,1 @@
+"""The ``egoposevr`` console script: one entry point, one subcommand per job."""

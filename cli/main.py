@@ -1,0 +1,52 @@
+"""``egoposevr`` entry point. Subcommands register here; each imports its heavy modules only when run.
+
+Only subcommands that work are listed (later issues add serve, replay, view, bench, synth, train, eval,
+export, models, demo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
+
+from . import decode_cmd
+
+# (name, module): each module has `add_arguments(parser)`, `run(args) -> int` and a docstring for --help.
+SUBCOMMANDS = (("decode", decode_cmd),)
+
+
+def package_version() -> str:
+    try:
+        return version("egoposevr")
+    except PackageNotFoundError:  # running from a source tree that was never installed
+        return "0+unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="egoposevr", description="EgoPoseVR: real-time full-body pose server for VR headsets."
+    )
+    parser.add_argument("--version", action="version", version=f"egoposevr {package_version()}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module in SUBCOMMANDS:
+        summary = (module.__doc__ or "").strip().splitlines()[0]
+        sub = subparsers.add_parser(
+            name,
+            help=summary,
+            description=module.__doc__,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        module.add_arguments(sub)
+        sub.set_defaults(run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""Rotation conversions in numpy, batched over any leading dimensions.
+
+Representations (``...`` = any batch shape):
+- matrix      (..., 3, 3)  rotation matrices acting on column vectors (v' = R v)
+- quat_xyzw   (..., 4)     unit quaternions, scalar last (the wire format's order)
+- axis_angle  (..., 3)     rotation vectors: unit axis times angle in radians (SMPL's pose format)
+- sixd        (..., 6)     the continuous 6D representation of Zhou et al. (CVPR 2019): the first two
+                           *columns* of the matrix, concatenated [R[:,0], R[:,1]]. (pytorch3d uses rows; we
+                           do not.) Any 6-vector maps back to a rotation through Gram-Schmidt.
+
+Quaternion / matrix / axis-angle conversions delegate to ``scipy.spatial.transform.Rotation`` (well kept,
+numerically careful near 0 and pi); the 6D pair is ours because scipy has no 6D.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+_EPS = 1e-8
+
+
+def _check_last(x: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape[x.ndim - len(shape) :] != shape:
+        raise ValueError(f"{name} must be (..., {', '.join(map(str, shape))}), got {x.shape}")
+    return x
+
+
+def quat_xyzw_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions (normalised here) -> (..., 3, 3) matrices."""
+    q = _check_last(quat_xyzw, (4,), "quat_xyzw")
+    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(*q.shape[:-1], 3, 3)
+
+
+def matrix_to_quat_xyzw(matrix: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 4) unit quaternions with w >= 0."""
+    m = _check_last(matrix, (3, 3), "matrix")
+    q = Rotation.from_matrix(m.reshape(-1, 3, 3)).as_quat(canonical=True)
+    return q.reshape(*m.shape[:-2], 4)
+
+
+def axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 3, 3)."""
+    a = _check_last(axis_angle, (3,), "axis_angle")
+    return Rotation.from_rotvec(a.reshape(-1, 3)).as_matrix().reshape(*a.shape[:-1], 3, 3)
+
+
+def matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 3) rotation vectors with angle in [0, pi]."""
+    m = _check_last(matrix, (3, 3), "matrix")
+    return Rotation.from_matrix(m.reshape(-1, 3, 3)).as_rotvec().reshape(*m.shape[:-2], 3)
+
+
+def quat_xyzw_to_axis_angle(quat_xyzw: np.ndarray) -> np.ndarray:
+    """(..., 4) -> (..., 3)."""
+    q = _check_last(quat_xyzw, (4,), "quat_xyzw")
+    return Rotation.from_quat(q.reshape(-1, 4)).as_rotvec().reshape(*q.shape[:-1], 3)
+
+
+def axis_angle_to_quat_xyzw(axis_angle: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 4) with w >= 0."""
+    a = _check_last(axis_angle, (3,), "axis_angle")
+    return Rotation.from_rotvec(a.reshape(-1, 3)).as_quat(canonical=True).reshape(*a.shape[:-1], 4)
+
+
+def matrix_to_sixd(matrix: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 6): the first two columns, [R[:,0], R[:,1]]."""
+    m = _check_last(matrix, (3, 3), "matrix")
+    return np.concatenate([m[..., :, 0], m[..., :, 1]], axis=-1)
+
+
+def sixd_to_matrix(sixd: np.ndarray) -> np.ndarray:
+    """(..., 6) -> (..., 3, 3) by Gram-Schmidt: any 6-vector (with independent halves) gives a rotation."""
+    x = _check_last(sixd, (6,), "sixd")
+    a1, a2 = x[..., :3], x[..., 3:]
+    b1 = a1 / np.maximum(np.linalg.norm(a1, axis=-1, keepdims=True), _EPS)
+    a2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    b2 = a2 / np.maximum(np.linalg.norm(a2, axis=-1, keepdims=True), _EPS)
+    b3 = np.cross(b1, b2)
+    return np.stack([b1, b2, b3], axis=-1)
+
+
+def quat_xyzw_to_sixd(quat_xyzw: np.ndarray) -> np.ndarray:
+    """(..., 4) -> (..., 6)."""
+    return matrix_to_sixd(quat_xyzw_to_matrix(quat_xyzw))
+
+
+def geodesic_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) x (..., 3, 3) -> (...,) angle in radians of the rotation taking ``a`` to ``b``."""
+    rel = np.swapaxes(_check_last(a, (3, 3), "a"), -1, -2) @ _check_last(b, (3, 3), "b")
+    # atan2 of sin and cos stays accurate near 0 and pi, where arccos of the trace alone loses digits.
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    skew = np.stack(
+        [rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0], rel[..., 1, 0] - rel[..., 0, 1]],
+        axis=-1,
+    )
+    sin = 0.5 * np.linalg.norm(skew, axis=-1)
+    return np.arctan2(sin, cos)

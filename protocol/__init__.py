@@ -1,0 +1,53 @@
+"""EgoPoseVR wire protocol v1: message models, msgpack codec, errors. Pure: no I/O, no asyncio, no numpy.
+
+>>> from egoposevr.protocol import Ping, decode, encode
+>>> decode(encode(Ping(nonce=1))).nonce
+1
+"""
+
+from .codec import DEFAULT_MAX_MESSAGE_BYTES, decode, encode
+from .errors import ErrorCode, ProtocolError
+from .messages import (
+    CLIENT_MESSAGES,
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    SERVER_MESSAGES,
+    Error,
+    Hello,
+    Hmd,
+    ListModels,
+    Message,
+    ModelInfo,
+    Models,
+    Ping,
+    Pong,
+    Pose,
+    Rgbd,
+    SelectModel,
+    Welcome,
+)
+
+__all__ = [
+    "CLIENT_MESSAGES",
+    "DEFAULT_MAX_MESSAGE_BYTES",
+    "MESSAGE_TYPES",
+    "PROTOCOL_VERSION",
+    "SERVER_MESSAGES",
+    "Error",
+    "ErrorCode",
+    "Hello",
+    "Hmd",
+    "ListModels",
+    "Message",
+    "ModelInfo",
+    "Models",
+    "Ping",
+    "Pong",
+    "Pose",
+    "ProtocolError",
+    "Rgbd",
+    "SelectModel",
+    "Welcome",
+    "decode",
+    "encode",
+]

@@ -1,0 +1,128 @@
+"""One canonical instance of every v1 message.
+
+They are the source of the golden fixtures (``tests/protocol/golden/*.msgpack``), of the hex dump in
+PROTOCOL.md, and handy for client tests. Every float is exactly representable in float32, so that
+``decode(encode(m)) == m`` holds bit for bit. Regenerate the fixtures (deliberately: they are the contract) with
+``python tests/protocol/regenerate_golden.py``.
+"""
+
+from __future__ import annotations
+
+import base64
+
+from .messages import (
+    Error,
+    Hello,
+    Hmd,
+    ListModels,
+    Message,
+    ModelInfo,
+    Models,
+    Ping,
+    Pong,
+    Pose,
+    Rgbd,
+    SelectModel,
+    Welcome,
+)
+
+# A 4×2 JPEG (left half blue-ish, right half yellow-ish) and a 4×2 16-bit PNG of depths in mm:
+# [[1000, 1250, 1500, 0], [2000, 2250, 2500, 65535]] — real images a client can decode in its tests.
+EXAMPLE_JPEG = base64.b64decode(
+    "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDABALDA4MChAODQ4SERATGCgaGBYWGDEjJR0oOjM9PDkzODdASFxOQERXRTc4UG1RV19i"
+    "Z2hnPk1xeXBkeFxlZ2P/2wBDARESEhgVGC8aGi9jQjhCY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2Nj"
+    "Y2NjY2NjY2P/wAARCAACAAQDASIAAhEBAxEB/8QAHwAAAQUBAQEBAQEAAAAAAAAAAAECAwQFBgcICQoL/8QAtRAAAgEDAwIEAwUF"
+    "BAQAAAF9AQIDAAQRBRIhMUEGE1FhByJxFDKBkaEII0KxwRVS0fAkM2JyggkKFhcYGRolJicoKSo0NTY3ODk6Q0RFRkdISUpTVFVW"
+    "V1hZWmNkZWZnaGlqc3R1dnd4eXqDhIWGh4iJipKTlJWWl5iZmqKjpKWmp6ipqrKztLW2t7i5usLDxMXGx8jJytLT1NXW19jZ2uHi"
+    "4+Tl5ufo6erx8vP09fb3+Pn6/8QAHwEAAwEBAQEBAQEBAQAAAAAAAAECAwQFBgcICQoL/8QAtREAAgECBAQDBAcFBAQAAQJ3AAEC"
+    "AxEEBSExBhJBUQdhcRMiMoEIFEKRobHBCSMzUvAVYnLRChYkNOEl8RcYGRomJygpKjU2Nzg5OkNERUZHSElKU1RVVldYWVpjZGVm"
+    "Z2hpanN0dXZ3eHl6goOEhYaHiImKkpOUlZaXmJmaoqOkpaanqKmqsrO0tba3uLm6wsPExcbHyMnK0tPU1dbX2Nna4uPk5ebn6Onq"
+    "8vP09fb3+Pn6/9oADAMBAAIRAxEAPwC5pf8AyD4vx/maKKK8nFfx5+r/ADNqfwL0P//Z"
+)
+EXAMPLE_DEPTH_PNG = base64.b64decode(
+    "iVBORw0KGgoAAAANSUhEUgAAAAQAAAACEAAAAAAKU/78AAAAF0lEQVQI12NkfsH4i/HXbxUWFjDj138ARfEI4ZxV9pwAAAAASUVORK5CYII="
+)
+IDENTITY_QUAT = [0.0, 0.0, 0.0, 1.0]
+
+
+def example_messages() -> dict[str, Message]:
+    """{type: message} for every v1 message type."""
+    # Quarter-steps keep every float exact in float32.
+    joints = [round(0.25 * (i % 8) - 1.0, 2) for i in range(66)]
+    body_pose = [0.0] * 63
+    body_pose[3 * 3 + 0] = 0.5  # left knee (SMPL joint 4 -> body_pose index 3) bent 0.5 rad about x
+    return {
+        "hello": Hello(role="input", session="room-1", model="egoposevr", token="s3cret", client="unity/1.0"),
+        "hmd": Hmd(
+            seq=42,
+            t_us=1_000_000,
+            head=[0.0, 1.625, 0.0, *IDENTITY_QUAT],
+            left=[-0.25, 1.0, -0.25, 0.0, 0.0, 0.0, 1.0],
+            right=[0.25, 1.0, -0.25, 0.0, 0.7071067690849304, 0.0, 0.7071067690849304],
+            valid=[True, True, False],
+        ),
+        "rgbd": Rgbd(
+            seq=7,
+            t_us=1_000_500,
+            width=4,
+            height=2,
+            intrinsics=[2.0, 2.0, 2.0, 1.0],
+            rgb=EXAMPLE_JPEG,
+            depth=EXAMPLE_DEPTH_PNG,
+            # Camera 6.25 cm below and 12.5 cm ahead of the head device, optical axis straight down, image top
+            # towards the face's forward direction (OpenCV camera axes: x right, y down, z along the view).
+            cam_from_head=[
+                1.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                0.125,
+                0.0,
+                -1.0,
+                0.0,
+                -0.0625,
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+            ],
+        ),
+        "select_model": SelectModel(model="hmd"),
+        "list_models": ListModels(),
+        "ping": Ping(nonce=3, t_us=1_000_900),
+        "welcome": Welcome(
+            session="room-1",
+            role="input",
+            server="egoposevr/0.1.0",
+            model="egoposevr",
+            models=["egoposevr", "hmd"],
+        ),
+        "pose": Pose(
+            seq=42,
+            t_us=1_000_000,
+            model="egoposevr",
+            global_orient=[0.0, 3.125, 0.0],
+            body_pose=body_pose,
+            transl=[0.0, 0.875, 0.0],
+            joints=joints,
+            timing_us={"features": 40, "fusion": 900, "fk": 30, "kpo": 250, "total": 1300},
+        ),
+        "models": Models(
+            active="egoposevr",
+            models=[
+                ModelInfo(
+                    name="egoposevr",
+                    inputs=["hmd", "rgb", "depth"],
+                    description="HMD + RGB-D fusion with KPO",
+                ),
+                ModelInfo(name="hmd", inputs=["hmd"], description="HMD-only baseline"),
+            ],
+        ),
+        "error": Error(
+            code="wrong_length", message="hmd.head: List should have at least 7 items", fatal=False, seq=43
+        ),
+        "pong": Pong(nonce=3, t_us=1_000_900, server_t_us=5_000_000_123),
+    }

@@ -1,0 +1,243 @@
+"""Pydantic v2 models of every protocol-v1 message (PROTOCOL.md is the contract; this is its code).
+
+Conventions shared by all messages:
+- right-handed world, Y up, -Z forward, metres; quaternions are (x, y, z, w); times are integer microseconds
+  (``t_us``) on the sender's monotonic clock.
+- floats must be finite; integers in float fields are accepted (JavaScript encoders write 1.0 as 1); bools,
+  strings and nil are not.
+- unknown fields are ignored (forward compatibility); optional fields may be absent or nil.
+
+Messages are frozen: build a new one rather than mutating a decoded one.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, ClassVar, Literal
+
+from annotated_types import Len
+from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic.types import AllowInfNan
+from pydantic_core import PydanticCustomError
+
+PROTOCOL_VERSION = 1
+
+# --- field types -------------------------------------------------------------------------------------------
+Float = Annotated[float, Strict(), AllowInfNan(False)]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Seq = Annotated[int, Strict(), Field(ge=0, lt=2**63)]
+TimeUs = Annotated[int, Strict(), Field(ge=0, lt=2**63)]
+Coord = Annotated[float, Strict(), AllowInfNan(False), Field(ge=-1e4, le=1e4)]  # metres or unit-less
+Name = Annotated[str, Strict(), Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:\-]+$")]
+Text = Annotated[str, Strict(), Field(max_length=1024)]
+Blob = Annotated[bytes, Strict(), Field(min_length=1)]
+
+
+def vec(n: int, item: object = Float) -> object:
+    """A fixed-length array of ``n`` items."""
+    return Annotated[list[item], Len(n, n)]  # type: ignore[valid-type]
+
+
+DevicePose = vec(7, Coord)  # [px, py, pz, qx, qy, qz, qw]
+IMAGE_MAX_SIDE_PX = 4096
+QUAT_NORM_TOLERANCE = 0.1  # |‖q‖ - 1| allowed for a tracked device; consumers normalise
+JPEG_SIGNATURE = b"\xff\xd8\xff"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+class Message(BaseModel):
+    """Base of every v1 message: a msgpack map with ``type`` and ``v``."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+    TYPE: ClassVar[str]
+    type: (
+        str  # each message narrows this to its Literal; declared here so that it is the first key on the wire
+    )
+    v: Literal[1] = 1
+
+
+# --- client -> server --------------------------------------------------------------------------------------
+class Hello(Message):
+    """First message on every connection; the server answers ``welcome`` or a fatal ``error``."""
+
+    TYPE: ClassVar[str] = "hello"
+    type: Literal["hello"] = "hello"
+    role: Literal["input", "render"]
+    session: Name
+    model: Name | None = None
+    token: Annotated[str, Strict(), Field(max_length=256)] | None = None
+    client: Annotated[str, Strict(), Field(max_length=128)] | None = None
+
+
+class Hmd(Message):
+    """One headset sample: head and controller poses at ``t_us``; ``valid`` = (head, left, right) tracked."""
+
+    TYPE: ClassVar[str] = "hmd"
+    type: Literal["hmd"] = "hmd"
+    seq: Seq
+    t_us: TimeUs
+    head: DevicePose
+    left: DevicePose
+    right: DevicePose
+    valid: vec(3, Bool)
+
+    @model_validator(mode="after")
+    def _tracked_quaternions_are_unit(self) -> Hmd:
+        for name, pose, tracked in zip(("head", "left", "right"), self.poses(), self.valid, strict=True):
+            norm = math.sqrt(sum(q * q for q in pose[3:]))
+            if tracked and abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
+                raise PydanticCustomError(
+                    "bad_quaternion", f"{name} quaternion norm is {norm:.4g}, expected 1 ± 0.1"
+                )
+        return self
+
+    def poses(self) -> tuple[list[float], list[float], list[float]]:
+        """(head, left, right) device poses, each [px, py, pz, qx, qy, qz, qw]."""
+        return self.head, self.left, self.right
+
+
+class Rgbd(Message):
+    """One egocentric RGB-D frame: JPEG colour and 16-bit PNG depth (millimetres, 0 = no reading)."""
+
+    TYPE: ClassVar[str] = "rgbd"
+    type: Literal["rgbd"] = "rgbd"
+    seq: Seq
+    t_us: TimeUs
+    width: Annotated[int, Strict(), Field(ge=1, le=IMAGE_MAX_SIDE_PX)]
+    height: Annotated[int, Strict(), Field(ge=1, le=IMAGE_MAX_SIDE_PX)]
+    intrinsics: vec(4)  # fx, fy, cx, cy in pixels
+    rgb: Blob
+    depth: Blob
+    cam_from_head: vec(16) | None = None  # row-major 4x4, metres
+
+    @model_validator(mode="after")
+    def _check_images_and_camera(self) -> Rgbd:
+        fx, fy, _, _ = self.intrinsics
+        if fx <= 0 or fy <= 0:
+            raise PydanticCustomError("out_of_range", f"intrinsics fx, fy must be > 0, got {fx}, {fy}")
+        if not self.rgb.startswith(JPEG_SIGNATURE):
+            raise PydanticCustomError(
+                "bad_image", f"rgb must be a JPEG (starts {JPEG_SIGNATURE.hex()}), got {self.rgb[:4].hex()}"
+            )
+        if not self.depth.startswith(PNG_SIGNATURE):
+            raise PydanticCustomError(
+                "bad_image",
+                f"depth must be a PNG (starts {PNG_SIGNATURE[:4].hex()}), got {self.depth[:4].hex()}",
+            )
+        if self.cam_from_head is not None:
+            _check_rigid(self.cam_from_head)
+        return self
+
+
+def _check_rigid(m: list[float]) -> None:
+    """Raise unless the row-major 4x4 ``m`` is a rotation + translation with last row (0, 0, 0, 1)."""
+    if any(abs(a - b) > 1e-6 for a, b in zip(m[12:], (0.0, 0.0, 0.0, 1.0), strict=True)):
+        raise PydanticCustomError("bad_transform", f"cam_from_head last row must be 0 0 0 1, got {m[12:]}")
+    rows = (m[0:3], m[4:7], m[8:11])
+    for i in range(3):
+        for j in range(3):
+            dot = sum(a * b for a, b in zip(rows[i], rows[j], strict=True))
+            if abs(dot - (1.0 if i == j else 0.0)) > 1e-3:
+                raise PydanticCustomError("bad_transform", "cam_from_head rotation block is not orthonormal")
+
+
+class SelectModel(Message):
+    """Swap the session's model without reconnecting; answered by ``models`` (or ``error``)."""
+
+    TYPE: ClassVar[str] = "select_model"
+    type: Literal["select_model"] = "select_model"
+    model: Name
+
+
+class ListModels(Message):
+    """Ask for the ``models`` list."""
+
+    TYPE: ClassVar[str] = "list_models"
+    type: Literal["list_models"] = "list_models"
+
+
+class Ping(Message):
+    """Liveness/latency probe; ``nonce`` and ``t_us`` are echoed in ``pong``."""
+
+    TYPE: ClassVar[str] = "ping"
+    type: Literal["ping"] = "ping"
+    nonce: Seq | None = None
+    t_us: TimeUs | None = None
+
+
+# --- server -> client --------------------------------------------------------------------------------------
+class Welcome(Message):
+    """Answer to ``hello``: the session joined, the role granted, the active model and all models."""
+
+    TYPE: ClassVar[str] = "welcome"
+    type: Literal["welcome"] = "welcome"
+    session: Name
+    role: Literal["input", "render"]
+    server: Text  # "egoposevr/<version>"
+    model: Name
+    models: Annotated[list[Name], Len(0, 256)]
+
+
+class Pose(Message):
+    """The full-body pose answering headset sample ``seq``/``t_us``.
+
+    ``global_orient`` (3) and ``body_pose`` (21×3) are SMPL axis-angle vectors (radians, local rotations in
+    SMPL joint order 1..21); ``transl`` (3) is the pelvis joint's world position; ``joints`` (22×3) are world
+    joint positions, flattened row-major; ``timing_us`` maps pipeline stage names to microseconds.
+    """
+
+    TYPE: ClassVar[str] = "pose"
+    type: Literal["pose"] = "pose"
+    seq: Seq
+    t_us: TimeUs
+    model: Name
+    global_orient: vec(3)
+    body_pose: vec(63)
+    transl: vec(3)
+    joints: vec(66)
+    timing_us: Annotated[dict[Annotated[str, Strict(), Field(max_length=32)], TimeUs], Len(0, 32)]
+
+
+class ModelInfo(BaseModel):
+    """One servable model in a ``models`` list."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+    name: Name
+    inputs: Annotated[list[Literal["hmd", "rgb", "depth"]], Len(1, 3)]
+    description: Text = ""
+
+
+class Models(Message):
+    """The models a session may select, and the one it uses now."""
+
+    TYPE: ClassVar[str] = "models"
+    type: Literal["models"] = "models"
+    active: Name
+    models: Annotated[list[ModelInfo], Len(0, 256)]
+
+
+class Error(Message):
+    """Something the peer sent was refused; ``fatal`` means the server closes the connection next."""
+
+    TYPE: ClassVar[str] = "error"
+    type: Literal["error"] = "error"
+    code: Annotated[str, Strict(), Field(min_length=1, max_length=64)]
+    message: Text
+    fatal: Bool = False
+    seq: Seq | None = None  # seq of the offending message, when it had one
+
+
+class Pong(Message):
+    """Answer to ``ping``: echoes ``nonce``/``t_us`` and adds the server's clock."""
+
+    TYPE: ClassVar[str] = "pong"
+    type: Literal["pong"] = "pong"
+    nonce: Seq | None = None
+    t_us: TimeUs | None = None
+    server_t_us: TimeUs
+
+
+CLIENT_MESSAGES: tuple[type[Message], ...] = (Hello, Hmd, Rgbd, SelectModel, ListModels, Ping)
+SERVER_MESSAGES: tuple[type[Message], ...] = (Welcome, Pose, Models, Error, Pong)
+MESSAGE_TYPES: dict[str, type[Message]] = {m.TYPE: m for m in CLIENT_MESSAGES + SERVER_MESSAGES}
