@@ -29,7 +29,13 @@ from typing import Final
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .rotations import matrix_to_sixd, quat_xyzw_to_matrix
+from .rotations import (
+    matrix_to_sixd,
+    normalize_quat,
+    quat_xyzw_conjugate,
+    quat_xyzw_multiply,
+    quat_xyzw_to_matrix,
+)
 
 DEVICES: Final = ("head", "left", "right")
 FEATURE_DIM: Final = 72
@@ -52,7 +58,7 @@ DEFAULT_CONTROLLER_IN_HEAD_POS_M: Final = np.array([[-0.2, -0.7, -0.1], [0.2, -0
 
 @dataclass
 class _DeviceTrack:
-    """Per-device memory: recent tracked samples and the last velocities."""
+    """Per-device memory: recent tracked samples (t_us, pos (3,), quat_xyzw (4,)) and the last velocities."""
 
     history: deque[tuple[int, np.ndarray, np.ndarray]] = field(
         default_factory=lambda: deque(maxlen=HISTORY_LEN)
@@ -61,7 +67,7 @@ class _DeviceTrack:
     angvel_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def reference(self, t_us: int) -> tuple[int, np.ndarray, np.ndarray] | None:
-        """Newest (t_us, pos, rot) with MIN_DT_S <= age <= MAX_GAP_S, or None."""
+        """Newest (t_us, pos, quat_xyzw) with MIN_DT_S <= age <= MAX_GAP_S, or None."""
         for ref in reversed(self.history):
             age_s = (t_us - ref[0]) * 1e-6
             if age_s > MAX_GAP_S:
@@ -97,16 +103,20 @@ class HmdFeatureExtractor:
             raise ValueError("poses must be finite")
         t_us = int(t_us)
         advancing = self._last_t_us is None or t_us > self._last_t_us
-        pos, rot = self._resolve_poses(poses, valid)
-        vel, angvel = self._velocities(t_us, pos, rot, valid, advancing)
+        # An untracked device's pose is meaningless (the protocol lets it be all zeros): never convert it.
+        quat_xyzw = normalize_quat(np.where(valid[:, None], poses[:, 3:], [0.0, 0.0, 0.0, 1.0]))
+        pos, rot = self._resolve_poses(poses[:, :3], quat_xyzw, valid)
+        vel, angvel = self._velocities(t_us, pos, quat_xyzw, valid, advancing)
         if advancing:
             self._last_t_us = t_us
         return _assemble(pos, rot, vel, angvel)
 
-    def _resolve_poses(self, poses: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _resolve_poses(
+        self, pos_m: np.ndarray, quat_xyzw: np.ndarray, valid: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """World poses of all devices, untracked ones replaced by their held pose. -> (3, 3), (3, 3, 3)."""
-        pos = poses[:, :3].copy()
-        rot = quat_xyzw_to_matrix(poses[:, 3:])
+        pos = pos_m.copy()
+        rot = quat_xyzw_to_matrix(quat_xyzw)
         if valid[0]:
             self._held_head = (pos[0].copy(), rot[0].copy())
         else:
@@ -120,9 +130,10 @@ class HmdFeatureExtractor:
         return pos, rot
 
     def _velocities(
-        self, t_us: int, pos: np.ndarray, rot: np.ndarray, valid: np.ndarray, advancing: bool
+        self, t_us: int, pos: np.ndarray, quat_xyzw: np.ndarray, valid: np.ndarray, advancing: bool
     ) -> tuple[np.ndarray, np.ndarray]:
         """Linear (3, 3) m/s and body angular (3, 3) rad/s velocities; updates the device histories."""
+        updates = []  # (device, dt_s, ref_pos, ref_rot) of devices with a fresh reference
         for d, track in enumerate(self._tracks):
             if not valid[d]:
                 track.vel_m_s, track.angvel_rad_s = np.zeros(3), np.zeros(3)
@@ -131,15 +142,28 @@ class HmdFeatureExtractor:
                 continue  # keep the previous velocities; a repeated timestamp says nothing about motion
             ref = track.reference(t_us)
             if ref is not None:
-                dt_s = (t_us - ref[0]) * 1e-6
-                track.vel_m_s = (pos[d] - ref[1]) / dt_s
-                track.angvel_rad_s = Rotation.from_matrix(ref[2].T @ rot[d]).as_rotvec() / dt_s
+                updates.append((d, (t_us - ref[0]) * 1e-6, ref[1], ref[2]))
             elif track.history and (t_us - track.history[-1][0]) * 1e-6 > MAX_GAP_S:
                 track.vel_m_s, track.angvel_rad_s = np.zeros(3), np.zeros(3)
-            track.history.append((t_us, pos[d].copy(), rot[d].copy()))
+            track.history.append((t_us, pos[d].copy(), quat_xyzw[d]))
+        if updates:
+            self._apply_differences(updates, pos, quat_xyzw)
         vel = np.stack([t.vel_m_s for t in self._tracks])
         angvel = np.stack([t.angvel_rad_s for t in self._tracks])
         return vel, angvel
+
+    def _apply_differences(self, updates: list, pos: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        """Finite differences against each device's reference; updates are (device, dt_s, ref_pos, ref_quat).
+
+        The relative rotation q_ref* · q is the body-frame turn since the reference; one scipy call for all.
+        """
+        devices = [u[0] for u in updates]
+        ref_quat = np.stack([u[3] for u in updates])
+        rel_quat = quat_xyzw_multiply(quat_xyzw_conjugate(ref_quat), quat_xyzw[devices])
+        rel_rotvec = Rotation.from_quat(rel_quat).as_rotvec()
+        for (d, dt_s, ref_pos, _), rotvec in zip(updates, rel_rotvec, strict=True):
+            self._tracks[d].vel_m_s = (pos[d] - ref_pos) / dt_s
+            self._tracks[d].angvel_rad_s = rotvec / dt_s
 
 
 def _assemble(pos: np.ndarray, rot: np.ndarray, vel: np.ndarray, angvel: np.ndarray) -> np.ndarray:

@@ -119,6 +119,15 @@ def test_lost_controller_follows_the_head_and_recovers():
     np.testing.assert_allclose(x[12:], np.stack([expected_features(t) for t in times[12:]]), atol=1e-4)
 
 
+def test_untracked_device_may_send_an_all_zero_pose():
+    extractor = hmd.HmdFeatureExtractor()
+    poses = motion_at(0.0)[2]
+    poses[2] = 0.0
+    x = extractor.push(0, poses, [True, True, False])
+    assert np.isfinite(x).all()
+    np.testing.assert_allclose(x[S["right_in_head_pos"]], hmd.DEFAULT_CONTROLLER_IN_HEAD_POS_M[1])
+
+
 def test_never_tracked_controller_sits_at_the_default_pose():
     valid = np.ones((3, 3), dtype=bool)
     valid[:, 2] = False
