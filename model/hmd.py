@@ -133,7 +133,7 @@ class HmdFeatureExtractor:
         self, t_us: int, pos: np.ndarray, quat_xyzw: np.ndarray, valid: np.ndarray, advancing: bool
     ) -> tuple[np.ndarray, np.ndarray]:
         """Linear (3, 3) m/s and body angular (3, 3) rad/s velocities; updates the device histories."""
-        updates = []  # (device, dt_s, ref_pos, ref_rot) of devices with a fresh reference
+        updates = []  # (device, dt_s, ref_pos, ref_quat) of devices with a fresh reference
         for d, track in enumerate(self._tracks):
             if not valid[d]:
                 track.vel_m_s, track.angvel_rad_s = np.zeros(3), np.zeros(3)
@@ -171,7 +171,7 @@ def _assemble(pos: np.ndarray, rot: np.ndarray, vel: np.ndarray, angvel: np.ndar
     step_rot = Rotation.from_rotvec(angvel * DT_REF_S).as_matrix()  # (3, 3, 3)
     global_desc = np.concatenate([pos, matrix_to_sixd(rot), vel, matrix_to_sixd(step_rot)], axis=1)  # (3, 18)
     head_rot_t = rot[0].T
-    in_head_pos = (pos[1:] - pos[0]) @ head_rot_t.T  # rows: R_H^T (p_c - p_H)
+    in_head_pos = (pos[1:] - pos[0]) @ rot[0]  # rows: R_H^T (p_c - p_H)
     in_head_rot = head_rot_t @ rot[1:]  # (2, 3, 3)
     local_desc = np.concatenate([in_head_pos, matrix_to_sixd(in_head_rot)], axis=1)  # (2, 9)
     return np.concatenate([global_desc.ravel(), local_desc.ravel()])
