@@ -66,6 +66,10 @@ class _DeviceTrack:
     vel_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     angvel_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
+    def stop(self) -> None:
+        """Motion unknown or absent: zero linear and angular velocity."""
+        self.vel_m_s, self.angvel_rad_s = np.zeros(3), np.zeros(3)
+
     def reference(self, t_us: int) -> tuple[int, np.ndarray, np.ndarray] | None:
         """Newest (t_us, pos, quat_xyzw) with MIN_DT_S <= age <= MAX_GAP_S, or None."""
         for ref in reversed(self.history):
@@ -136,7 +140,7 @@ class HmdFeatureExtractor:
         updates = []  # (device, dt_s, ref_pos, ref_quat) of devices with a fresh reference
         for d, track in enumerate(self._tracks):
             if not valid[d]:
-                track.vel_m_s, track.angvel_rad_s = np.zeros(3), np.zeros(3)
+                track.stop()
                 continue
             if not advancing:
                 continue  # keep the previous velocities; a repeated timestamp says nothing about motion
@@ -144,7 +148,7 @@ class HmdFeatureExtractor:
             if ref is not None:
                 updates.append((d, (t_us - ref[0]) * 1e-6, ref[1], ref[2]))
             elif track.history and (t_us - track.history[-1][0]) * 1e-6 > MAX_GAP_S:
-                track.vel_m_s, track.angvel_rad_s = np.zeros(3), np.zeros(3)
+                track.stop()
             track.history.append((t_us, pos[d].copy(), quat_xyzw[d]))
         if updates:
             self._apply_differences(updates, pos, quat_xyzw)

