@@ -115,7 +115,7 @@ CMU_MAPPING: Final = RigMapping(
     joints={
         "pelvis": JointSource("Hips", "Hips", hub=True),
         # LowerBack bends the CMU spine about the hip centre, which SMPL cannot: favour the legs at the pelvis.
-        "spine1": JointSource("Spine", "Spine", fit_weight=0.5),
+        "spine1": JointSource("Spine", "Spine"),
         "spine2": JointSource("Spine1", "Spine1"),
         "spine3": JointSource("Spine1", "Spine1", hub=True),
         "neck": JointSource("Neck1", "Neck1"),
