@@ -89,7 +89,7 @@ class RigMapping:
 
 
 def _side(side: str) -> dict[str, JointSource]:
-    S = side.capitalize()  # noqa: N806 - "Left" as in the CMU names
+    S = side.capitalize()
     return {
         f"{side}_hip": JointSource(f"{S}UpLeg", f"{S}UpLeg"),
         f"{side}_knee": JointSource(f"{S}Leg", f"{S}Leg"),
@@ -114,7 +114,6 @@ CMU_MAPPING: Final = RigMapping(
     licence=CMU_LICENCE,
     joints={
         "pelvis": JointSource("Hips", "Hips", hub=True),
-        # LowerBack bends the CMU spine about the hip centre, which SMPL cannot: favour the legs at the pelvis.
         "spine1": JointSource("Spine", "Spine"),
         "spine2": JointSource("Spine1", "Spine1"),
         "spine3": JointSource("Spine1", "Spine1", hub=True),
@@ -196,7 +195,9 @@ def parse_bvh(text: str, name: str = "<bvh>") -> BvhClip:
     width = sum(len(c) for c in channels)
     body = tokens[pos:]
     if len(body) < frames * width:
-        raise BvhError(f"{name}: MOTION holds {len(body)} numbers, {frames} frames × {width} channels need more")
+        raise BvhError(
+            f"{name}: MOTION holds {len(body)} numbers, {frames} frames × {width} channels need more"
+        )
     try:
         values = np.asarray(body[: frames * width], dtype=np.float64).reshape(frames, width)
     except ValueError as error:
@@ -290,7 +291,9 @@ def mapped_positions(pos: np.ndarray, names: tuple[str, ...], mapping: RigMappin
             if src.b is not None:
                 out[:, j] += src.weight * (pos[:, index[src.b]] - pos[:, index[src.a]])
     except KeyError as error:
-        raise BvhError(f"rig {mapping.name!r} needs source joint {error.args[0]!r}, not in the file") from None
+        raise BvhError(
+            f"rig {mapping.name!r} needs source joint {error.args[0]!r}, not in the file"
+        ) from None
     return out
 
 
@@ -307,7 +310,7 @@ def _place_hubs(
     for j, joint in enumerate(JOINT_NAMES):
         if not mapping.joints[joint].hub:
             continue
-        kids = np.flatnonzero(PARENTS == j)
+        kids = np.flatnonzero(j == PARENTS)
         normal_sum, point_sum = np.zeros((3, 3)), np.zeros(3)
         for kid in kids:
             direction = rest[kid] / np.linalg.norm(rest[kid])
@@ -338,7 +341,7 @@ def retarget(
     bone_scale = np.ones(NUM_JOINTS)
     bone_scale[1:] = np.median(bone_len, axis=0) / np.linalg.norm(rest[1:], axis=-1)
     offsets = rest_offsets(bone_scale)
-    children = [np.flatnonzero(PARENTS == j) for j in range(NUM_JOINTS)]
+    children = [np.flatnonzero(j == PARENTS) for j in range(NUM_JOINTS)]
     weight = np.ones(NUM_JOINTS) if fit_weight is None else np.asarray(fit_weight, dtype=np.float64)
 
     global_rot = driver_rot @ np.swapaxes(tpose_rot, -1, -2)[None]  # rotation since the T-pose
@@ -399,4 +402,3 @@ def bvh_to_motion(
 def load_bvh_motion(path: str | Path, mapping: RigMapping = CMU_MAPPING, fps: float | None = None) -> Motion:
     path = Path(path)
     return bvh_to_motion(load_bvh(path), mapping, name=path.stem, fps=fps)
-
