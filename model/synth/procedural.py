@@ -534,7 +534,7 @@ def generate(
     if family not in FAMILIES:
         raise ValueError(f"unknown procedural family {family!r}; choose from {sorted(FAMILIES)}")
     body = Body.random(rng) if body is None else body
-    t = np.arange(max(2, int(round(seconds * fps)))) / fps
+    t = np.arange(max(2, round(seconds * fps))) / fps
     plan = FAMILIES[family](rng, t, body)
     heading = rng.uniform(-180, 180)
     plan.pelvis_yaw += heading

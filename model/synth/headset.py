@@ -1,0 +1,206 @@
+"""Headset and controller tracks from a motion, and the headset-mounted camera model.
+
+Devices are not joints. The headset's origin sits in front of and above the SMPL head joint; a controller's
+grip sits in the palm, ahead of the wrist. Both follow the OpenXR convention of PROTOCOL.md (a device at
+identity looks along -z with +y up). The SMPL frames face +z, so a device is its joint's frame turned half
+a turn about y. Tracks get white noise, slow drift, timestamp jitter, and controller dropouts: random
+ones, plus a controller hidden behind the head from the headset's tracking cameras.
+
+Shape legend: ``N`` headset samples, ``J`` = 22 joints; device order head, left, right.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..skeleton import HEAD, LEFT_WRIST, RIGHT_WRIST, forward_kinematics
+from .motion import Motion, sample_at
+
+# Device frame (x right, y up, -z forward) from the SMPL joint frame (x left, y up, +z forward).
+DEVICE_FROM_JOINT = Rotation.from_euler("y", 180, degrees=True).as_matrix()
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadsetRig:
+    """Where the devices sit on the body and how noisy their tracking is. Offsets are in the joint's frame."""
+
+    head_offset_m: tuple[float, float, float] = (0.0, 0.06, 0.11)
+    left_grip_offset_m: tuple[float, float, float] = (0.085, -0.015, 0.015)
+    right_grip_offset_m: tuple[float, float, float] = (-0.085, -0.015, 0.015)
+    head_noise_m: float = 0.0005
+    hand_noise_m: float = 0.0015
+    head_noise_deg: float = 0.1
+    hand_noise_deg: float = 0.4
+    drift_m: float = 0.002
+    jitter_us: float = 150.0
+    dropouts_per_min: float = 3.0
+    dropout_s: tuple[float, float] = (0.1, 1.0)
+    behind_head_m: float = 0.05  # a controller this far behind the headset's plane is lost
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadsetTrack:
+    """Synthesised headset samples with the ground truth at the same instants.
+
+    t_us (N,) int64 sender clock; poses (N, 3, 7) [px, py, pz, qx, qy, qz, qw] world; valid (N, 3) bool;
+    local_rot (N, J, 3, 3), root_pos_m (N, 3), joints_m (N, J, 3): the body at each sample; motion_t_s (N,)
+    the motion time of each sample.
+    """
+
+    t_us: np.ndarray
+    poses: np.ndarray
+    valid: np.ndarray
+    local_rot: np.ndarray
+    root_pos_m: np.ndarray
+    joints_m: np.ndarray
+    motion_t_s: np.ndarray
+
+
+def device_poses(joints_m: np.ndarray, global_rot: np.ndarray, rig: HeadsetRig) -> np.ndarray:
+    """Noise-free device poses (N, 3, 7) from joint positions (N, J, 3) and global rotations (N, J, 3, 3)."""
+    poses = np.empty((len(joints_m), 3, 7))
+    for k, (joint, offset) in enumerate(
+        (
+            (HEAD, rig.head_offset_m),
+            (LEFT_WRIST, rig.left_grip_offset_m),
+            (RIGHT_WRIST, rig.right_grip_offset_m),
+        )
+    ):
+        rot = global_rot[:, joint]
+        poses[:, k, :3] = joints_m[:, joint] + rot @ np.asarray(offset)
+        poses[:, k, 3:] = Rotation.from_matrix(rot @ DEVICE_FROM_JOINT).as_quat()
+    return poses
+
+
+def _drift(rng: np.random.Generator, n: int, rate_hz: float, scale_m: float) -> np.ndarray:
+    """(n, 3) slow random offsets: a random walk pulled back to zero (time constant ~2 s)."""
+    pull = np.exp(-1.0 / (2.0 * rate_hz))
+    steps = rng.normal(0.0, scale_m * np.sqrt(1 - pull**2), size=(n, 3))
+    out = np.empty((n, 3))
+    acc = np.zeros(3)
+    for i in range(n):
+        acc = acc * pull + steps[i]
+        out[i] = acc
+    return out
+
+
+def _dropouts(rng: np.random.Generator, t_s: np.ndarray, rig: HeadsetRig) -> np.ndarray:
+    """(N,) bool: True where a random tracking loss is under way."""
+    lost = np.zeros(len(t_s), dtype=bool)
+    span = t_s[-1] - t_s[0]
+    for _ in range(rng.poisson(rig.dropouts_per_min * span / 60.0)):
+        start = rng.uniform(t_s[0], t_s[-1])
+        lost |= (t_s >= start) & (t_s < start + rng.uniform(*rig.dropout_s))
+    return lost
+
+
+def simulate_headset(
+    motion: Motion,
+    rate_hz: float,
+    rng: np.random.Generator,
+    rig: HeadsetRig | None = None,
+    start_us: int | None = None,
+) -> HeadsetTrack:
+    """Headset + controller samples at ``rate_hz`` over the motion, with noise and dropouts."""
+    rig = rig or HeadsetRig()
+    count = max(1, int(np.floor(motion.duration_s * rate_hz)))
+    motion_t_s = np.arange(count) / rate_hz
+    local_rot, root = sample_at(motion, motion_t_s)
+    joints, global_rot = forward_kinematics(local_rot, root, motion.offsets_m())
+    poses = device_poses(joints, global_rot, rig)
+
+    noise_m = np.array([rig.head_noise_m, rig.hand_noise_m, rig.hand_noise_m])
+    noise_deg = np.array([rig.head_noise_deg, rig.hand_noise_deg, rig.hand_noise_deg])
+    for k in range(3):
+        poses[:, k, :3] += rng.normal(0.0, noise_m[k], (count, 3)) + _drift(rng, count, rate_hz, rig.drift_m)
+        wobble = Rotation.from_rotvec(rng.normal(0.0, np.deg2rad(noise_deg[k]), (count, 3)))
+        poses[:, k, 3:] = (wobble * Rotation.from_quat(poses[:, k, 3:])).as_quat()
+
+    valid = np.ones((count, 3), dtype=bool)
+    head_rot = Rotation.from_quat(poses[:, 0, 3:])
+    for k in (1, 2):
+        in_head = head_rot.inv().apply(poses[:, k, :3] - poses[:, 0, :3])
+        behind = in_head[:, 2] > rig.behind_head_m  # device +z points backwards
+        valid[:, k] = ~(behind | _dropouts(rng, motion_t_s, rig))
+        for i in range(1, count):  # a lost controller reports its last tracked pose, as runtimes do
+            if not valid[i, k]:
+                poses[i, k] = poses[i - 1, k]
+
+    start_us = int(rng.integers(1_000_000, 10_000_000_000)) if start_us is None else start_us
+    jitter = np.clip(rng.normal(0.0, rig.jitter_us, count), -3 * rig.jitter_us, 3 * rig.jitter_us)
+    t_us = start_us + np.round(motion_t_s * 1e6 + jitter).astype(np.int64)
+    t_us = np.maximum.accumulate(t_us)  # jitter never makes the clock run backwards
+    return HeadsetTrack(t_us, poses, valid, local_rot, root, joints, motion_t_s)
+
+
+# ------------------------------------------------------------------------------------------- camera
+@dataclasses.dataclass(frozen=True)
+class CameraModel:
+    """A pinhole RGB-D camera rigidly mounted on the headset, pitched down at the body.
+
+    ``position_m`` is in the headset device frame (x right, y up, -z forward); ``pitch_down_deg`` tilts the
+    optical axis from the headset's forward towards its -y. Camera axes are OpenCV's (x right, y down, z
+    optical axis), as in PROTOCOL.md.
+    """
+
+    width: int = 320
+    height: int = 256
+    hfov_deg: float = 90.0
+    pitch_down_deg: float = 78.0
+    position_m: tuple[float, float, float] = (0.0, -0.05, -0.07)
+    min_depth_m: float = 0.1
+    max_depth_m: float = 6.0
+
+    @property
+    def fx(self) -> float:
+        return self.width / 2 / np.tan(np.deg2rad(self.hfov_deg) / 2)
+
+    def intrinsics(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) in pixels, square pixels, centre of the top-left pixel at (0, 0)."""
+        return self.fx, self.fx, (self.width - 1) / 2, (self.height - 1) / 2
+
+    def device_from_camera(self) -> np.ndarray:
+        """(4, 4): camera coordinates -> headset device coordinates."""
+        axes = np.diag([1.0, -1.0, -1.0])  # OpenCV axes looking along the headset's forward
+        tilt = Rotation.from_euler("x", -self.pitch_down_deg, degrees=True).as_matrix()
+        out = np.eye(4)
+        out[:3, :3] = tilt @ axes
+        out[:3, 3] = self.position_m
+        return out
+
+    def cam_from_head(self) -> np.ndarray:
+        """(4, 4) headset device -> camera (the ``rgbd.cam_from_head`` of the wire protocol)."""
+        return np.linalg.inv(self.device_from_camera())
+
+    def world_from_camera(self, head_pose: np.ndarray) -> np.ndarray:
+        """(..., 4, 4) camera -> world for head device poses (..., 7)."""
+        head_pose = np.asarray(head_pose, dtype=np.float64)
+        world_from_device = np.broadcast_to(np.eye(4), (*head_pose.shape[:-1], 4, 4)).copy()
+        world_from_device[..., :3, :3] = (
+            Rotation.from_quat(head_pose[..., 3:].reshape(-1, 4))
+            .as_matrix()
+            .reshape(*head_pose.shape[:-1], 3, 3)
+        )
+        world_from_device[..., :3, 3] = head_pose[..., :3]
+        return world_from_device @ self.device_from_camera()
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """(..., 3) camera-frame points -> (..., 2) pixel coordinates (u, v)."""
+        fx, fy, cx, cy = self.intrinsics()
+        z = points_cam[..., 2]
+        safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        return np.stack([fx * points_cam[..., 0] / safe + cx, fy * points_cam[..., 1] / safe + cy], axis=-1)
+
+    def in_view(self, points_cam: np.ndarray) -> np.ndarray:
+        """(...,) bool: in front of the camera (beyond the minimum depth) and inside the image."""
+        uv = self.project(points_cam)
+        return (
+            (points_cam[..., 2] > self.min_depth_m)
+            & (uv[..., 0] >= -0.5)
+            & (uv[..., 0] <= self.width - 0.5)
+            & (uv[..., 1] >= -0.5)
+            & (uv[..., 1] <= self.height - 0.5)
+        )

@@ -1,0 +1,385 @@
+"""Motion -> headset tracks -> rendered RGB-D frames -> datasets and recorded sessions.
+
+Everything is drawn from one ``numpy.random.Generator`` per sequence, seeded from the run's seed and the
+sequence's index, so the same seed gives the same bytes (shards are written as zip files with fixed
+timestamps for that reason).
+
+Shape legend: ``N`` headset samples, ``K`` camera frames, ``J`` = 22 joints, ``H``×``W`` image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ...protocol import Hmd, Rgbd, encode
+from ...recordings.egrec import EgrecWriter
+from ..rotations import matrix_to_quat_xyzw
+from ..skeleton import forward_kinematics, local_rot_to_smpl
+from .headset import CameraModel, HeadsetRig, HeadsetTrack, device_poses, simulate_headset
+from .motion import Motion, sample_at
+from .render import JOINT_RADIUS_M, Appearance, Renderer, SensorNoise, body_capsules, random_appearance
+
+FORMAT_VERSION = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class SynthConfig:
+    hmd_rate_hz: float = 60.0
+    camera_rate_hz: float = 30.0
+    camera: CameraModel = dataclasses.field(default_factory=CameraModel)
+    rig: HeadsetRig = dataclasses.field(default_factory=HeadsetRig)
+    noise: SensorNoise = dataclasses.field(default_factory=SensorNoise)
+    blur_samples: int = 1  # > 1: average that many renders over the exposure (motion blur)
+    exposure_s: float = 0.012
+    jpeg_quality: int = 90
+    camera_latency_us: int = 25_000  # capture -> sent, for recorded sessions
+    hmd_latency_us: int = 1_000
+
+
+@dataclasses.dataclass
+class CameraFrames:
+    """Rendered frames of one sequence with their labels.
+
+    t_us (K,) capture times on the headset clock; head_pose (K, 7) the true headset pose at capture;
+    rgb_jpeg / depth_png: K encoded images; joints_cam_m (K, J, 3); joints_uv_px (K, J, 2);
+    visible (K, J) inside the field of view; occluded (K, J) visible but hidden behind something.
+    """
+
+    t_us: np.ndarray
+    head_pose: np.ndarray
+    rgb_jpeg: list[bytes]
+    depth_png: list[bytes]
+    joints_cam_m: np.ndarray
+    joints_uv_px: np.ndarray
+    visible: np.ndarray
+    occluded: np.ndarray
+
+
+@dataclasses.dataclass
+class Sequence:
+    name: str
+    motion: Motion
+    track: HeadsetTrack
+    frames: CameraFrames
+    appearance: Appearance
+
+
+def encode_images(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int) -> tuple[bytes, bytes]:
+    """(H, W, 3) uint8 RGB and (H, W) uint16 mm -> (JPEG bytes, 16-bit PNG bytes)."""
+    ok_rgb, jpeg = cv2.imencode(
+        ".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
+    )
+    ok_depth, png = cv2.imencode(".png", depth_mm, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not (ok_rgb and ok_depth):
+        raise RuntimeError("OpenCV failed to encode a frame")
+    return jpeg.tobytes(), png.tobytes()
+
+
+def render_frames(
+    motion: Motion,
+    track: HeadsetTrack,
+    look: Appearance,
+    cfg: SynthConfig,
+    renderer: Renderer,
+    rng: np.random.Generator,
+) -> CameraFrames:
+    """Render the camera frames of one sequence at ``cfg.camera_rate_hz`` with their labels."""
+    cam = cfg.camera
+    count = max(1, int(np.floor(motion.duration_s * cfg.camera_rate_hz)))
+    t_s = np.arange(count) / cfg.camera_rate_hz
+    blur = max(1, cfg.blur_samples)
+    shifts = (np.linspace(-0.5, 0.5, blur) if blur > 1 else np.zeros(1)) * cfg.exposure_s
+    all_t = (t_s[:, None] + shifts[None]).ravel()
+    local_rot, root = sample_at(motion, all_t)
+    joints, global_rot = forward_kinematics(local_rot, root, motion.offsets_m())
+    devices = device_poses(joints, global_rot, cfg.rig)
+    joints = joints.reshape(count, blur, 22, 3)
+    devices = devices.reshape(count, blur, 3, 7)
+    centre = blur // 2
+
+    out_t = track.t_us[0] + np.round((t_s - track.motion_t_s[0]) * 1e6).astype(np.int64)
+    head_pose = devices[:, centre, 0]
+    frames = CameraFrames(
+        t_us=out_t,
+        head_pose=head_pose,
+        rgb_jpeg=[],
+        depth_png=[],
+        joints_cam_m=np.empty((count, 22, 3)),
+        joints_uv_px=np.empty((count, 22, 2)),
+        visible=np.empty((count, 22), dtype=bool),
+        occluded=np.zeros((count, 22), dtype=bool),
+    )
+    for k in range(count):
+        rgb_sum, depth = None, None
+        for b in range(blur):
+            world_from_cam = cam.world_from_camera(devices[k, b, 0])
+            caps = body_capsules(joints[k, b], motion.bone_scale, look.girth, devices[k, b, 1:])
+            rgb, d = renderer.render_clean(world_from_cam, caps, look)
+            rgb_sum = rgb if rgb_sum is None else rgb_sum + rgb
+            if b == centre:
+                depth = d
+                cam_from_world = np.linalg.inv(world_from_cam)
+        rgb8, depth_mm = renderer.add_noise(rgb_sum / blur, depth, rng)
+        jpeg, png = encode_images(rgb8, depth_mm, cfg.jpeg_quality)
+        frames.rgb_jpeg.append(jpeg)
+        frames.depth_png.append(png)
+        joints_cam = joints[k, centre] @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        uv = cam.project(joints_cam)
+        visible = cam.in_view(joints_cam)
+        frames.joints_cam_m[k], frames.joints_uv_px[k], frames.visible[k] = joints_cam, uv, visible
+        px = np.clip(np.round(uv).astype(int), 0, [cam.width - 1, cam.height - 1])
+        surface = depth[px[:, 1], px[:, 0]]
+        # Something lies in front of the joint's own surface (its radius plus 3 cm of slack).
+        frames.occluded[k] = visible & (surface < joints_cam[:, 2] - JOINT_RADIUS_M * look.girth * 1.3 - 0.03)
+    return frames
+
+
+def synthesize_sequence(
+    motion: Motion, cfg: SynthConfig, rng: np.random.Generator, renderer: Renderer, name: str | None = None
+) -> Sequence:
+    track = simulate_headset(motion, cfg.hmd_rate_hz, rng, cfg.rig)
+    look = random_appearance(rng, motion.root_pos_m[0, [0, 2]])
+    frames = render_frames(motion, track, look, cfg, renderer, rng)
+    return Sequence(name or motion.name, motion, track, frames, look)
+
+
+# ------------------------------------------------------------------------------------------ datasets
+def _zip_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Like ``np.savez_compressed`` but with fixed zip timestamps, so equal arrays give equal bytes."""
+    tmp = path.with_suffix(".tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as archive:
+        for key, value in arrays.items():
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.ascontiguousarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            # JPEG and PNG bytes are compressed already; deflating them again costs time and saves nothing.
+            info.compress_type = zipfile.ZIP_STORED if value.dtype == np.uint8 else zipfile.ZIP_DEFLATED
+            archive.writestr(info, buffer.getvalue())
+    tmp.replace(path)
+
+
+def _blob(chunks: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+    offsets = np.zeros(len(chunks) + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum([len(c) for c in chunks])
+    return np.frombuffer(b"".join(chunks), dtype=np.uint8), offsets
+
+
+def sequence_arrays(seqs: list[Sequence]) -> dict[str, np.ndarray]:
+    """The arrays of one shard (several sequences concatenated; ``*_start`` index them)."""
+    hmd_start = np.cumsum([0] + [len(s.track.t_us) for s in seqs])
+    cam_start = np.cumsum([0] + [len(s.frames.t_us) for s in seqs])
+    cat = np.concatenate
+    rgb, rgb_offsets = _blob([b for s in seqs for b in s.frames.rgb_jpeg])
+    depth, depth_offsets = _blob([b for s in seqs for b in s.frames.depth_png])
+    return {
+        "seq_name": np.array([s.name for s in seqs]),
+        "seq_source": np.array([s.motion.source for s in seqs]),
+        "bone_scale": np.stack([s.motion.bone_scale for s in seqs]).astype(np.float32),
+        "hmd_start": hmd_start.astype(np.int64),
+        "cam_start": cam_start.astype(np.int64),
+        "hmd_t_us": cat([s.track.t_us for s in seqs]),
+        "hmd_poses": cat([s.track.poses for s in seqs]).astype(np.float32),
+        "hmd_valid": cat([s.track.valid for s in seqs]),
+        "gt_local_quat": cat([matrix_to_quat_xyzw(s.track.local_rot) for s in seqs]).astype(np.float32),
+        "gt_root_m": cat([s.track.root_pos_m for s in seqs]).astype(np.float32),
+        "gt_joints_m": cat([s.track.joints_m for s in seqs]).astype(np.float32),
+        "cam_t_us": cat([s.frames.t_us for s in seqs]),
+        "cam_head_pose": cat([s.frames.head_pose for s in seqs]).astype(np.float32),
+        "rgb_jpeg": rgb,
+        "rgb_offsets": rgb_offsets,
+        "depth_png": depth,
+        "depth_offsets": depth_offsets,
+        "joints_cam_m": cat([s.frames.joints_cam_m for s in seqs]).astype(np.float32),
+        "joints_uv_px": cat([s.frames.joints_uv_px for s in seqs]).astype(np.float32),
+        "visible": cat([s.frames.visible for s in seqs]),
+        "occluded": cat([s.frames.occluded for s in seqs]),
+    }
+
+
+class DatasetWriter:
+    """Writes sequences into ``DIR/<split>/shard-NNNNN.npz`` files of about ``shard_frames`` camera frames."""
+
+    def __init__(self, out_dir: Path, split: str, shard_frames: int = 1500) -> None:
+        self.split_dir = Path(out_dir) / split
+        self.split_dir.mkdir(parents=True, exist_ok=True)
+        self.shard_frames = shard_frames
+        self._pending: list[Sequence] = []
+        self.shards: list[str] = []
+        self.counts = {"sequences": 0, "hmd_samples": 0, "camera_frames": 0}
+
+    def add(self, seq: Sequence) -> None:
+        self._pending.append(seq)
+        self.counts["sequences"] += 1
+        self.counts["hmd_samples"] += len(seq.track.t_us)
+        self.counts["camera_frames"] += len(seq.frames.t_us)
+        if sum(len(s.frames.t_us) for s in self._pending) >= self.shard_frames:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._pending:
+            return
+        name = f"shard-{len(self.shards):05d}.npz"
+        _zip_npz(self.split_dir / name, sequence_arrays(self._pending))
+        self.shards.append(name)
+        self._pending = []
+
+
+def load_shard(path: str | Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
+
+
+def iter_shard_sequences(shard: dict[str, np.ndarray]) -> Iterator[dict[str, Any]]:
+    """Per sequence views of a loaded shard: the same keys, sliced (images stay encoded)."""
+    for i, name in enumerate(shard["seq_name"]):
+        h0, h1 = shard["hmd_start"][i : i + 2]
+        c0, c1 = shard["cam_start"][i : i + 2]
+        out: dict[str, Any] = {
+            "name": str(name),
+            "source": str(shard["seq_source"][i]),
+            "bone_scale": shard["bone_scale"][i],
+        }
+        for key in ("hmd_t_us", "hmd_poses", "hmd_valid", "gt_local_quat", "gt_root_m", "gt_joints_m"):
+            out[key] = shard[key][h0:h1]
+        for key in ("cam_t_us", "cam_head_pose", "joints_cam_m", "joints_uv_px", "visible", "occluded"):
+            out[key] = shard[key][c0:c1]
+        rgb_o, depth_o = shard["rgb_offsets"], shard["depth_offsets"]
+        out["rgb_jpeg"] = [shard["rgb_jpeg"][rgb_o[k] : rgb_o[k + 1]].tobytes() for k in range(c0, c1)]
+        out["depth_png"] = [shard["depth_png"][depth_o[k] : depth_o[k + 1]].tobytes() for k in range(c0, c1)]
+        yield out
+
+
+def camera_manifest(cam: CameraModel) -> dict[str, Any]:
+    fx, fy, cx, cy = cam.intrinsics()
+    return {
+        "width": cam.width,
+        "height": cam.height,
+        "intrinsics": [fx, fy, cx, cy],
+        "hfov_deg": cam.hfov_deg,
+        "pitch_down_deg": cam.pitch_down_deg,
+        "cam_from_head": np.round(cam.cam_from_head(), 9).ravel().tolist(),
+        "depth_units": "uint16 millimetres, 0 = no reading",
+        "min_depth_m": cam.min_depth_m,
+        "max_depth_m": cam.max_depth_m,
+    }
+
+
+def update_manifest(out_dir: Path, split: str, entry: dict[str, Any]) -> Path:
+    """Merge one split's entry into ``DIR/manifest.json`` (other splits are kept)."""
+    path = Path(out_dir) / "manifest.json"
+    manifest = json.loads(path.read_text()) if path.exists() else {}
+    manifest.setdefault("format", "egoposevr-dataset")
+    manifest["version"] = FORMAT_VERSION
+    manifest.setdefault("splits", {})[split] = entry
+    path.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    return path
+
+
+# ---------------------------------------------------------------------------------- recorded sessions
+def smpl_truth(
+    local_rot: np.ndarray, root_m: np.ndarray, joints_m: np.ndarray, seq: int, t_us: int
+) -> dict[str, Any]:
+    global_orient, body_pose = local_rot_to_smpl(local_rot)
+    return {
+        "seq": seq,
+        "t_us": int(t_us),
+        "global_orient": global_orient.astype(np.float32).tolist(),
+        "body_pose": body_pose.astype(np.float32).tolist(),
+        "transl": root_m.astype(np.float32).tolist(),
+        "joints": joints_m.astype(np.float32).ravel().tolist(),
+    }
+
+
+def write_session(seq: Sequence, path: Path, cfg: SynthConfig) -> int:
+    """Write one sequence as an .egrec recording (hmd + rgbd messages, ground truth per hmd); -> bytes."""
+    cam = cfg.camera
+    track, frames = seq.track, seq.frames
+    start = int(min(track.t_us[0], frames.t_us[0]))
+    events: list[tuple[int, int, str, Any]] = []  # (send time, order, kind, payload)
+    for i in range(len(track.t_us)):
+        msg = Hmd(
+            seq=i,
+            t_us=int(track.t_us[i]),
+            head=track.poses[i, 0].astype(np.float32).tolist(),
+            left=track.poses[i, 1].astype(np.float32).tolist(),
+            right=track.poses[i, 2].astype(np.float32).tolist(),
+            valid=track.valid[i].tolist(),
+        )
+        sent = int(track.t_us[i]) - start + cfg.hmd_latency_us
+        events.append((sent, 0, "c2s", encode(msg)))
+        truth = smpl_truth(track.local_rot[i], track.root_pos_m[i], track.joints_m[i], i, track.t_us[i])
+        events.append((sent, 1, "gt", truth))
+    intrinsics = list(cam.intrinsics())
+    cam_from_head = cam.cam_from_head().ravel().tolist()
+    for k in range(len(frames.t_us)):
+        msg = Rgbd(
+            seq=k,
+            t_us=int(frames.t_us[k]),
+            width=cam.width,
+            height=cam.height,
+            intrinsics=intrinsics,
+            rgb=frames.rgb_jpeg[k],
+            depth=frames.depth_png[k],
+            cam_from_head=cam_from_head,
+        )
+        events.append((int(frames.t_us[k]) - start + cfg.camera_latency_us, 2, "c2s", encode(msg)))
+    events.sort(key=lambda e: (e[0], e[1]))
+    with EgrecWriter(
+        path,
+        session=seq.name,
+        created_by="egoposevr synth",
+        source=seq.motion.source,
+        licence=seq.motion.licence,
+        hmd_rate_hz=cfg.hmd_rate_hz,
+        camera_rate_hz=cfg.camera_rate_hz,
+        has_ground_truth=True,
+        camera=camera_manifest(cam),
+        bone_scale=seq.motion.bone_scale.astype(np.float32).tolist(),
+    ) as writer:
+        for sent, _, kind, payload in events:
+            writer.write(sent, kind, payload)
+    return path.stat().st_size
+
+
+# ------------------------------------------------------------------------------------------- preview
+def contact_sheet(seqs: list[dict[str, Any]], path: Path, tiles: int = 12, columns: int = 4) -> None:
+    """A PNG grid of RGB frames with their 2D labels (green: visible, red: occluded) and depth beside."""
+    picks = []
+    total = sum(len(s["rgb_jpeg"]) for s in seqs)
+    wanted = set(np.linspace(0, max(total - 1, 0), min(tiles, total)).astype(int).tolist())
+    index = 0
+    for s in seqs:
+        for k in range(len(s["rgb_jpeg"])):
+            if index in wanted:
+                picks.append((s, k))
+            index += 1
+    images = []
+    for s, k in picks:
+        bgr = cv2.imdecode(np.frombuffer(s["rgb_jpeg"][k], np.uint8), cv2.IMREAD_COLOR)
+        depth = cv2.imdecode(np.frombuffer(s["depth_png"][k], np.uint8), cv2.IMREAD_UNCHANGED)
+        colour = cv2.applyColorMap(np.clip(depth / 3000.0 * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+        colour[depth == 0] = 0
+        for (u, v), vis, occ in zip(s["joints_uv_px"][k], s["visible"][k], s["occluded"][k], strict=True):
+            if vis:
+                cv2.circle(bgr, (round(u), round(v)), 3, (0, 0, 255) if occ else (0, 255, 0), -1)
+        tile = np.concatenate([bgr, colour], axis=1)
+        cv2.putText(
+            tile, s["name"][:40], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA
+        )
+        images.append(tile)
+    if not images:
+        return
+    blank = np.zeros_like(images[0])
+    while len(images) % columns:
+        images.append(blank)
+    rows = [np.concatenate(images[i : i + columns], axis=1) for i in range(0, len(images), columns)]
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0))
