@@ -103,10 +103,11 @@ def _side(side: str) -> dict[str, JointSource]:
 
 
 # The CMU BVH conversion: Hips/LowerBack/Spine/Spine1/Neck/Neck1/Head and Left*/Right* limbs. The pelvis and
-# spine3 are hubs; the collars are points along the source shoulder bones. Measured over all 83 clips in
-# ../shared/mocap/cmu: mean FK error per joint 0.1-1.9 cm, median per-clip p99 <= 2.7 cm. What is left comes
-# from CMU's LowerBack and Neck pivots, which bend the spine where SMPL has no joint. Equal fit weights did
-# best: favouring the legs at the pelvis (weight 0.5 on spine1) cut hip error but raised spine1's to 3.5 cm.
+# spine3 are hubs; spine2 and the collars are points along source bones; the SMPL neck sits on CMU's neck
+# pivot, which is rigid with Spine1 like the shoulders, so spine3's children stay rigid. Measured over all 83
+# clips in ../shared/mocap/cmu: mean FK error per joint 0.0-1.9 cm (arms and head <= 0.8 cm), median
+# per-clip 99th percentile <= 2.7 cm. The rest comes from CMU's LowerBack, which bends the spine about the
+# hip centre where SMPL has no joint; weighting the legs at the pelvis fit traded hip error for spine error.
 CMU_MAPPING: Final = RigMapping(
     name="cmu",
     metres_per_unit=0.056444,
@@ -115,9 +116,9 @@ CMU_MAPPING: Final = RigMapping(
     joints={
         "pelvis": JointSource("Hips", "Hips", hub=True),
         "spine1": JointSource("Spine", "Spine"),
-        "spine2": JointSource("Spine1", "Spine1"),
+        "spine2": JointSource("Spine", "Spine", "Spine1", 0.5),
         "spine3": JointSource("Spine1", "Spine1", hub=True),
-        "neck": JointSource("Neck1", "Neck1"),
+        "neck": JointSource("Neck", "Neck1"),  # CMU's neck pivot, which is rigid with Spine1 like the collars
         "head": JointSource("Head", "Head"),
         **_side("left"),
         **_side("right"),
