@@ -1,0 +1,70 @@
+"""Procedural motion: every family is plausible (planted feet, floor contact, joint limits) and seeded."""
+
+import numpy as np
+import pytest
+
+from egoposevr.model.rotations import geodesic_angle, matrix_to_axis_angle
+from egoposevr.model.synth.motion import FOOT_JOINT_HEIGHT_M
+from egoposevr.model.synth.procedural import FAMILIES, generate
+
+REQUIRED = {"squat", "sit_to_stand", "kick", "high_knees", "lunge", "single_leg_stand", "side_step", "crouch_walk", "bend_pick_up", "jump"}
+FPS = 60.0
+# Largest rotation of a joint against its parent, degrees (knee and elbow bend further than anything else).
+LIMIT_DEG = {4: 150, 5: 150, 18: 150, 19: 150, 7: 55, 8: 55, 3: 40, 6: 40, 9: 40, 12: 45, 15: 45}
+
+
+def test_at_least_ten_families_including_what_captures_lack():
+    assert len(FAMILIES) >= 10 and REQUIRED <= set(FAMILIES)
+
+
+@pytest.fixture(scope="module", params=sorted(FAMILIES))
+def clip(request):
+    return request.param, generate(request.param, 6.0, FPS, np.random.default_rng(11))
+
+
+def test_feet_on_the_floor_do_not_slide(clip):
+    _, motion = clip
+    toes = motion.joints()[:, [10, 11]]
+    assert toes[..., 1].min() >= FOOT_JOINT_HEIGHT_M - 1e-6  # never through the floor
+    planted = toes[..., 1] < FOOT_JOINT_HEIGHT_M + 0.002
+    speed = np.linalg.norm(np.diff(toes[..., [0, 2]], axis=0), axis=-1) * FPS
+    both = planted[1:] & planted[:-1]
+    assert both.any(), "some foot must touch the floor"
+    assert np.percentile(speed[both], 99) < 0.05  # m/s
+
+
+def test_joint_angles_stay_within_human_limits(clip):
+    _, motion = clip
+    angle = np.degrees(geodesic_angle(motion.local_rot, np.eye(3)))
+    for joint, limit in LIMIT_DEG.items():
+        assert angle[:, joint].max() <= limit, (joint, angle[:, joint].max())
+    # knees only bend backwards: their rotation is about +x (SMPL's left), never a hyperextension
+    knees = matrix_to_axis_angle(motion.local_rot[:, [4, 5]])
+    bent = np.linalg.norm(knees, axis=-1) > np.deg2rad(10)
+    assert (knees[..., 0][bent] > 0).all()
+
+
+def test_the_head_stays_at_human_heights(clip):
+    _, motion = clip
+    head_y = motion.joints()[:, 15, 1]
+    assert 0.6 < head_y.min() and head_y.max() < 2.3
+
+
+def test_same_seed_same_motion_other_seed_other_motion():
+    a = generate("lunge", 3.0, FPS, np.random.default_rng(5))
+    b = generate("lunge", 3.0, FPS, np.random.default_rng(5))
+    c = generate("lunge", 3.0, FPS, np.random.default_rng(6))
+    assert np.array_equal(a.local_rot, b.local_rot) and np.array_equal(a.bone_scale, b.bone_scale)
+    assert not np.allclose(a.local_rot, c.local_rot)
+
+
+def test_arms_move_independently_of_the_legs():
+    """Two squats with the same legs can carry different arm programs: headset signals stay ambiguous."""
+    arms = [generate("squat", 4.0, FPS, np.random.default_rng(s)).local_rot[:, 18] for s in range(6)]
+    spread = np.std([np.degrees(geodesic_angle(a, np.eye(3))).mean() for a in arms])
+    assert spread > 5.0
+
+
+def test_unknown_family_is_refused():
+    with pytest.raises(ValueError, match="unknown procedural family"):
+        generate("moonwalk", 1.0, FPS, np.random.default_rng(0))
