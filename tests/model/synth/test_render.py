@@ -98,11 +98,12 @@ def test_depth_is_a_true_z_buffer_for_a_sphere():
     centre = depth[int(round(cy)), int(round(cx))]
     assert centre == pytest.approx(0.8, abs=0.01)  # the near sphere's front, whatever the order
     edge_u = int(round(cx + fx * 0.35 / 1.5))  # beside the near sphere, inside the far one
-    slope = (edge_u - cx) / fx  # the ray x = slope·z meets (slope·z)² + (z - 2)² = 0.5² at:
-    a, b, c = slope**2 + 1, -4.0, 4.0 - 0.25
+    row = int(round(cy))
+    sx, sy = (edge_u - cx) / fx, (row - cy) / fx  # the ray (sx·z, sy·z, z) meets the far sphere at:
+    a, b, c = sx**2 + sy**2 + 1, -4.0, 4.0 - 0.25
     expected_z = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
-    assert depth[int(round(cy)), edge_u] == pytest.approx(expected_z, abs=1e-4)
-    assert depth[0, 0] > 2.0  # a corner ray reaches the room
+    assert depth[row, edge_u] == pytest.approx(expected_z, abs=1e-4)
+    assert depth[0, 0] > 1.0  # a corner ray passes the spheres and meets the room
 
 
 def test_same_seed_same_bytes(small_config, small_renderer):
