@@ -114,6 +114,7 @@ def _header(unpacker: msgpack.Unpacker, path: str | Path) -> dict[str, Any]:
 
 def read_records(path: str | Path) -> Iterator[Record]:
     """Every record after the header, in file order. Raises :class:`EgrecError` at the first bad one."""
+    size = Path(path).stat().st_size
     with Path(path).open("rb") as file:
         unpacker = _unpacker(file)
         _header(unpacker, path)
@@ -122,6 +123,8 @@ def read_records(path: str | Path) -> Iterator[Record]:
             try:
                 item = next(unpacker)
             except StopIteration:
+                if unpacker.tell() < size:  # msgpack stops quietly at a cut record; say so
+                    raise EgrecError(f"{path}: truncated after record {index}") from None
                 return
             except (ValueError, msgpack.UnpackException) as error:
                 raise EgrecError(f"{path}: record {index} is corrupt ({error})") from None

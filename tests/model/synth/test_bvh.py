@@ -67,7 +67,11 @@ def write_bvh(frames: int = 240, seed: int = 0) -> str:
         lines.append(f"{pad}{'ROOT' if parent is None else 'JOINT'} {name}")
         lines.append(pad + "{")
         lines.append(f"{pad}\tOFFSET {offset[0]:.5f} {offset[1]:.5f} {offset[2]:.5f}")
-        chans = "6 Xposition Yposition Zposition Zrotation Yrotation Xrotation" if parent is None else "3 Zrotation Yrotation Xrotation"
+        chans = (
+            "6 Xposition Yposition Zposition Zrotation Yrotation Xrotation"
+            if parent is None
+            else "3 Zrotation Yrotation Xrotation"
+        )
         lines.append(f"{pad}\tCHANNELS {chans}")
         depth[name] = level
         for child in children[name]:
@@ -169,9 +173,18 @@ def test_motion_is_grounded_and_resampled(bvh_file):
         ("", "unexpected end of file"),
         ("HIERARCHI", "expected 'HIERARCHY'"),
         ("HIERARCHY ROOT Hips { OFFSET 0 0 x", "expected a number"),
-        ("HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 3 Xrotation Yrotation Zrotation } MOTION Frames: 2 Frame Time: 0.01 1 2 3", "need more"),
-        ("HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 1 Frame Time: 0.01 nan", "non-finite"),
-        ("HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 1 Frame Time: 0 1", "Frame Time"),
+        (
+            "HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 3 Xrotation Yrotation Zrotation } MOTION Frames: 2 Frame Time: 0.01 1 2 3",
+            "need more",
+        ),
+        (
+            "HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 1 Frame Time: 0.01 nan",
+            "non-finite",
+        ),
+        (
+            "HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 1 Frame Time: 0 1",
+            "Frame Time",
+        ),
     ],
 )
 def test_bad_bvh_gets_a_clear_error(text, needle):
@@ -181,7 +194,9 @@ def test_bad_bvh_gets_a_clear_error(text, needle):
 
 def test_rig_without_a_mapped_joint_is_refused(tmp_path):
     path = tmp_path / "tiny.bvh"
-    path.write_text("HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 2 Frame Time: 0.01 1 2\n")
+    path.write_text(
+        "HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 2 Frame Time: 0.01 1 2\n"
+    )
     with pytest.raises(BvhError, match="needs source joints"):
         load_bvh_motion(path)
 

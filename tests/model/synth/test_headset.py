@@ -8,7 +8,16 @@ from egoposevr.model.skeleton import forward_kinematics
 from egoposevr.model.synth.headset import CameraModel, HeadsetRig, device_poses, simulate_headset
 from egoposevr.model.synth.procedural import generate
 
-QUIET = HeadsetRig(head_noise_m=0, hand_noise_m=0, head_noise_deg=0, hand_noise_deg=0, drift_m=0, jitter_us=0, dropouts_per_min=0, behind_head_m=10.0)
+QUIET = HeadsetRig(
+    head_noise_m=0,
+    hand_noise_m=0,
+    head_noise_deg=0,
+    hand_noise_deg=0,
+    drift_m=0,
+    jitter_us=0,
+    dropouts_per_min=0,
+    behind_head_m=10.0,
+)
 
 
 @pytest.fixture(scope="module")

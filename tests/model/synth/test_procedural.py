@@ -7,14 +7,25 @@ from egoposevr.model.rotations import geodesic_angle, matrix_to_axis_angle
 from egoposevr.model.synth.motion import FOOT_JOINT_HEIGHT_M
 from egoposevr.model.synth.procedural import FAMILIES, generate
 
-REQUIRED = {"squat", "sit_to_stand", "kick", "high_knees", "lunge", "single_leg_stand", "side_step", "crouch_walk", "bend_pick_up", "jump"}
+REQUIRED = {
+    "squat",
+    "sit_to_stand",
+    "kick",
+    "high_knees",
+    "lunge",
+    "single_leg_stand",
+    "side_step",
+    "crouch_walk",
+    "bend_pick_up",
+    "jump",
+}
 FPS = 60.0
 # Largest rotation of a joint against its parent, degrees (knee and elbow bend further than anything else).
 LIMIT_DEG = {4: 150, 5: 150, 18: 150, 19: 150, 7: 55, 8: 55, 3: 40, 6: 40, 9: 40, 12: 45, 15: 45}
 
 
 def test_at_least_ten_families_including_what_captures_lack():
-    assert len(FAMILIES) >= 10 and REQUIRED <= set(FAMILIES)
+    assert len(FAMILIES) >= 10 and set(FAMILIES) >= REQUIRED
 
 
 @pytest.fixture(scope="module", params=sorted(FAMILIES))
@@ -47,7 +58,7 @@ def test_joint_angles_stay_within_human_limits(clip):
 def test_the_head_stays_at_human_heights(clip):
     _, motion = clip
     head_y = motion.joints()[:, 15, 1]
-    assert 0.6 < head_y.min() and head_y.max() < 2.3
+    assert head_y.min() > 0.6 and head_y.max() < 2.3
 
 
 def test_same_seed_same_motion_other_seed_other_motion():

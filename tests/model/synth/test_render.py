@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
+from egoposevr.model.rotations import axis_angle_to_matrix
 from egoposevr.model.skeleton import NUM_JOINTS, forward_kinematics
 from egoposevr.model.synth.headset import CameraModel, HeadsetRig, device_poses
 from egoposevr.model.synth.pipeline import SynthConfig, synthesize_sequence
 from egoposevr.model.synth.procedural import Body, generate
 from egoposevr.model.synth.render import JOINT_RADIUS_M, Renderer, body_capsules, random_appearance
-from egoposevr.model.rotations import axis_angle_to_matrix
 
 from .conftest import SMALL_CAMERA
 
@@ -72,7 +72,9 @@ def test_standing_and_looking_down_sees_the_feet():
     assert visible[[7, 8, 10, 11]].all(), visible
     look = random_appearance(np.random.default_rng(0), np.zeros(2))
     renderer = Renderer(cam)
-    _, depth = renderer.render_clean(cam.world_from_camera(head), body_capsules(joints[0], body.bone_scale, 1.0), look)
+    _, depth = renderer.render_clean(
+        cam.world_from_camera(head), body_capsules(joints[0], body.bone_scale, 1.0), look
+    )
     uv = np.round(cam.project(joints_cam)).astype(int)
     for j in (10, 11):  # the toes are seen at their own depth, not through something nearer
         assert depth[uv[j, 1], uv[j, 0]] == pytest.approx(joints_cam[j, 2], abs=JOINT_RADIUS_M[j] + 0.02)
@@ -95,10 +97,10 @@ def test_depth_is_a_true_z_buffer_for_a_sphere():
     far = np.array([[0.0, 1.5, -2.0, 0.0, 1.5, -2.0, 0.5, 1]])  # bigger one behind it
     _, depth = renderer.render_clean(world_from_cam, np.concatenate([far, near]), look)
     fx, _, cx, cy = cam.intrinsics()
-    centre = depth[int(round(cy)), int(round(cx))]
+    centre = depth[round(cy), round(cx)]
     assert centre == pytest.approx(0.8, abs=0.01)  # the near sphere's front, whatever the order
-    edge_u = int(round(cx + fx * 0.35 / 1.5))  # beside the near sphere, inside the far one
-    row = int(round(cy))
+    edge_u = round(cx + fx * 0.35 / 1.5)  # beside the near sphere, inside the far one
+    row = round(cy)
     sx, sy = (edge_u - cx) / fx, (row - cy) / fx  # the ray (sx·z, sy·z, z) meets the far sphere at:
     a, b, c = sx**2 + sy**2 + 1, -4.0, 4.0 - 0.25
     expected_z = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
