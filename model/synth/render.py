@@ -20,6 +20,7 @@ from typing import Final
 
 import numpy as np
 from numba import njit, prange
+from scipy.spatial.transform import Rotation
 
 from .headset import CameraModel
 
@@ -159,8 +160,6 @@ def body_capsules(
         scale = size if material in (0, 1) else float(np.mean(bone_scale[1:]))
         rows.append([*pa, *pb, radius * scale, material])
     if controllers is not None:
-        from scipy.spatial.transform import Rotation
-
         forward = Rotation.from_quat(controllers[:, 3:]).apply([0.0, 0.0, -1.0])
         for k in range(2):
             rows.append(
