@@ -285,18 +285,20 @@ def update_manifest(out_dir: Path, split: str, entry: dict[str, Any]) -> Path:
 
 
 # ---------------------------------------------------------------------------------- recorded sessions
-def smpl_truth(
-    local_rot: np.ndarray, root_m: np.ndarray, joints_m: np.ndarray, seq: int, t_us: int
-) -> dict[str, Any]:
-    global_orient, body_pose = local_rot_to_smpl(local_rot)
-    return {
-        "seq": seq,
-        "t_us": int(t_us),
-        "global_orient": global_orient.astype(np.float32).tolist(),
-        "body_pose": body_pose.astype(np.float32).tolist(),
-        "transl": root_m.astype(np.float32).tolist(),
-        "joints": joints_m.astype(np.float32).ravel().tolist(),
-    }
+def smpl_truths(track: HeadsetTrack) -> list[dict[str, Any]]:
+    """The ``gt`` record of every headset sample (one batched SMPL conversion for the whole track)."""
+    global_orient, body_pose = local_rot_to_smpl(track.local_rot)
+    return [
+        {
+            "seq": i,
+            "t_us": int(track.t_us[i]),
+            "global_orient": global_orient[i].astype(np.float32).tolist(),
+            "body_pose": body_pose[i].astype(np.float32).tolist(),
+            "transl": track.root_pos_m[i].astype(np.float32).tolist(),
+            "joints": track.joints_m[i].astype(np.float32).ravel().tolist(),
+        }
+        for i in range(len(track.t_us))
+    ]
 
 
 def write_session(seq: Sequence, path: Path, cfg: SynthConfig) -> int:
@@ -305,6 +307,7 @@ def write_session(seq: Sequence, path: Path, cfg: SynthConfig) -> int:
     track, frames = seq.track, seq.frames
     start = int(min(track.t_us[0], frames.t_us[0]))
     events: list[tuple[int, int, str, Any]] = []  # (send time, order, kind, payload)
+    truths = smpl_truths(track)
     for i in range(len(track.t_us)):
         msg = Hmd(
             seq=i,
@@ -316,8 +319,7 @@ def write_session(seq: Sequence, path: Path, cfg: SynthConfig) -> int:
         )
         sent = int(track.t_us[i]) - start + cfg.hmd_latency_us
         events.append((sent, 0, "c2s", encode(msg)))
-        truth = smpl_truth(track.local_rot[i], track.root_pos_m[i], track.joints_m[i], i, track.t_us[i])
-        events.append((sent, 1, "gt", truth))
+        events.append((sent, 1, "gt", truths[i]))
     intrinsics = list(cam.intrinsics())
     cam_from_head = cam.cam_from_head().ravel().tolist()
     for k in range(len(frames.t_us)):
