@@ -11,10 +11,16 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
-from . import decode_cmd, synth_cmd
+from . import decode_cmd, eval_cmd, export_cmd, synth_cmd, train_cmd
 
 # (name, module): each module has `add_arguments(parser)`, `run(args) -> int` and a docstring for --help.
-SUBCOMMANDS = (("decode", decode_cmd), ("synth", synth_cmd))
+SUBCOMMANDS = (
+    ("decode", decode_cmd),
+    ("synth", synth_cmd),
+    ("train", train_cmd),
+    ("export", export_cmd),
+    ("eval", eval_cmd),
+)
 
 
 def package_version() -> str:

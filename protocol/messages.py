@@ -185,6 +185,8 @@ class Pose(Message):
     ``global_orient`` (3) and ``body_pose`` (21×3) are SMPL axis-angle vectors (radians, local rotations in
     SMPL joint order 1..21); ``transl`` (3) is the pelvis joint's world position; ``joints`` (22×3) are world
     joint positions, flattened row-major; ``timing_us`` maps pipeline stage names to microseconds.
+    ``camera`` (optional): absent for models that read no camera; ``true`` if an RGB-D frame contributed,
+    ``false`` if the model had to run on the headset stream alone (no frame yet, or the camera went quiet).
     """
 
     TYPE: ClassVar[str] = "pose"
@@ -197,6 +199,7 @@ class Pose(Message):
     transl: vec(3)
     joints: vec(66)
     timing_us: Annotated[dict[Annotated[str, Strict(), Field(max_length=32)], TimeUs], Len(0, 32)]
+    camera: Annotated[bool, Strict()] | None = None
 
 
 class ModelInfo(BaseModel):

@@ -16,20 +16,18 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..rig import DEVICE_FROM_JOINT, HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GRIP_OFFSET_M
 from ..skeleton import HEAD, LEFT_WRIST, RIGHT_WRIST, forward_kinematics
 from .motion import Motion, sample_at
-
-# Device frame (x right, y up, -z forward) from the SMPL joint frame (x left, y up, +z forward).
-DEVICE_FROM_JOINT = Rotation.from_euler("y", 180, degrees=True).as_matrix()
 
 
 @dataclasses.dataclass(frozen=True)
 class HeadsetRig:
     """Where the devices sit on the body and how noisy their tracking is. Offsets are in the joint's frame."""
 
-    head_offset_m: tuple[float, float, float] = (0.0, 0.06, 0.11)
-    left_grip_offset_m: tuple[float, float, float] = (0.085, -0.015, 0.015)
-    right_grip_offset_m: tuple[float, float, float] = (-0.085, -0.015, 0.015)
+    head_offset_m: tuple[float, float, float] = HEAD_OFFSET_M
+    left_grip_offset_m: tuple[float, float, float] = LEFT_GRIP_OFFSET_M
+    right_grip_offset_m: tuple[float, float, float] = RIGHT_GRIP_OFFSET_M
     head_noise_m: float = 0.0005
     hand_noise_m: float = 0.0015
     head_noise_deg: float = 0.1

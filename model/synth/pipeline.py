@@ -13,7 +13,6 @@ import dataclasses
 import io
 import json
 import zipfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ import numpy as np
 
 from ...protocol import Hmd, Rgbd, encode
 from ...recordings.egrec import EgrecWriter
+from ..dataset import iter_shard_sequences, load_shard  # noqa: F401  (re-exported: the format's readers)
 from ..rotations import matrix_to_quat_xyzw
 from ..skeleton import forward_kinematics, local_rot_to_smpl
 from .headset import CameraModel, HeadsetRig, HeadsetTrack, device_poses, simulate_headset
@@ -231,31 +231,6 @@ class DatasetWriter:
         _zip_npz(self.split_dir / name, sequence_arrays(self._pending))
         self.shards.append(name)
         self._pending = []
-
-
-def load_shard(path: str | Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
-
-
-def iter_shard_sequences(shard: dict[str, np.ndarray]) -> Iterator[dict[str, Any]]:
-    """Per sequence views of a loaded shard: the same keys, sliced (images stay encoded)."""
-    for i, name in enumerate(shard["seq_name"]):
-        h0, h1 = shard["hmd_start"][i : i + 2]
-        c0, c1 = shard["cam_start"][i : i + 2]
-        out: dict[str, Any] = {
-            "name": str(name),
-            "source": str(shard["seq_source"][i]),
-            "bone_scale": shard["bone_scale"][i],
-        }
-        for key in ("hmd_t_us", "hmd_poses", "hmd_valid", "gt_local_quat", "gt_root_m", "gt_joints_m"):
-            out[key] = shard[key][h0:h1]
-        for key in ("cam_t_us", "cam_head_pose", "joints_cam_m", "joints_uv_px", "visible", "occluded"):
-            out[key] = shard[key][c0:c1]
-        rgb_o, depth_o = shard["rgb_offsets"], shard["depth_offsets"]
-        out["rgb_jpeg"] = [shard["rgb_jpeg"][rgb_o[k] : rgb_o[k + 1]].tobytes() for k in range(c0, c1)]
-        out["depth_png"] = [shard["depth_png"][depth_o[k] : depth_o[k + 1]].tobytes() for k in range(c0, c1)]
-        yield out
 
 
 def camera_manifest(cam: CameraModel) -> dict[str, Any]:

@@ -140,3 +140,13 @@ def test_error_message_names_the_field_and_the_value():
         decode(pack(as_map("hmd", left=[0.0, 1.0, 0.0, 0.0, 0.0, math.nan, 1.0])))
     assert "hmd.left.5" in info.value.message
     assert "nan" in info.value.message.lower()
+
+
+def test_pose_camera_flag_is_optional_and_round_trips():
+    from egoposevr.protocol import decode, encode
+    from egoposevr.protocol.examples import example_messages
+
+    pose = example_messages()["pose"]
+    assert pose.camera is None and b"camera" not in encode(pose)  # v1 bytes unchanged when absent
+    for flag in (True, False):
+        assert decode(encode(pose.model_copy(update={"camera": flag}))).camera is flag

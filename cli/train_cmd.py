@@ -1,0 +1,63 @@
+"""Train the model zoo: stage 1 the visual keypoint nets, stage 2 the fusion nets.
+
+Reads a dataset written by `egoposevr synth` (its `train` split) and writes checkpoints to --out:
+visual-rgb.pt, visual-rgbd.pt and fusion-<model>.pt. Models that share parts share checkpoints
+(`egoposevr` is `hmd-rgbd` + KPO). Checkpoints store their config; --resume continues where a run stopped.
+Then `egoposevr export` turns them into the ONNX models the runtime serves.
+
+Example (the bundled weights; MODEL_CARD.md has the full recipe):
+  egoposevr train --data data/dev --model all --out runs/cpu --preset cpu --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset root (with train/)")
+    parser.add_argument("--model", default="all", help="zoo names, comma-separated, or all (default)")
+    parser.add_argument("--out", type=Path, default=Path("runs/default"), metavar="DIR", help="checkpoints")
+    parser.add_argument("--preset", default="cpu", choices=("cpu", "gpu", "tiny"), help="default cpu")
+    parser.add_argument("--seed", type=int, default=None, help="overrides the preset's seed")
+    parser.add_argument("--visual-steps", type=int, default=None, metavar="N")
+    parser.add_argument("--fusion-steps", type=int, default=None, metavar="N")
+    parser.add_argument("--limit", type=int, default=None, metavar="N", help="use at most N train sequences")
+    parser.add_argument("--threads", type=int, default=None, metavar="N", help="torch threads")
+    parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..model.dataset import DatasetError
+    from ..model.train import PRESETS, train_zoo
+    from ..model.zoo import resolve
+
+    try:
+        names = resolve(args.model)
+    except ValueError as error:
+        print(f"egoposevr train: {error}", file=sys.stderr)
+        return 2
+    overrides = {
+        key: value
+        for key, value in (
+            ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
+            ("limit_sequences", args.limit), ("threads", args.threads),
+        )
+        if value is not None
+    }  # fmt: skip
+    config = dataclasses.replace(PRESETS[args.preset], **overrides)
+    started = time.perf_counter()
+    try:
+        paths = train_zoo(names, args.data, args.out, config, args.resume, not args.no_progress)
+    except DatasetError as error:
+        print(f"egoposevr train: {error}", file=sys.stderr)
+        return 2
+    for name, path in paths.items():
+        print(f"{name}: {path}")
+    print(f"trained in {time.perf_counter() - started:.0f} s")
+    return 0

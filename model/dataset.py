@@ -1,0 +1,85 @@
+"""Reading the synthesis engine's dataset (DATA.md): shards, splits, decoded frames. numpy + OpenCV only.
+
+A shard ``DIR/<split>/shard-NNNNN.npz`` holds several sequences concatenated; ``hmd_start`` / ``cam_start``
+index them. Shape legend: ``N`` headset samples, ``K`` camera frames, ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .inputs import decode_rgbd, resize_frame
+
+HMD_KEYS = ("hmd_t_us", "hmd_poses", "hmd_valid", "gt_local_quat", "gt_root_m", "gt_joints_m")
+CAMERA_KEYS = ("cam_t_us", "cam_head_pose", "joints_cam_m", "joints_uv_px", "visible", "occluded")
+
+
+class DatasetError(ValueError):
+    """A dataset folder or shard that cannot be read."""
+
+
+def load_shard(path: str | Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+        raise DatasetError(f"{path}: not a readable shard ({exc})") from exc
+
+
+def iter_shard_sequences(shard: dict[str, np.ndarray]) -> Iterator[dict[str, Any]]:
+    """Per sequence views of a loaded shard: the same keys, sliced (images stay encoded)."""
+    for i, name in enumerate(shard["seq_name"]):
+        h0, h1 = shard["hmd_start"][i : i + 2]
+        c0, c1 = shard["cam_start"][i : i + 2]
+        out: dict[str, Any] = {
+            "name": str(name),
+            "source": str(shard["seq_source"][i]),
+            "bone_scale": shard["bone_scale"][i],
+        }
+        for key in HMD_KEYS:
+            out[key] = shard[key][h0:h1]
+        for key in CAMERA_KEYS:
+            out[key] = shard[key][c0:c1]
+        rgb_o, depth_o = shard["rgb_offsets"], shard["depth_offsets"]
+        out["rgb_jpeg"] = [shard["rgb_jpeg"][rgb_o[k] : rgb_o[k + 1]].tobytes() for k in range(c0, c1)]
+        out["depth_png"] = [shard["depth_png"][depth_o[k] : depth_o[k + 1]].tobytes() for k in range(c0, c1)]
+        yield out
+
+
+def split_camera(data_dir: str | Path, split: str) -> dict[str, Any]:
+    """The split's camera entry from ``manifest.json``: width, height, intrinsics, cam_from_head (16)."""
+    path = Path(data_dir) / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+        return manifest["splits"][split]["camera"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise DatasetError(f"{path}: no camera entry for split {split!r} ({exc})") from exc
+
+
+def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> list[dict[str, Any]]:
+    """All sequences of a split (images still encoded), at most ``limit``."""
+    shards = sorted((Path(data_dir) / split).glob("shard-*.npz"))
+    if not shards:
+        raise DatasetError(f"no shards in {Path(data_dir) / split}")
+    seqs: list[dict[str, Any]] = []
+    for path in shards:
+        seqs += iter_shard_sequences(load_shard(path))
+        if limit is not None and len(seqs) >= limit:
+            return seqs[:limit]
+    return seqs
+
+
+def decode_frames(seq: dict[str, Any], size_wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A sequence's frames resized for the visual encoder: RGB (K, h, w, 3) uint8, depth (K, h, w) uint16."""
+    w, h = size_wh
+    rgb = np.empty((len(seq["rgb_jpeg"]), h, w, 3), np.uint8)
+    depth = np.empty((len(seq["rgb_jpeg"]), h, w), np.uint16)
+    for k, (jpeg, png) in enumerate(zip(seq["rgb_jpeg"], seq["depth_png"], strict=True)):
+        rgb[k], depth[k] = resize_frame(*decode_rgbd(jpeg, png), size_wh)
+    return rgb, depth

@@ -1,0 +1,164 @@
+"""Evaluation of the served runtime (DESIGN §6): what a client would receive, replayed over a dataset split.
+
+Each sequence is played through a fresh :class:`~egoposevr.model.runtime.Pipeline` in arrival order: a
+camera frame is pushed once it would have arrived (capture + ``CAMERA_LATENCY_US``), every headset sample
+asks for a pose. Metrics, per the paper's Tables 2-3:
+
+- MPJPE (cm): mean joint position error of the served world joints, no alignment; upper / lower body;
+- PA-MPJPE (cm): the same after a per-frame similarity Procrustes fit over all 22 joints;
+- MPJRE (deg): geodesic angle between served and true local rotations (row 0: pelvis global);
+- H-PE (cm): wrists' position error;  Jitter (m/s³): mean norm of the third time derivative of positions;
+- FPS: one stream, batch 1, a NEW RGB-D frame before every headset sample (decode + visual encoder
+  included), wall clock, median of ``FPS_REPEATS`` runs.
+
+Shape legend: ``N`` headset samples, ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .dataset import load_split, split_camera
+from .inputs import decode_rgbd
+from .rotations import geodesic_angle, quat_xyzw_to_matrix
+from .runtime import LoadedModel, Pipeline
+from .skeleton import LOWER_BODY, UPPER_BODY
+
+CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
+FPS_SAMPLES = 200
+FPS_REPEATS = 3
+METRIC_KEYS = (
+    "mpjpe_u_cm", "mpjpe_l_cm", "pa_mpjpe_u_cm", "pa_mpjpe_l_cm", "mpjre_u_deg", "mpjre_l_deg", "hpe_cm",
+    "jitter", "fps",
+)  # fmt: skip
+WRISTS = np.array([20, 21])
+
+
+def replay_sequence(
+    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence."""
+    pipeline.reset()
+    intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
+    uses_camera = pipeline.model.visual is not None
+    joints, rots, k = [], [], 0
+    for i, t_us in enumerate(seq["hmd_t_us"]):
+        while uses_camera and k < len(seq["cam_t_us"]) and seq["cam_t_us"][k] + CAMERA_LATENCY_US <= t_us:
+            rgb, depth = decode_rgbd(seq["rgb_jpeg"][k], seq["depth_png"][k])
+            pipeline.push_rgbd(int(seq["cam_t_us"][k]), rgb, depth, intrinsics, cam_from_head)
+            k += 1
+        pose = pipeline.push_hmd(int(t_us), seq["hmd_poses"][i], seq["hmd_valid"][i])
+        joints.append(pose.joints)
+        rots.append(pose.local_rot)
+    return np.array(joints), np.array(rots)
+
+
+def procrustes_aligned(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Per-frame similarity alignment of pred (N, J, 3) onto gt (N, J, 3) -> aligned pred (N, J, 3)."""
+    mu_p, mu_g = pred.mean(1, keepdims=True), gt.mean(1, keepdims=True)
+    p, g = pred - mu_p, gt - mu_g
+    u, s, vt = np.linalg.svd(np.swapaxes(p, 1, 2) @ g)  # (N, 3, 3)
+    d = np.sign(np.linalg.det(u @ vt))
+    s[:, -1] *= d
+    u[:, :, -1] *= d[:, None]
+    rot = u @ vt  # p @ rot ~ g
+    scale = s.sum(-1) / (p**2).sum((1, 2))
+    return scale[:, None, None] * p @ rot + mu_g
+
+
+def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Per-sample, per-joint errors of one sequence: position (N, J) m, aligned (N, J) m, rotation (N, J) deg,
+    and the jitter of the served joints (N-3,) m/s³."""
+    gt = seq["gt_joints_m"].astype(np.float64)
+    gt_rot = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))
+    dt_s = np.diff(seq["hmd_t_us"]).mean() * 1e-6 if len(joints) > 1 else 1.0
+    third = np.diff(joints, n=3, axis=0) / dt_s**3 if len(joints) > 3 else np.zeros((0, joints.shape[1], 3))
+    return {
+        "pos": np.linalg.norm(joints - gt, axis=-1),
+        "pa": np.linalg.norm(procrustes_aligned(joints, gt) - gt, axis=-1),
+        "rot": np.degrees(geodesic_angle(rots, gt_rot)),
+        "jitter": np.linalg.norm(third, axis=-1).mean(-1),
+    }
+
+
+def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
+    """Pool per-sample errors over sequences -> the metric dict (without fps)."""
+    pos = np.concatenate([e["pos"] for e in errors])
+    pa = np.concatenate([e["pa"] for e in errors])
+    rot = np.concatenate([e["rot"] for e in errors])
+    jitter = np.concatenate([e["jitter"] for e in errors])
+    return {
+        "mpjpe_u_cm": 100 * float(pos[:, UPPER_BODY].mean()),
+        "mpjpe_l_cm": 100 * float(pos[:, LOWER_BODY].mean()),
+        "pa_mpjpe_u_cm": 100 * float(pa[:, UPPER_BODY].mean()),
+        "pa_mpjpe_l_cm": 100 * float(pa[:, LOWER_BODY].mean()),
+        "mpjre_u_deg": float(rot[:, UPPER_BODY].mean()),
+        "mpjre_l_deg": float(rot[:, LOWER_BODY].mean()),
+        "hpe_cm": 100 * float(pos[:, WRISTS].mean()),
+        "jitter": float(jitter.mean()) if len(jitter) else 0.0,
+    }
+
+
+def measure_fps(
+    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any], samples: int = FPS_SAMPLES
+) -> float:
+    """Headset samples per second with a new RGB-D frame decoded and pushed before each one (median run)."""
+    n = min(samples, len(seq["hmd_t_us"]))
+    frames = len(seq["rgb_jpeg"])
+    rates = []
+    for _ in range(FPS_REPEATS):
+        pipeline.reset()
+        started = time.perf_counter()
+        for i in range(n):
+            t_us = int(seq["hmd_t_us"][i])
+            if pipeline.model.visual is not None and frames:
+                rgb, depth = decode_rgbd(seq["rgb_jpeg"][i % frames], seq["depth_png"][i % frames])
+                pipeline.push_rgbd(t_us - 1, rgb, depth, camera["intrinsics"])
+            pipeline.push_hmd(t_us, seq["hmd_poses"][i], seq["hmd_valid"][i])
+        rates.append(n / (time.perf_counter() - started))
+    return statistics.median(rates)
+
+
+def evaluate(
+    data_dir: Path,
+    split: str,
+    models: dict[str, Path],
+    limit: int | None = None,
+    on_sequence: Callable[[str, int, int], None] | None = None,
+) -> dict[str, dict[str, float]]:
+    """{model name: metrics} over a split for each model file given as {name: path}."""
+    seqs = load_split(data_dir, split, limit)
+    camera = split_camera(data_dir, split)
+    shared: dict[Path, Any] = {}
+    results = {}
+    for name, path in models.items():
+        pipeline = Pipeline(LoadedModel.load(path, shared=shared))
+        errors = []
+        for i, seq in enumerate(seqs):
+            errors.append(sequence_errors(*replay_sequence(pipeline, seq, camera), seq))
+            if on_sequence:
+                on_sequence(name, i + 1, len(seqs))
+        results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0], camera)}
+    return results
+
+
+def markdown_table(results: dict[str, dict[str, float]]) -> str:
+    """The paper's Tables 2-3 shape: one row per model."""
+    head = (
+        "| model | MPJPE-U cm | MPJPE-L cm | PA-MPJPE-U cm | PA-MPJPE-L cm | MPJRE-U ° | MPJRE-L ° | H-PE cm "
+        "| Jitter m/s³ | FPS |"
+    )
+    rows = [head, "|" + "---|" * 10]
+    for name, m in results.items():
+        rows.append(
+            f"| {name} | {m['mpjpe_u_cm']:.2f} | {m['mpjpe_l_cm']:.2f} | {m['pa_mpjpe_u_cm']:.2f} | "
+            f"{m['pa_mpjpe_l_cm']:.2f} | {m['mpjre_u_deg']:.2f} | {m['mpjre_l_deg']:.2f} | {m['hpe_cm']:.2f} | "
+            f"{m['jitter']:.1f} | {m['fps']:.0f} |"
+        )
+    return "\n".join(rows)

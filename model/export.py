@@ -1,0 +1,142 @@
+"""Export trained checkpoints to the ONNX files the runtime serves (torch + onnx; training side only).
+
+Per zoo entry one **model file** ``<name>.onnx`` (the fusion net over the windows) and, shared by every model
+of a modality, one **visual encoder** ``visual-<rgb|rgbd>.onnx`` (per frame, dynamic batch). Each graph
+carries what the runtime needs in its metadata (``egoposevr.*`` keys: kind, name, config, joint order, units,
+its visual encoder's file, KPO, training record), so a models folder is self-describing. Every export is
+checked against torch on random inputs: the graphs must agree within ``PARITY_TOL``.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+
+from .hmd import FEATURE_DIM
+from .inputs import VISUAL_TOKEN_DIM
+from .rig import DEFAULT_OFFSETS_M
+from .skeleton import JOINT_NAMES
+from .train import build_net, load_checkpoint
+from .zoo import ZOO
+
+FORMAT_VERSION = "1"
+PARITY_TOL = 1e-4
+OPSET = 18
+
+
+class _VisualOutputs(torch.nn.Module):
+    """The served outputs of the keypoint net: uv (B, J, 2), depth_m (B, J), zeta (B, J)."""
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        uv, depth_m, zeta, _ = self.net(image)
+        return uv, depth_m, zeta
+
+
+def _export(
+    module: torch.nn.Module, args: tuple, path: Path, names: tuple[list[str], list[str]], dynamic: dict
+) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exporter's own deprecation chatter is not ours to fix
+        program = torch.onnx.export(
+            module, args, dynamo=True, input_names=names[0], output_names=names[1], dynamic_shapes=dynamic,
+            opset_version=OPSET, external_data=False, verbose=False,
+        )  # fmt: skip
+    program.save(str(path))
+
+
+def _set_metadata(path: Path, meta: dict[str, Any]) -> None:
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for key, value in meta.items():
+        prop = model.metadata_props.add()
+        prop.key = f"egoposevr.{key}"
+        prop.value = value if isinstance(value, str) else json.dumps(value, sort_keys=True)
+    onnx.save(model, str(path))
+
+
+def _parity(module: torch.nn.Module, path: Path, inputs: dict[str, np.ndarray]) -> float:
+    """Largest |torch - onnxruntime| over all outputs."""
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = session.run(None, inputs)
+    with torch.no_grad():
+        want = module(*(torch.from_numpy(v) for v in inputs.values()))
+    want = want if isinstance(want, tuple) else (want,)
+    return max(float(np.abs(g - w.numpy()).max()) for g, w in zip(got, want, strict=True))
+
+
+def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "data": ckpt.get("data"),
+        "steps": ckpt["step"],
+        "seed": ckpt["train_config"]["seed"],
+        "train_seconds": round(ckpt["train_seconds"], 1),
+        "final_losses": ckpt["history"][-1] if ckpt["history"] else {},
+    }
+
+
+def export_visual(ckpt_path: Path, out_path: Path) -> float:
+    """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error."""
+    ckpt = load_checkpoint(ckpt_path)
+    module = _VisualOutputs(build_net(ckpt)).eval()
+    cfg = module.net.cfg
+    example = torch.zeros(2, cfg.channels, cfg.height, cfg.width)
+    batch = torch.export.Dim("batch", min=1, max=64)
+    _export(module, (example,), out_path, (["image"], ["uv", "depth_m", "zeta"]), {"image": {0: batch}})
+    _set_metadata(out_path, {
+        "format": FORMAT_VERSION, "kind": "visual", "name": ckpt["name"], "config": ckpt["config"],
+        "joint_names": list(JOINT_NAMES), "camera": ckpt["camera"], "training": _training_record(ckpt),
+        "units": "image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
+                 "depth_m metres along the optical axis; zeta probability in view",
+    })  # fmt: skip
+    rng = np.random.default_rng(0)
+    image = rng.uniform(-0.5, 0.5, (3, cfg.channels, cfg.height, cfg.width)).astype(np.float32)
+    return _parity(module, out_path, {"image": image})
+
+
+def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
+    """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net); returns the parity error."""
+    entry = ZOO[name]
+    ckpt = load_checkpoint(runs_dir / f"fusion-{entry.fusion_name}.pt")
+    net = build_net(ckpt)
+    cfg = net.cfg
+    rng = np.random.default_rng(0)
+    inputs = {"hmd": rng.normal(size=(1, cfg.window, FEATURE_DIM)).astype(np.float32)}
+    if cfg.uses_camera:
+        inputs["visual"] = rng.normal(size=(1, cfg.visual_window, VISUAL_TOKEN_DIM)).astype(np.float32)
+    example = tuple(torch.from_numpy(v) for v in inputs.values())
+    _export(net, example, out_path, (list(inputs), ["rot6d"]), None)
+    _set_metadata(out_path, {
+        "format": FORMAT_VERSION, "kind": "model", "name": name, "description": entry.description,
+        "inputs": entry.inputs, "config": ckpt["config"], "kpo": "true" if entry.kpo else "false",
+        "visual_encoder": f"visual-{entry.visual}.onnx" if entry.visual else "",
+        "joint_names": list(JOINT_NAMES), "rig_offsets_m": DEFAULT_OFFSETS_M.tolist(),
+        "training": _training_record(ckpt),
+        "units": "hmd: 72-d features (model/hmd.py) in the heading frame; visual: tokens (model/inputs.py); "
+                 "rot6d (1, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
+                 "rows 1.. local rotations",
+    })  # fmt: skip
+    return _parity(net, out_path, inputs)
+
+
+def export_zoo(names: list[str], runs_dir: Path, out_dir: Path) -> dict[str, float]:
+    """Every named model and the visual encoders they use -> out_dir; {file name: parity error}."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    errors: dict[str, float] = {}
+    for kind in sorted({ZOO[n].visual for n in names if ZOO[n].visual}):
+        errors[f"visual-{kind}.onnx"] = export_visual(
+            runs_dir / f"visual-{kind}.pt", out_dir / f"visual-{kind}.onnx"
+        )
+    for name in names:
+        errors[f"{name}.onnx"] = export_model(name, runs_dir, out_dir / f"{name}.onnx")
+    return errors

@@ -1,0 +1,193 @@
+"""Kinematic pose optimisation (paper §3.4, Eqs. 9-10) and the rotations that reproduce its result.
+
+Energy over the 22 joint positions p (66 unknowns), given the network's joints p~ and the tracked targets q:
+
+    E_A = Σ_{k∈O} λa |p_k - q_k|² + Σ_{k∉O} λs |p_k - p~_k|²                    (align, stay)
+    E_S = Σ_links λl (|p_c - p_par| - |p~_c - p~_par|)² + λd |(p_c - p_par) - (p~_c - p~_par)|²
+
+O is the set of tracked joints that are valid now (head, and each wrist whose controller is tracked). Every
+term but the bone length is linear, so Gauss-Newton converges in a few steps: each is one 66×66 solve.
+
+The paper stops at positions; avatars animate with rotations. :func:`rederive_rotations` walks the tree from
+the pelvis and turns each joint by the smallest rotation that points its bones at the refined children
+(Kabsch where a joint has several), keeping the predicted twist, so FK of the result reproduces the refined
+joints up to the small bone-length changes KPO allows.
+
+Shape legend: ``J`` = 22 joints, ``L`` = 27 links (21 bones + 6 sibling pairs, see LINKS).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Final
+
+import numpy as np
+
+from .skeleton import NUM_JOINTS, PARENTS
+
+CHILDREN: Final = tuple(tuple(int(c) for c in np.flatnonzero(j == PARENTS)) for j in range(NUM_JOINTS))
+# Links (child, parent): the 21 bones, plus the pairs of siblings under a multi-child joint (hips and spine1
+# under the pelvis; neck and collars under spine3). Those triangles are rigid in the skeleton; holding them
+# lets a rotation at the shared parent reproduce all children at once.
+_SIBLINGS: Final = tuple(
+    (a, b) for kids in (c for c in CHILDREN if len(c) > 1) for i, a in enumerate(kids) for b in kids[i + 1 :]
+)
+LINKS: Final = tuple((c, int(PARENTS[c])) for c in range(1, NUM_JOINTS)) + _SIBLINGS
+# Incidence (L, J): link vectors = INCIDENCE @ positions.
+INCIDENCE: Final = np.zeros((len(LINKS), NUM_JOINTS))
+INCIDENCE[np.arange(len(LINKS)), [a for a, _ in LINKS]] = 1.0
+INCIDENCE[np.arange(len(LINKS)), [b for _, b in LINKS]] = -1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class KpoWeights:
+    align: float = 100.0  # λa: tracked joints onto their devices
+    stay: float = 1.0  # λs: untracked joints near the prediction
+    length: float = 1000.0  # λl: bone lengths (stiff: FK with fixed bones must reproduce the result)
+    direction: float = 1.0  # λd: bone vectors
+    iterations: int = 5
+
+
+def kpo_energy(
+    p: np.ndarray, p_pred: np.ndarray, targets: np.ndarray, observed: np.ndarray, w: KpoWeights
+) -> float:
+    """E_A + E_S for positions p (J, 3); targets (J, 3) are read only where observed (J,) is True."""
+    anchor = np.where(observed[:, None], targets, p_pred)
+    weight = np.where(observed, w.align, w.stay)
+    e_a = float((weight * ((p - anchor) ** 2).sum(-1)).sum())
+    bones, bones_pred = INCIDENCE @ p, INCIDENCE @ p_pred
+    lengths = np.linalg.norm(bones, axis=-1) - np.linalg.norm(bones_pred, axis=-1)
+    e_s = w.length * float((lengths**2).sum()) + w.direction * float(((bones - bones_pred) ** 2).sum())
+    return e_a + e_s
+
+
+def solve_kpo(
+    p_pred: np.ndarray, targets: np.ndarray, observed: np.ndarray, w: KpoWeights = KpoWeights()
+) -> np.ndarray:
+    """Minimise E_A + E_S from p = p_pred. p_pred, targets (J, 3); observed (J,) bool -> p (J, 3).
+
+    Newton with Levenberg-Marquardt damping: a step is kept only if it lowers the energy (plain
+    Gauss-Newton overshoots on the stiff bone-length term and can climb).
+    """
+    p_pred = np.asarray(p_pred, dtype=np.float64)
+    anchor = np.where(observed[:, None], targets, p_pred)
+    weight = np.where(observed, w.align, w.stay)
+    links_pred = INCIDENCE @ p_pred
+    lengths_pred = np.linalg.norm(links_pred, axis=-1)
+    # The linear terms' Hessian is the same for x, y and z: (J, J) ⊗ I3.
+    h_linear = np.kron(np.diag(weight) + w.direction * INCIDENCE.T @ INCIDENCE, np.eye(3))
+
+    def energy(p: np.ndarray) -> float:
+        lengths = np.linalg.norm(INCIDENCE @ p, axis=-1)
+        return float(
+            (weight * ((p - anchor) ** 2).sum(-1)).sum()
+            + w.length * ((lengths - lengths_pred) ** 2).sum()
+            + w.direction * ((INCIDENCE @ p - links_pred) ** 2).sum()
+        )
+
+    p, e, damping = p_pred.copy(), energy(p_pred), 1e-4
+    for _ in range(w.iterations):
+        links = INCIDENCE @ p
+        lengths = np.linalg.norm(links, axis=-1)
+        unit = links / np.maximum(lengths, 1e-9)[:, None]
+        residual = lengths - lengths_pred
+        grad = weight[:, None] * (p - anchor) + w.direction * INCIDENCE.T @ (links - links_pred)
+        grad = grad + w.length * INCIDENCE.T @ (residual[:, None] * unit)
+        # Exact Hessian of ½ r² per link: u uᵀ + (r / |d|)(I - u uᵀ). Gauss-Newton's u uᵀ alone converges
+        # only linearly here, because the stiff length term is curved wherever bones turn.
+        outer = unit[:, :, None] * unit[:, None, :]
+        blocks = outer + (residual / np.maximum(lengths, 1e-9))[:, None, None] * (np.eye(3) - outer)
+        hess = h_linear + w.length * _link_hessian(blocks)
+        grad = grad.ravel()
+        while damping < 1e6:
+            step = np.linalg.solve(hess + damping * np.diag(np.diag(hess)), grad).reshape(NUM_JOINTS, 3)
+            e_new = energy(p - step)
+            if e_new < e:
+                p, e, damping = p - step, e_new, damping / 4
+                break
+            damping *= 8
+        else:
+            break  # no step lowers the energy: converged
+    return p
+
+
+_LINK_A: Final = np.array([a for a, _ in LINKS])
+_LINK_B: Final = np.array([b for _, b in LINKS])
+
+
+def _link_hessian(blocks: np.ndarray) -> np.ndarray:
+    """Σ_links (e eᵀ) ⊗ B for per-link blocks (L, 3, 3), e the link's incidence row -> (3J, 3J)."""
+    h = np.zeros((NUM_JOINTS, NUM_JOINTS, 3, 3))
+    np.add.at(h, (_LINK_A, _LINK_A), blocks)
+    np.add.at(h, (_LINK_B, _LINK_B), blocks)
+    np.add.at(h, (_LINK_A, _LINK_B), -blocks)
+    np.add.at(h, (_LINK_B, _LINK_A), -blocks)
+    return h.transpose(0, 2, 1, 3).reshape(3 * NUM_JOINTS, 3 * NUM_JOINTS)
+
+
+def _swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotations (n, 3, 3) turning directions a (n, 3) onto b (n, 3)."""
+    a = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis, axis=-1)
+    c = (a * b).sum(-1)
+    # Opposite directions: half a turn about an axis perpendicular to a.
+    helper = np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    k = np.where((s < 1e-9)[:, None], np.cross(a, helper), axis)
+    k = k / np.maximum(np.linalg.norm(k, axis=-1, keepdims=True), 1e-12)
+    s = np.where((s < 1e-9) & (c < 0), 0.0, s)
+    kx = np.zeros((len(a), 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    kx[:, 1, 0], kx[:, 2, 0], kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    return np.eye(3) + s[:, None, None] * kx + (1 - c)[:, None, None] * kx @ kx
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) best turning the rows of a (n, 3) onto the rows of b (n, 3), least squares."""
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
+def _levels() -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, ...]], ...]:
+    """Per tree depth: (single-child joints, their child, their parent, multi-child joints)."""
+    depth = np.zeros(NUM_JOINTS, dtype=int)
+    for j in range(1, NUM_JOINTS):
+        depth[j] = depth[PARENTS[j]] + 1
+    out = []
+    for d in range(depth.max() + 1):
+        joints = np.flatnonzero(depth == d)
+        single = np.array([j for j in joints if len(CHILDREN[j]) == 1], dtype=int)
+        child = np.array([CHILDREN[j][0] for j in single], dtype=int)
+        multi = tuple(int(j) for j in joints if len(CHILDREN[j]) > 1)
+        out.append((joints, single, child, multi))
+    return tuple(out)
+
+
+# Joints grouped by depth: one batched swing per level instead of one small call per joint.
+_LEVELS: Final = _levels()
+
+
+def rederive_rotations(local_pred: np.ndarray, joints: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Local rotations (J, 3, 3) whose FK from joints[0] with ``offsets`` (J, 3) reproduces ``joints`` (J, 3).
+
+    local_pred (J, 3, 3): the predicted local rotations (row 0 the pelvis' global rotation). Each joint keeps
+    its predicted rotation relative to its corrected parent, then swings to point at its children (Kabsch
+    where it has several); leaves (head, wrists, feet) keep their predicted local rotation.
+    """
+    local_pred = np.asarray(local_pred, dtype=np.float64)
+    glob = np.empty_like(local_pred)
+    parents = np.where(PARENTS < 0, 0, PARENTS)
+    for level, (members, single, child, multi) in enumerate(_LEVELS):
+        parent_rot = glob[parents[members]] if level else np.eye(3)[None]
+        glob[members] = parent_rot @ local_pred[members]  # predicted, under the corrected parents
+        if len(single):
+            have = np.einsum("nij,nj->ni", glob[single], offsets[child])
+            glob[single] = _swing(have, joints[child] - joints[single]) @ glob[single]
+        for j in multi:
+            kids = list(CHILDREN[j])
+            glob[j] = _kabsch(offsets[kids] @ glob[j].T, joints[kids] - joints[j]) @ glob[j]
+    local = np.swapaxes(glob[parents], -1, -2) @ glob
+    local[0] = glob[0]
+    return local

@@ -1,0 +1,169 @@
+"""The fusion net (paper §3.3, Eqs. 3-6): one spatiotemporal encoder per stream, cross-attention, two heads.
+
+    M_t = T_j(F([T_f(E_l(X))]_t) + e_j)          HMD stream, X (T, 72)
+    N_t = T_j'(F'([T_f'(E_l'(Z~))]_t) + e_j')     visual stream, Z~ (Tv, 90): keypoints + confidence per frame
+    M~_t = CrossAttn(M_t, N_t)                   HMD queries, visual keys and values
+    pelvis 6D = T_g(M~_t[pelvis]),  local 6D = T_l(M~_t[1:])
+
+``fusion = "none"`` is the HMD-only model, ``"concat"`` the ablation that concatenates per-joint features
+instead of attending. Inputs are normalised by statistics stored in the net (buffers set from the training
+data), so the exported graph takes raw features. Attention is written out (matmul + softmax) so that the
+graph exports to plain ONNX operators.
+
+Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 joints, ``S`` per-joint width.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..hmd import FEATURE_DIM
+from ..inputs import VISUAL_TOKEN_DIM
+
+
+@dataclasses.dataclass(frozen=True)
+class FusionConfig:
+    window: int = 40  # T: HMD samples
+    visual_window: int = 8  # Tv: camera frames (1: single-frame model); ignored when fusion == "none"
+    fusion: str = "cross"  # "cross" | "concat" | "none"
+    d_model: int = 64  # frame-wise transformer width
+    joint_dim: int = 32  # S
+    heads: int = 4
+    frame_layers: int = 2
+    joint_layers: int = 2
+    dropout: float = 0.1
+    joints: int = 22
+
+    def __post_init__(self) -> None:
+        if self.fusion not in ("cross", "concat", "none"):
+            raise ValueError(f"fusion must be cross, concat or none, got {self.fusion!r}")
+
+    @property
+    def uses_camera(self) -> bool:
+        return self.fusion != "none"
+
+
+class Attention(nn.Module):
+    """Multi-head attention: queries (B, Lq, D), keys/values (B, Lk, D) -> (B, Lq, D)."""
+
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.q, self.k, self.v, self.out = (nn.Linear(dim, dim) for _ in range(4))
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        B, Lq, D = x.shape
+        Lk, hs = context.shape[1], D // self.heads
+        q = self.q(x).view(B, Lq, self.heads, hs).transpose(1, 2)  # (B, nh, Lq, hs)
+        k = self.k(context).view(B, Lk, self.heads, hs).transpose(1, 2)
+        v = self.v(context).view(B, Lk, self.heads, hs).transpose(1, 2)
+        att = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(hs), dim=-1)  # (B, nh, Lq, Lk)
+        return self.out((att @ v).transpose(1, 2).reshape(B, Lq, D))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block; with ``context`` its attention is cross-attention."""
+
+    def __init__(self, dim: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        self.norm1, self.norm2 = nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.attn = Attention(dim, heads)
+        self.mlp = nn.Sequential(nn.Linear(dim, 2 * dim), nn.GELU(), nn.Linear(2 * dim, dim))
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+        h = self.norm1(x)
+        x = x + self.drop(self.attn(h, h if context is None else context))
+        return x + self.drop(self.mlp(self.norm2(x)))
+
+
+class StreamEncoder(nn.Module):
+    """Eq. 3: E_l -> T_f over frames -> last token -> F (MLP to J×S) -> + e_j -> T_j over joints.
+
+    x (B, L, in_dim) -> (B, J, S).
+    """
+
+    def __init__(self, in_dim: int, length: int, cfg: FusionConfig) -> None:
+        super().__init__()
+        self.register_buffer("input_mean", torch.zeros(in_dim))
+        self.register_buffer("input_std", torch.ones(in_dim))
+        self.embed = nn.Linear(in_dim, cfg.d_model)  # E_l
+        self.frame_position = nn.Parameter(torch.zeros(length, cfg.d_model))
+        self.frame_encoder = nn.ModuleList(
+            Block(cfg.d_model, cfg.heads, cfg.dropout) for _ in range(cfg.frame_layers)
+        )  # T_f
+        self.frame_norm = nn.LayerNorm(cfg.d_model)
+        self.to_joints = nn.Sequential(
+            nn.Linear(cfg.d_model, cfg.d_model * 2),
+            nn.GELU(),
+            nn.Linear(cfg.d_model * 2, cfg.joints * cfg.joint_dim),
+        )  # F
+        self.joint_embedding = nn.Parameter(torch.randn(cfg.joints, cfg.joint_dim) * 0.02)  # e_j
+        self.joint_encoder = nn.ModuleList(
+            Block(cfg.joint_dim, cfg.heads, cfg.dropout) for _ in range(cfg.joint_layers)
+        )  # T_j
+        self.joints, self.joint_dim = cfg.joints, cfg.joint_dim
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.embed((x - self.input_mean) / self.input_std) + self.frame_position  # (B, L, d)
+        for block in self.frame_encoder:
+            x = block(x)
+        last = self.frame_norm(x[:, -1])  # (B, d): the current frame's token
+        j = self.to_joints(last).view(-1, self.joints, self.joint_dim) + self.joint_embedding  # (B, J, S)
+        for block in self.joint_encoder:
+            j = block(j)
+        return j
+
+
+class FusionNet(nn.Module):
+    """hmd (B, T, 72) [, visual (B, Tv, 90)] -> 6D rotations (B, J, 6): row 0 the pelvis in the heading
+    frame, rows 1.. local rotations."""
+
+    def __init__(self, cfg: FusionConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        S = cfg.joint_dim
+        self.hmd_stream = StreamEncoder(FEATURE_DIM, cfg.window, cfg)
+        if cfg.uses_camera:
+            self.visual_stream = StreamEncoder(VISUAL_TOKEN_DIM, cfg.visual_window, cfg)
+        if cfg.fusion == "cross":
+            self.cross = Block(S, cfg.heads, cfg.dropout)
+        elif cfg.fusion == "concat":
+            self.concat = nn.Sequential(nn.Linear(2 * S, 2 * S), nn.GELU(), nn.Linear(2 * S, S))
+        self.pelvis_head = nn.Sequential(
+            nn.LayerNorm(S), nn.Linear(S, 64), nn.GELU(), nn.Linear(64, 6)
+        )  # T_g
+        self.local_head = nn.Sequential(nn.LayerNorm(S), nn.Linear(S, 64), nn.GELU(), nn.Linear(64, 6))  # T_l
+        # Start at the identity rotation: 6D (1, 0, 0, 0, 1, 0).
+        for head in (self.pelvis_head, self.local_head):
+            nn.init.zeros_(head[-1].weight)
+            with torch.no_grad():
+                head[-1].bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+
+    def forward(self, hmd: torch.Tensor, visual: torch.Tensor | None = None) -> torch.Tensor:
+        m = self.hmd_stream(hmd)  # (B, J, S)
+        if self.cfg.fusion == "cross":
+            m = self.cross(m, self.visual_stream(visual))
+        elif self.cfg.fusion == "concat":
+            m = m + self.concat(torch.cat([m, self.visual_stream(visual)], dim=-1))
+        return torch.cat([self.pelvis_head(m[:, :1]), self.local_head(m[:, 1:])], dim=1)
+
+
+def set_input_statistics(encoder: StreamEncoder, samples: torch.Tensor) -> None:
+    """Normalisation from training samples (N, in_dim): mean and std per feature (std floored)."""
+    with torch.no_grad():
+        encoder.input_mean.copy_(samples.mean(0))
+        encoder.input_std.copy_(samples.std(0).clamp_min(1e-2))
+
+
+def rotation_6d_outputs(sixd: torch.Tensor) -> torch.Tensor:
+    """Raw head outputs (..., 6) -> valid 6D (orthonormal first two columns), as FK will read them."""
+    a, b = sixd[..., :3], sixd[..., 3:]
+    a = F.normalize(a, dim=-1)
+    b = F.normalize(b - (a * b).sum(-1, keepdim=True) * a, dim=-1)
+    return torch.cat([a, b], dim=-1)

@@ -1,0 +1,45 @@
+"""Where the tracked devices sit on the body: headset and controller grips relative to SMPL joints.
+
+Devices are not joints. A device pose is its joint's pose moved by a fixed offset (in the joint's frame) and
+turned half a turn about y (SMPL frames face +z, OpenXR devices look along -z):
+
+    R_device = R_joint @ DEVICE_FROM_JOINT,      p_device = p_joint + R_joint @ offset
+
+The synthesis engine uses these defaults to make headset tracks; the runtime inverts them to find where the
+head and wrist joints are, which anchors forward kinematics and drives KPO's alignment term.
+
+Shape legend: device order head, left controller, right controller; poses ``[px, py, pz, qx, qy, qz, qw]``.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import numpy as np
+
+from .rotations import quat_xyzw_to_matrix
+from .skeleton import HEAD, LEFT_WRIST, RIGHT_WRIST
+
+# Device frame (x right, y up, -z forward) from the SMPL joint frame (x left, y up, +z forward): Ry(180°).
+DEVICE_FROM_JOINT: Final = np.diag([-1.0, 1.0, -1.0])
+TRACKED_JOINTS: Final = (HEAD, LEFT_WRIST, RIGHT_WRIST)
+# Offsets in the joint's frame, metres: the headset ahead of and above the head joint, grips in the palms.
+HEAD_OFFSET_M: Final = (0.0, 0.06, 0.11)
+LEFT_GRIP_OFFSET_M: Final = (0.085, -0.015, 0.015)
+RIGHT_GRIP_OFFSET_M: Final = (-0.085, -0.015, 0.015)
+DEFAULT_OFFSETS_M: Final = np.array([HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GRIP_OFFSET_M])
+
+
+def joints_from_devices(
+    poses: np.ndarray, offsets_m: np.ndarray = DEFAULT_OFFSETS_M
+) -> tuple[np.ndarray, np.ndarray]:
+    """Device poses (..., 3, 7) -> tracked joints' positions (..., 3, 3) m and global rotations (..., 3, 3, 3).
+
+    Rows follow TRACKED_JOINTS (head, left wrist, right wrist).
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape[-2:] != (3, 7):
+        raise ValueError(f"poses must be (..., 3, 7), got {poses.shape}")
+    joint_rot = quat_xyzw_to_matrix(poses[..., 3:]) @ DEVICE_FROM_JOINT.T
+    joint_pos = poses[..., :3] - np.einsum("...ij,...j->...i", joint_rot, offsets_m)
+    return joint_pos, joint_rot

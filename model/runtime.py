@@ -1,0 +1,340 @@
+"""The serving pipeline: numpy + onnxruntime, no torch. One :class:`Pipeline` per session.
+
+    push_rgbd(frame)   visual encoder once per NEW frame -> keypoint cache (ring buffer of Tv frames)
+    push_hmd(sample)   -> x_t into the HMD window -> heading frame -> visual tokens from the cache (Alg. 1)
+                       -> fusion net -> FK anchored at the headset's head joint -> One Euro on positions
+                       -> KPO (if the model has it) -> rotations re-derived from the positions -> PoseResult
+
+A model is a folder's ``<name>.onnx`` (fusion net) plus the ``visual-*.onnx`` it names in its metadata; the
+metadata carries everything else (:mod:`egoposevr.model.export`). ``naive=True`` keeps raw frames instead
+and re-encodes the whole visual window on every request — the paper's baseline for the incremental cache,
+kept for the benchmark; both modes give the same poses.
+
+When the camera is missing (no frame yet, or none newer than ``MAX_FRAME_AGE_S``) the model runs with an
+empty visual window — trained for with camera dropout — and the result says ``camera = False``.
+
+Shape legend: ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from .filters import OneEuroFilter
+from .hmd import HmdFeatureExtractor
+from .inputs import (
+    VisibilityFilter,
+    camera_to_world,
+    canonicalize_hmd,
+    heading_frame,
+    lift_keypoints,
+    nearest_sample,
+    network_input,
+    resize_frame,
+    visual_tokens,
+    visual_window,
+)
+from .kpo import KpoWeights, rederive_rotations, solve_kpo
+from .rig import TRACKED_JOINTS, joints_from_devices
+from .rotations import sixd_to_matrix
+from .skeleton import HEAD, NUM_JOINTS, forward_kinematics, local_rot_to_smpl, rest_offsets
+
+HEAD_HISTORY_S = 1.0
+# One Euro on joint positions (paper Eq. 8): steady when still, quick when moving.
+POSITION_MIN_CUTOFF_HZ = 2.0
+POSITION_BETA = 1.0
+
+
+class ModelError(Exception):
+    """A model file that cannot be served: unreadable, not an EgoPoseVR graph, or missing its encoder."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelInfo:
+    name: str
+    description: str
+    inputs: tuple[str, ...]
+    kpo: bool
+    path: Path
+    visual_path: Path | None
+    config: dict[str, Any]  # FusionConfig fields
+    visual_config: dict[str, Any] | None  # VisualConfig fields
+    camera: dict[str, Any] | None  # the training camera (default cam_from_head)
+    rig_offsets_m: np.ndarray
+
+
+def _metadata(session: ort.InferenceSession) -> dict[str, str]:
+    meta = session.get_modelmeta().custom_metadata_map
+    return {k.removeprefix("egoposevr."): v for k, v in meta.items() if k.startswith("egoposevr.")}
+
+
+def _session(path: Path, threads: int) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # do not burn idle cores
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types for bad files
+        raise ModelError(f"{path}: cannot load ({exc})") from exc
+
+
+class LoadedModel:
+    """ONNX sessions of one servable model; visual encoders are shared between models via ``shared``."""
+
+    def __init__(self, info: ModelInfo, fusion: ort.InferenceSession, visual: ort.InferenceSession | None):
+        self.info, self.fusion, self.visual = info, fusion, visual
+
+    @classmethod
+    def load(cls, path: str | Path, threads: int = 1, shared: dict[Path, Any] | None = None) -> LoadedModel:
+        path = Path(path)
+        fusion = _session(path, threads)
+        meta = _metadata(fusion)
+        if meta.get("kind") != "model":
+            raise ModelError(f"{path}: not an EgoPoseVR model (metadata kind {meta.get('kind')!r})")
+        try:
+            visual_path = path.parent / meta["visual_encoder"] if meta["visual_encoder"] else None
+            visual, visual_meta = None, {}
+            if visual_path is not None:
+                shared = {} if shared is None else shared
+                if visual_path not in shared:
+                    if not visual_path.exists():
+                        raise ModelError(f"{path}: its visual encoder {visual_path.name} is missing")
+                    shared[visual_path] = _session(visual_path, threads)
+                visual = shared[visual_path]
+                visual_meta = _metadata(visual)
+            info = ModelInfo(
+                name=meta["name"],
+                description=meta.get("description", ""),
+                inputs=tuple(json.loads(meta["inputs"])),
+                kpo=meta.get("kpo") == "true",
+                path=path,
+                visual_path=visual_path,
+                config=json.loads(meta["config"]),
+                visual_config=json.loads(visual_meta["config"]) if visual_meta else None,
+                camera=json.loads(visual_meta["camera"]) if visual_meta else None,
+                rig_offsets_m=np.asarray(json.loads(meta["rig_offsets_m"])),
+            )
+        except (KeyError, ValueError) as exc:
+            raise ModelError(f"{path}: incomplete EgoPoseVR metadata ({exc})") from exc
+        return cls(info, fusion, visual)
+
+    def encode_frames(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(B, C, h, w) -> uv (B, J, 2), depth_m (B, J), zeta (B, J)."""
+        uv, depth_m, zeta = self.visual.run(None, {"image": images})
+        return uv, depth_m, zeta
+
+
+@dataclasses.dataclass
+class PoseResult:
+    """One answer. Positions in metres (world), rotations local (row 0: pelvis global)."""
+
+    t_us: int
+    model: str
+    global_orient: np.ndarray  # (3,) axis-angle
+    body_pose: np.ndarray  # (63,)
+    transl: np.ndarray  # (3,) pelvis position
+    joints: np.ndarray  # (J, 3)
+    local_rot: np.ndarray  # (J, 3, 3)
+    camera: bool | None  # None: the model reads no camera; False: it had no usable frame
+    timing_us: dict[str, int]
+
+
+@dataclasses.dataclass
+class _Frame:
+    """One cached camera frame: incremental mode keeps keypoints, naive mode the encoder input."""
+
+    t_us: int
+    size_wh: tuple[int, int]
+    intrinsics: np.ndarray
+    cam_from_head: np.ndarray
+    kp_cam: np.ndarray | None = None  # (J, 3)
+    confidence: np.ndarray | None = None  # (J,)
+    image: np.ndarray | None = None  # (C, h, w), naive only
+    filter_before: VisibilityFilter | None = None  # naive only: Alg. 1 state before this frame
+
+
+class Pipeline:
+    """Per-session state machine around one :class:`LoadedModel`. Not thread-safe: one caller at a time."""
+
+    def __init__(
+        self,
+        model: LoadedModel,
+        naive: bool = False,
+        bone_scale: np.ndarray | None = None,
+        kpo_weights: KpoWeights | None = None,
+    ) -> None:
+        self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
+        info = model.info
+        self.window = int(info.config["window"])
+        self.visual_window = int(info.config["visual_window"]) if model.visual is not None else 0
+        self.offsets = rest_offsets(bone_scale)
+        default = info.camera["cam_from_head"] if info.camera else np.eye(4).ravel()
+        self.default_cam_from_head = np.asarray(default, dtype=np.float64).reshape(4, 4)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (a new session, a model switch, a long pause)."""
+        self.features = HmdFeatureExtractor()
+        self.hmd_window: np.ndarray | None = None  # (T, 72)
+        self.head_t_us: deque[int] = deque()
+        self.head_poses: deque[np.ndarray] = deque()
+        self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
+        self.frames: deque[_Frame] = deque(maxlen=max(self.visual_window, 1))
+        self.visibility = VisibilityFilter()
+        self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
+        self._pending_visual_us = 0
+        self.frames_encoded = 0
+
+    # ------------------------------------------------------------------------------------------ camera
+    def push_rgbd(
+        self,
+        t_us: int,
+        rgb: np.ndarray,
+        depth_mm: np.ndarray,
+        intrinsics: np.ndarray,
+        cam_from_head: np.ndarray | None = None,
+    ) -> None:
+        """A decoded frame: rgb (H, W, 3) uint8, depth (H, W) uint16 mm, intrinsics (fx, fy, cx, cy) of
+        that W×H image, cam_from_head (4, 4) or None for the training camera's. Older frames than the
+        newest cached one are ignored (the cache is ordered by capture time)."""
+        if self.model.visual is None:
+            return
+        if self.frames and t_us <= self.frames[-1].t_us:
+            return
+        started = time.perf_counter()
+        vc = self.model.info.visual_config
+        image = network_input(*resize_frame(rgb, depth_mm, (vc["width"], vc["height"])), vc["channels"])
+        frame = _Frame(
+            t_us=int(t_us),
+            size_wh=(rgb.shape[1], rgb.shape[0]),
+            intrinsics=np.asarray(intrinsics, dtype=np.float64),
+            cam_from_head=self.default_cam_from_head if cam_from_head is None else np.asarray(cam_from_head),
+        )
+        if self.naive:
+            frame.image, frame.filter_before = image, copy.deepcopy(self.visibility)
+            self.visibility(frame.t_us, self._encode(frame, image[None])[1])  # keep Alg. 1's state going
+        else:
+            frame.kp_cam, zeta = self._encode(frame, image[None])
+            frame.confidence = self.visibility(frame.t_us, zeta)
+        self.frames.append(frame)
+        self._pending_visual_us += int((time.perf_counter() - started) * 1e6)
+
+    def _encode(self, frame: _Frame, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Encoder on (1, C, h, w) -> camera-frame keypoints (J, 3) and ζ (J,)."""
+        uv, depth_m, zeta = self.model.encode_frames(images)
+        self.frames_encoded += len(images)
+        return lift_keypoints(uv[0], depth_m[0], frame.intrinsics, frame.size_wh), zeta[0]
+
+    def _naive_reencode(self) -> None:
+        """The baseline: run the encoder on every frame of the window again and redo Alg. 1 over it."""
+        frames = list(self.frames)
+        if not frames:
+            return
+        uv, depth_m, zeta = self.model.encode_frames(np.stack([f.image for f in frames]))
+        self.frames_encoded += len(frames)
+        vis_filter = copy.deepcopy(frames[0].filter_before)
+        for k, f in enumerate(frames):
+            f.kp_cam = lift_keypoints(uv[k], depth_m[k], f.intrinsics, f.size_wh)
+            f.confidence = vis_filter(f.t_us, zeta[k])
+
+    # ------------------------------------------------------------------------------------------ headset
+    def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
+        """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
+        timing: dict[str, int] = {}
+        clock = time.perf_counter()
+
+        def lap(stage: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timing[stage] = int((now - clock) * 1e6)
+            clock = now
+
+        t_us = int(t_us)
+        poses = np.asarray(poses, dtype=np.float64)
+        valid = np.asarray(valid, dtype=bool)
+        x = self.features.push(t_us, poses, valid)  # validates shapes and finiteness
+        self._remember_head(t_us, poses[0], bool(valid[0]))
+        self.hmd_window = (
+            np.tile(x, (self.window, 1)) if self.hmd_window is None else np.roll(self.hmd_window, -1, 0)
+        )
+        self.hmd_window[-1] = x
+        rot, origin = heading_frame(self.last_head_pose)
+        inputs = {"hmd": canonicalize_hmd(self.hmd_window, rot, origin)[None]}
+        lap("features")
+        camera: bool | None = None
+        if self.model.visual is not None:
+            if self.naive:
+                self._naive_reencode()
+            tokens, camera = self._visual_tokens(t_us, rot, origin)
+            inputs["visual"] = tokens[None]
+            timing["visual"] = self._pending_visual_us + int((time.perf_counter() - clock) * 1e6)
+            self._pending_visual_us = 0
+            clock = time.perf_counter()
+        sixd = self.model.fusion.run(None, inputs)[0][0]  # (J, 6)
+        lap("fusion")
+        local = sixd_to_matrix(sixd.astype(np.float64))
+        local[0] = rot @ local[0]  # pelvis: heading frame -> world
+        device_poses = poses.copy()
+        device_poses[0] = self.last_head_pose  # the newest tracked headset pose
+        tracked_pos, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
+        joints, _ = forward_kinematics(local, np.zeros(3), self.offsets)
+        joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
+        lap("fk_filter")
+        if self.model.info.kpo:
+            targets = np.zeros((NUM_JOINTS, 3))
+            observed = np.zeros(NUM_JOINTS, dtype=bool)
+            targets[list(TRACKED_JOINTS)] = tracked_pos
+            observed[list(TRACKED_JOINTS)] = valid
+            joints = solve_kpo(joints, targets, observed, self.kpo_weights)
+        local = rederive_rotations(local, joints, self.offsets)
+        joints, _ = forward_kinematics(local, joints[0], self.offsets)  # rotations and joints agree exactly
+        global_orient, body_pose = local_rot_to_smpl(local)
+        lap("kpo")
+        return PoseResult(
+            t_us=t_us,
+            model=self.model.info.name,
+            global_orient=global_orient,
+            body_pose=body_pose.reshape(-1),
+            transl=joints[0].copy(),
+            joints=joints,
+            local_rot=local,
+            camera=camera,
+            timing_us=timing,
+        )
+
+    def _remember_head(self, t_us: int, head_pose: np.ndarray, head_valid: bool) -> None:
+        if not head_valid:
+            return
+        self.last_head_pose = head_pose.copy()
+        self.head_t_us.append(t_us)
+        self.head_poses.append(self.last_head_pose)
+        while self.head_t_us and (t_us - self.head_t_us[0]) * 1e-6 > HEAD_HISTORY_S:
+            self.head_t_us.popleft()
+            self.head_poses.popleft()
+
+    def _visual_tokens(self, now_us: int, rot: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Tokens (Tv, 90) from the cached frames, and whether any frame was usable."""
+        frames = list(self.frames)
+        t = np.array([f.t_us for f in frames], dtype=np.int64)
+        picked = [frames[i] for i in visual_window(t, now_us, self.visual_window)] if frames else []
+        if not picked or not self.head_t_us:
+            return visual_tokens(np.zeros((0, NUM_JOINTS, 3)), np.zeros((0, NUM_JOINTS)), np.zeros(0),
+                                 self.visual_window, rot, origin), False  # fmt: skip
+        head_t = np.fromiter(self.head_t_us, dtype=np.int64)
+        heads = np.stack(self.head_poses)[nearest_sample(np.array([f.t_us for f in picked]), head_t)]
+        kp_world = np.stack(
+            [camera_to_world(f.kp_cam, h, f.cam_from_head) for f, h in zip(picked, heads, strict=True)]
+        )
+        confidence = np.stack([f.confidence for f in picked])
+        age_s = np.array([(now_us - f.t_us) * 1e-6 for f in picked])
+        return visual_tokens(kp_world, confidence, age_s, self.visual_window, rot, origin), True

@@ -1,0 +1,510 @@
+"""Training (torch): stage 1 the visual keypoint nets, stage 2 the fusion nets of the zoo.
+
+Stage 1 (per modality, ``visual-rgb`` / ``visual-rgbd``): heatmap cross-entropy against a Gaussian at the
+labelled 2D joint + L1 on the lifted 3D joints (camera frame) for joints in view, + BCE on visibility ζ.
+Stage 2 (per zoo fusion net): the frozen stage-1 encoder's keypoints go through exactly the runtime's
+preparation (:mod:`egoposevr.model.inputs`: heading frame, Alg. 1, visual tokens); losses are L1 on the 6D
+rotations + L1 on FK joint positions anchored at the headset's head joint, as the runtime anchors them.
+
+Everything is seeded; checkpoints store their net config, the training config, the step, optimiser state
+and loss history, so ``resume`` continues and export rebuilds the net from the file alone.
+Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22, ``K`` camera frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from .dataset import decode_frames, load_split, split_camera
+from .hmd import hmd_features
+from .inputs import (
+    VisibilityFilter,
+    camera_to_world,
+    canonicalize_hmd,
+    heading_frame,
+    lift_keypoints,
+    nearest_sample,
+    network_input,
+    normalise_uv,
+    to_heading,
+    visual_tokens,
+    visual_window,
+)
+from .nets.fusion import FusionConfig, FusionNet, set_input_statistics
+from .nets.kinematics import forward_kinematics, sixd_to_matrix
+from .nets.visual import KeypointNet, VisualConfig
+from .rig import joints_from_devices
+from .rotations import matrix_to_sixd, quat_xyzw_to_matrix
+from .skeleton import HEAD, rest_offsets
+from .zoo import ZOO
+
+Progress = Callable[[Any], Any]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """One preset of training hyper-parameters (the paper's AdamW, lr 5e-4, batch 32)."""
+
+    seed: int = 0
+    batch: int = 32
+    lr: float = 5e-4
+    weight_decay: float = 1e-2
+    warmup_steps: int = 100
+    visual_steps: int = 5000
+    fusion_steps: int = 3000
+    visual_width: int = 80
+    visual_height: int = 64
+    window: int = 40
+    visual_window: int = 8
+    d_model: int = 64
+    joint_dim: int = 32
+    heatmap_sigma_cells: float = 1.0
+    camera_latency_ms: tuple[float, float] = (10.0, 50.0)  # capture -> arrival, drawn per sequence
+    drop_camera_p: float = 0.1  # whole visual window missing: teaches the HMD-only fallback
+    drop_frame_p: float = 0.05
+    position_weight: float = 10.0  # L1 metres vs L1 6D
+    limit_sequences: int | None = None
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+
+
+PRESETS: dict[str, TrainConfig] = {
+    # The whole zoo on a 2-core CPU in about 75 minutes (MODEL_CARD.md has the measured times).
+    "cpu": TrainConfig(),
+    # For a GPU: wider nets, longer schedules.
+    "gpu": TrainConfig(visual_steps=20000, fusion_steps=30000, d_model=128, joint_dim=64),
+    # For tests: seconds.
+    "tiny": TrainConfig(
+        visual_steps=30, fusion_steps=30, batch=8, visual_width=40, visual_height=32, window=8,
+        visual_window=3, d_model=16, joint_dim=8, warmup_steps=5,
+    ),
+}  # fmt: skip
+
+
+def visual_config(kind: str, tc: TrainConfig) -> VisualConfig:
+    return VisualConfig(channels=4 if kind == "rgbd" else 3, width=tc.visual_width, height=tc.visual_height)
+
+
+def fusion_config(name: str, tc: TrainConfig) -> FusionConfig:
+    base = {"window": tc.window, "visual_window": tc.visual_window, "d_model": tc.d_model}
+    return FusionConfig(**{**base, "joint_dim": tc.joint_dim, **ZOO[name].fusion})
+
+
+# ------------------------------------------------------------------------------------------- checkpoints
+def save_checkpoint(path: Path, **payload: Any) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)  # never a half-written checkpoint
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def build_net(ckpt: dict[str, Any]) -> torch.nn.Module:
+    """The net a checkpoint describes, with its weights, in eval mode."""
+    if ckpt["kind"] == "visual":
+        net: torch.nn.Module = KeypointNet(VisualConfig(**_tuples(ckpt["config"])))
+    else:
+        net = FusionNet(FusionConfig(**ckpt["config"]))
+    net.load_state_dict(ckpt["state_dict"])
+    return net.eval()
+
+
+def _tuples(cfg: dict[str, Any]) -> dict[str, Any]:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items()}
+
+
+def _schedule(tc: TrainConfig, total: int) -> Callable[[int], float]:
+    def factor(step: int) -> float:
+        if step < tc.warmup_steps:
+            return (step + 1) / tc.warmup_steps
+        return 0.5 * (
+            1 + math.cos(math.pi * min(1.0, (step - tc.warmup_steps) / max(1, total - tc.warmup_steps)))
+        )
+
+    return factor
+
+
+def _run_steps(
+    net: torch.nn.Module,
+    loss_fn: Callable[[np.random.Generator], dict[str, torch.Tensor]],
+    ckpt_path: Path,
+    total: int,
+    tc: TrainConfig,
+    meta: dict[str, Any],
+    resume: bool,
+    progress: bool,
+) -> dict[str, Any]:
+    """The shared optimisation loop: AdamW + warmup/cosine, checkpoints every 500 steps and at the end."""
+    opt = torch.optim.AdamW(net.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _schedule(tc, total))
+    step, history, elapsed = 0, [], 0.0
+    if resume and ckpt_path.exists():
+        ckpt = load_checkpoint(ckpt_path)
+        net.load_state_dict(ckpt["state_dict"])
+        opt.load_state_dict(ckpt["optimizer"])
+        sched.load_state_dict(ckpt["scheduler"])
+        step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
+    rng = np.random.default_rng([tc.seed, step])
+    torch.manual_seed(tc.seed * 1_000_003 + step)
+    net.train()
+    bar = tqdm(total=total, initial=step, desc=ckpt_path.stem, disable=not progress, dynamic_ncols=True)
+    running: dict[str, float] = {}
+    started = time.perf_counter()
+
+    def save() -> dict[str, Any]:
+        payload = {
+            **meta,
+            "state_dict": net.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(),
+            "step": step,
+            "total_steps": total,
+            "history": history,
+            "train_seconds": elapsed + time.perf_counter() - started,
+            "train_config": dataclasses.asdict(tc),
+        }
+        save_checkpoint(ckpt_path, **payload)
+        return payload
+
+    while step < total:
+        losses = loss_fn(rng)
+        loss = sum(losses.values())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        step += 1
+        for key, value in losses.items():
+            v = value.item()
+            running[key] = 0.98 * running.get(key, v) + 0.02 * v
+        bar.update(1)
+        bar.set_postfix({k: f"{v:.4f}" for k, v in running.items()}, refresh=False)
+        if step % 100 == 0 or step == total:
+            history.append({"step": step, **running})
+        if step % 500 == 0 and step < total:
+            save()
+    bar.close()
+    net.eval()
+    return save()
+
+
+# ----------------------------------------------------------------------------------------- stage 1
+@dataclasses.dataclass
+class VisualData:
+    """Decoded frames of a split at the net's input size, with labels. K frames."""
+
+    rgb: np.ndarray  # (K, h, w, 3) uint8
+    depth: np.ndarray  # (K, h, w) uint16 mm
+    uv: np.ndarray  # (K, J, 2) normalised
+    joints_cam_m: np.ndarray  # (K, J, 3)
+    visible: np.ndarray  # (K, J) bool
+
+
+def load_visual_data(
+    seqs: list[dict[str, Any]], camera: dict[str, Any], size_wh: tuple[int, int]
+) -> VisualData:
+    frames = [decode_frames(s, size_wh) for s in seqs]
+    cam_wh = (camera["width"], camera["height"])
+    return VisualData(
+        rgb=np.concatenate([f[0] for f in frames]),
+        depth=np.concatenate([f[1] for f in frames]),
+        uv=np.concatenate([normalise_uv(s["joints_uv_px"], cam_wh) for s in seqs]).astype(np.float32),
+        joints_cam_m=np.concatenate([s["joints_cam_m"] for s in seqs]),
+        visible=np.concatenate([s["visible"] for s in seqs]),
+    )
+
+
+def lift_torch(
+    uv: torch.Tensor, depth_m: torch.Tensor, intrinsics: list[float], cam_wh: tuple[int, int]
+) -> torch.Tensor:
+    """Torch twin of :func:`egoposevr.model.inputs.lift_keypoints`."""
+    fx, fy, cx, cy = intrinsics
+    u = uv[..., 0] * cam_wh[0] - 0.5
+    v = uv[..., 1] * cam_wh[1] - 0.5
+    return torch.stack([(u - cx) / fx * depth_m, (v - cy) / fy * depth_m, depth_m], dim=-1)
+
+
+def visual_loss_fn(net: KeypointNet, data: VisualData, camera: dict[str, Any], tc: TrainConfig):
+    cfg = net.cfg
+    hw, hh = cfg.heatmap_wh
+    gu = (torch.arange(hw) + 0.5) / hw
+    gv = (torch.arange(hh) + 0.5) / hh
+    sigma_u, sigma_v = tc.heatmap_sigma_cells / hw, tc.heatmap_sigma_cells / hh
+    cam_wh = (camera["width"], camera["height"])
+
+    def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        idx = rng.integers(0, len(data.rgb), tc.batch)
+        image = torch.from_numpy(network_input(data.rgb[idx], data.depth[idx], cfg.channels))
+        uv_t = torch.from_numpy(data.uv[idx])
+        vis = torch.from_numpy(data.visible[idx]).float()
+        uv, depth_m, zeta, logits = net(image)
+        # Gaussian target distribution on the heatmap grid, (B, J, hh, hw)
+        du = (gu[None, None, None, :] - uv_t[..., 0, None, None]) / sigma_u
+        dv = (gv[None, None, :, None] - uv_t[..., 1, None, None]) / sigma_v
+        target = torch.exp(-0.5 * (du**2 + dv**2))
+        target = target / target.flatten(2).sum(-1).clamp_min(1e-8)[..., None, None]
+        log_p = torch.log_softmax(logits.flatten(2), -1).view_as(logits)
+        n_vis = vis.sum().clamp_min(1.0)
+        heat = -((target * log_p).flatten(2).sum(-1) * vis).sum() / n_vis
+        xyz = lift_torch(uv, depth_m, camera["intrinsics"], cam_wh)
+        joints = torch.from_numpy(data.joints_cam_m[idx])
+        pos = ((xyz - joints).abs().sum(-1) * vis).sum() / n_vis
+        bce = F.binary_cross_entropy(zeta.clamp(1e-6, 1 - 1e-6), vis)
+        return {"heat": heat * 0.1, "pos": pos * tc.position_weight, "vis": bce}
+
+    return loss
+
+
+def train_visual(
+    kind: str,
+    data_dir: Path,
+    out_dir: Path,
+    tc: TrainConfig,
+    resume: bool = False,
+    progress: bool = True,
+    seqs: list[dict[str, Any]] | None = None,
+) -> Path:
+    """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``."""
+    path = out_dir / f"visual-{kind}.pt"
+    if resume and path.exists() and (c := load_checkpoint(path))["step"] >= c["total_steps"]:
+        return path
+    torch.manual_seed(tc.seed)
+    cfg = visual_config(kind, tc)
+    net = KeypointNet(cfg)
+    camera = split_camera(data_dir, "train")
+    seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
+    data = load_visual_data(seqs, camera, (cfg.width, cfg.height))
+    meta = {"kind": "visual", "name": f"visual-{kind}", "config": dataclasses.asdict(cfg), "camera": camera,
+            "data": {"dir": str(data_dir), "frames": len(data.rgb), "sequences": len(seqs)}}  # fmt: skip
+    _run_steps(net, visual_loss_fn(net, data, camera, tc), path, tc.visual_steps, tc, meta, resume, progress)
+    return path
+
+
+# ----------------------------------------------------------------------------------------- stage 2
+@dataclasses.dataclass
+class FusionSequence:
+    """One sequence prepared for stage 2. N headset samples, K camera frames."""
+
+    hmd: np.ndarray  # (N, 72) world-frame features
+    head_pose: np.ndarray  # (N, 7) measured headset poses
+    t_us: np.ndarray  # (N,)
+    target_sixd: np.ndarray  # (N, J, 6): pelvis in the heading frame, then local rotations
+    joints_h: np.ndarray  # (N, J, 3) ground truth in the heading frame
+    anchor_h: np.ndarray  # (N, 3) head joint from the headset, heading frame
+    offsets: np.ndarray  # (J, 3) the body's bone offsets
+    frame_t_us: np.ndarray  # (K,) capture times
+    arrival_us: np.ndarray  # (K,) capture + latency
+    kp_world: np.ndarray  # (K, J, 3) stage-1 keypoints in the world
+    confidence: np.ndarray  # (K, J) Alg. 1 confidence
+
+
+@torch.no_grad()
+def predict_keypoints(
+    net: KeypointNet, rgb: np.ndarray, depth: np.ndarray, batch: int = 256
+) -> tuple[np.ndarray, ...]:
+    """Stage-1 outputs for frames (K, h, w, 3) / (K, h, w) -> uv (K, J, 2), depth_m (K, J), zeta (K, J)."""
+    outs = []
+    for s in range(0, len(rgb), batch):
+        image = torch.from_numpy(network_input(rgb[s : s + batch], depth[s : s + batch], net.cfg.channels))
+        outs.append([t.numpy() for t in net(image)[:3]])
+    return (
+        tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
+        if outs
+        else (np.zeros((0, net.cfg.joints, 2)), np.zeros((0, net.cfg.joints)), np.zeros((0, net.cfg.joints)))
+    )
+
+
+def frame_keypoints(
+    uv: np.ndarray,
+    depth_m: np.ndarray,
+    zeta: np.ndarray,
+    frame_t_us: np.ndarray,
+    camera: dict[str, Any],
+    hmd_t_us: np.ndarray,
+    head_pose: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage-1 outputs of a sequence's frames -> world keypoints (K, J, 3) and Alg. 1 confidence (K, J),
+    exactly as the runtime computes them frame by frame (head pose = the nearest headset sample)."""
+    cam = lift_keypoints(uv, depth_m, camera["intrinsics"], (camera["width"], camera["height"]))
+    heads = head_pose[nearest_sample(frame_t_us, hmd_t_us)]
+    world = camera_to_world(cam, heads, np.asarray(camera["cam_from_head"]).reshape(4, 4))
+    vis_filter = VisibilityFilter()
+    conf = (
+        np.stack([vis_filter(int(t), z) for t, z in zip(frame_t_us, zeta, strict=True)])
+        if len(zeta)
+        else zeta
+    )
+    return world, conf
+
+
+def prepare_fusion_sequence(
+    seq: dict[str, Any],
+    camera: dict[str, Any],
+    rng: np.random.Generator,
+    tc: TrainConfig,
+    visual: KeypointNet | None,
+    cache: dict[Any, tuple[np.ndarray, ...]] | None = None,
+) -> FusionSequence:
+    """Stage-2 arrays of one sequence; ``cache`` keeps stage-1 predictions across zoo models."""
+    t_us, poses = seq["hmd_t_us"], seq["hmd_poses"].astype(np.float64)
+    rot, origin = heading_frame(poses[:, 0])
+    local = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))  # (N, J, 3, 3)
+    local[:, 0] = np.swapaxes(rot, -1, -2) @ local[:, 0]  # pelvis in the heading frame
+    head_joint = joints_from_devices(poses)[0][:, 0]
+    K, J = len(seq["cam_t_us"]), local.shape[1]
+    kp_world, conf = np.zeros((K, J, 3)), np.zeros((K, J))
+    if visual is not None and K:
+        key = (visual.cfg.channels, seq["name"])
+        if cache is None or key not in cache:
+            predictions = predict_keypoints(
+                visual, *decode_frames(seq, (visual.cfg.width, visual.cfg.height))
+            )
+            if cache is not None:
+                cache[key] = predictions
+        uv, depth_m, zeta = cache[key] if cache is not None else predictions
+        kp_world, conf = frame_keypoints(uv, depth_m, zeta, seq["cam_t_us"], camera, t_us, poses[:, 0])
+    latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
+    return FusionSequence(
+        hmd=hmd_features(t_us, poses, seq["hmd_valid"]).astype(np.float32),
+        head_pose=poses[:, 0],
+        t_us=t_us,
+        target_sixd=matrix_to_sixd(local).astype(np.float32),
+        joints_h=to_heading(seq["gt_joints_m"].astype(np.float64), rot, origin).astype(np.float32),
+        anchor_h=to_heading(head_joint[:, None], rot, origin)[:, 0].astype(np.float32),
+        offsets=rest_offsets(seq["bone_scale"]).astype(np.float32),
+        frame_t_us=seq["cam_t_us"],
+        arrival_us=(seq["cam_t_us"] + latency_us).astype(np.int64),
+        kp_world=kp_world,
+        confidence=conf,
+    )
+
+
+def sample_window(
+    fs: FusionSequence, i: int, cfg: FusionConfig, rng: np.random.Generator | None, tc: TrainConfig
+):
+    """Inputs at headset sample i, as the runtime builds them: hmd (T, 72) and visual tokens (Tv, 90)."""
+    idx = np.clip(np.arange(i - cfg.window + 1, i + 1), 0, None)  # the runtime pads with the first sample
+    rot, origin = heading_frame(fs.head_pose[i])
+    hmd = canonicalize_hmd(fs.hmd[idx], rot, origin)
+    now = int(fs.t_us[i])
+    arrived = int(np.searchsorted(fs.arrival_us, now, side="right"))
+    frames = visual_window(fs.frame_t_us[:arrived], now, cfg.visual_window)
+    if rng is not None and len(frames):
+        if rng.random() < tc.drop_camera_p:
+            frames = frames[:0]
+        else:
+            frames = frames[rng.random(len(frames)) >= tc.drop_frame_p]
+    age_s = (now - fs.frame_t_us[frames]) * 1e-6
+    tokens = visual_tokens(fs.kp_world[frames], fs.confidence[frames], age_s, cfg.visual_window, rot, origin)
+    return hmd, tokens
+
+
+def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
+    cfg = net.cfg
+    lengths = np.array([len(s.t_us) for s in seqs])
+    weights = lengths / lengths.sum()
+
+    def batch(rng: np.random.Generator):
+        which = rng.choice(len(seqs), tc.batch, p=weights)
+        items = [(seqs[s], int(rng.integers(0, lengths[s]))) for s in which]
+        inputs = [sample_window(fs, i, cfg, rng, tc) for fs, i in items]
+        hmd = torch.from_numpy(np.stack([x[0] for x in inputs]))
+        vis = torch.from_numpy(np.stack([x[1] for x in inputs]))
+        target = torch.from_numpy(np.stack([fs.target_sixd[i] for fs, i in items]))
+        joints = torch.from_numpy(np.stack([fs.joints_h[i] for fs, i in items]))
+        anchor = torch.from_numpy(np.stack([fs.anchor_h[i] for fs, i in items]))
+        offsets = torch.from_numpy(np.stack([fs.offsets for fs, _ in items]))
+        return hmd, vis, target, joints, anchor, offsets
+
+    def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        hmd, vis, target, joints, anchor, offsets = batch(rng)
+        sixd = net(hmd, vis if cfg.uses_camera else None)
+        rot_loss = (sixd - target).abs().mean()
+        pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3), offsets)
+        pos = pos + (anchor - pos[:, HEAD])[:, None]
+        pos_loss = (pos - joints).abs().sum(-1).mean()
+        return {"rot": rot_loss, "pos": pos_loss * tc.position_weight}
+
+    return loss
+
+
+def train_fusion(
+    name: str,
+    data_dir: Path,
+    out_dir: Path,
+    tc: TrainConfig,
+    resume: bool = False,
+    progress: bool = True,
+    seqs: list[dict[str, Any]] | None = None,
+    cache: dict[Any, tuple[np.ndarray, ...]] | None = None,
+) -> Path:
+    """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt`` (its visual encoder must be trained)."""
+    path = out_dir / f"fusion-{name}.pt"
+    if resume and path.exists() and (c := load_checkpoint(path))["step"] >= c["total_steps"]:
+        return path
+    entry = ZOO[name]
+    visual = None
+    if entry.visual:
+        visual = build_net(load_checkpoint(out_dir / f"visual-{entry.visual}.pt"))
+    torch.manual_seed(tc.seed)
+    cfg = fusion_config(name, tc)
+    net = FusionNet(cfg)
+    camera = split_camera(data_dir, "train")
+    seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
+    rng = np.random.default_rng([tc.seed, 7])
+    prepared = [prepare_fusion_sequence(s, camera, rng, tc, visual, cache) for s in seqs]
+    _set_statistics(net, prepared, tc, rng)
+    meta = {"kind": "fusion", "name": name, "config": dataclasses.asdict(cfg), "visual": entry.visual,
+            "data": {"dir": str(data_dir), "sequences": len(seqs),
+                     "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
+    _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)
+    return path
+
+
+def _set_statistics(
+    net: FusionNet, prepared: list[FusionSequence], tc: TrainConfig, rng: np.random.Generator
+) -> None:
+    """Input normalisation from 512 random training windows (no augmentation)."""
+    lengths = np.array([len(p.t_us) for p in prepared])
+    picks = [
+        (prepared[s], int(rng.integers(0, lengths[s])))
+        for s in rng.choice(len(prepared), 512, p=lengths / lengths.sum())
+    ]
+    inputs = [sample_window(fs, i, net.cfg, None, tc) for fs, i in picks]
+    set_input_statistics(net.hmd_stream, torch.from_numpy(np.concatenate([x[0] for x in inputs])))
+    if net.cfg.uses_camera:
+        set_input_statistics(net.visual_stream, torch.from_numpy(np.concatenate([x[1] for x in inputs])))
+
+
+def train_zoo(
+    names: list[str],
+    data_dir: Path,
+    out_dir: Path,
+    tc: TrainConfig,
+    resume: bool = False,
+    progress: bool = True,
+) -> dict[str, Path]:
+    """Everything the named models need, in dependency order: visual encoders, then fusion nets."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if tc.threads:
+        torch.set_num_threads(tc.threads)
+    fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
+    visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
+    seqs = load_split(data_dir, "train", tc.limit_sequences)
+    paths = {f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals}
+    cache: dict[Any, tuple[np.ndarray, ...]] = {}  # stage-1 keypoints, shared by the fusion nets
+    for f in fusions:
+        paths[f"fusion-{f}"] = train_fusion(f, data_dir, out_dir, tc, resume, progress, seqs, cache)
+    return paths

@@ -1,0 +1,85 @@
+"""KPO (paper Eqs. 9-10) and the rotations re-derived from its joints."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from egoposevr.model.kpo import INCIDENCE, KpoWeights, kpo_energy, rederive_rotations, solve_kpo
+from egoposevr.model.rig import TRACKED_JOINTS
+from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+
+OFFSETS = rest_offsets()
+
+
+def random_pose(seed: int, spread: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    local = Rotation.from_rotvec(rng.normal(0.0, spread, (22, 3))).as_matrix()
+    joints, _ = forward_kinematics(local, np.array([0.0, 1.0, 0.0]), OFFSETS)
+    return local, joints
+
+
+def displaced_targets(joints: np.ndarray, seed: int, scale_m: float) -> tuple[np.ndarray, np.ndarray]:
+    targets = joints.copy()
+    targets[list(TRACKED_JOINTS)] += np.random.default_rng(seed + 100).normal(0.0, scale_m, (3, 3))
+    observed = np.zeros(22, dtype=bool)
+    observed[list(TRACKED_JOINTS)] = True
+    return targets, observed
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_kpo_lowers_the_energy_pulls_tracked_joints_and_keeps_bone_lengths(seed):
+    _, pred = random_pose(seed)
+    targets, observed = displaced_targets(pred, seed, 0.02)
+    w = KpoWeights()
+    refined = solve_kpo(pred, targets, observed, w)
+    assert kpo_energy(refined, pred, targets, observed, w) < 0.5 * kpo_energy(
+        pred, pred, targets, observed, w
+    )
+    before = np.linalg.norm(pred[observed] - targets[observed], axis=-1)
+    after = np.linalg.norm(refined[observed] - targets[observed], axis=-1)
+    assert after.mean() < 0.4 * before.mean()
+    lengths = np.linalg.norm(INCIDENCE @ refined, axis=-1) - np.linalg.norm(INCIDENCE @ pred, axis=-1)
+    assert np.abs(lengths).max() < 2e-3  # metres
+
+
+def test_kpo_leaves_a_pose_that_already_fits_alone():
+    _, pred = random_pose(3)
+    observed = np.zeros(22, dtype=bool)
+    observed[list(TRACKED_JOINTS)] = True
+    np.testing.assert_allclose(solve_kpo(pred, pred, observed), pred, atol=1e-9)
+
+
+def test_an_untracked_controller_is_not_a_target():
+    _, pred = random_pose(4)
+    targets, observed = displaced_targets(pred, 4, 0.05)
+    observed[21] = False  # right controller lost: its (stale) target must not pull
+    refined = solve_kpo(pred, targets, observed)
+    assert np.linalg.norm(refined[21] - targets[21]) > 0.5 * np.linalg.norm(pred[21] - targets[21])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rederived_rotations_are_the_predicted_ones_when_joints_agree(seed):
+    local, joints = random_pose(seed, spread=0.6)
+    np.testing.assert_allclose(rederive_rotations(local, joints, OFFSETS), local, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fk_of_rederived_rotations_reproduces_kpo_joints_within_5_mm(seed):
+    local, pred = random_pose(seed)
+    targets, observed = displaced_targets(pred, seed, 0.02)
+    refined = solve_kpo(pred, targets, observed)
+    rotations = rederive_rotations(local, refined, OFFSETS)
+    replayed, _ = forward_kinematics(rotations, refined[0], OFFSETS)
+    assert np.linalg.norm(replayed - refined, axis=-1).max() < 5e-3
+    assert np.allclose(np.linalg.det(rotations), 1.0)
+
+
+def test_rederivation_turns_a_bone_that_must_point_the_opposite_way():
+    local = np.tile(np.eye(3), (22, 1, 1))
+    joints, _ = forward_kinematics(local, np.zeros(3), OFFSETS)
+    flipped = joints.copy()
+    flipped[19] = joints[17] - (joints[19] - joints[17])  # right elbow folded back through the shoulder
+    flipped[21] = flipped[19] + (joints[21] - joints[19])
+    rotations = rederive_rotations(local, flipped, OFFSETS)
+    replayed, _ = forward_kinematics(rotations, flipped[0], OFFSETS)
+    np.testing.assert_allclose(replayed[19], flipped[19], atol=1e-6)

@@ -1,0 +1,36 @@
+"""Network shapes and starting points (torch)."""
+
+import pytest
+import torch
+
+from egoposevr.model.hmd import FEATURE_DIM
+from egoposevr.model.inputs import VISUAL_TOKEN_DIM
+from egoposevr.model.nets.fusion import FusionConfig, FusionNet
+from egoposevr.model.nets.visual import KeypointNet, VisualConfig
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+def test_keypoint_net_shapes_and_ranges(channels):
+    cfg = VisualConfig(channels=channels, width=80, height=64)
+    uv, depth_m, zeta, logits = KeypointNet(cfg).eval()(torch.randn(2, channels, 64, 80))
+    assert uv.shape == (2, 22, 2) and depth_m.shape == (2, 22) and zeta.shape == (2, 22)
+    assert logits.shape == (2, 22, 32, 40)
+    assert ((uv >= 0) & (uv <= 1)).all() and ((zeta >= 0) & (zeta <= 1)).all()
+
+
+@pytest.mark.parametrize(
+    ("fusion", "visual_window"), [("none", 8), ("cross", 8), ("cross", 1), ("concat", 8)]
+)
+def test_fusion_net_shapes_and_identity_start(fusion, visual_window):
+    cfg = FusionConfig(window=12, visual_window=visual_window, fusion=fusion, d_model=32, joint_dim=16)
+    net = FusionNet(cfg).eval()
+    visual = torch.randn(3, visual_window, VISUAL_TOKEN_DIM) if cfg.uses_camera else None
+    out = net(torch.randn(3, 12, FEATURE_DIM), visual)
+    assert out.shape == (3, 22, 6)
+    # A fresh net predicts the rest pose (identity rotations), a sane start for training.
+    assert torch.allclose(out, torch.tensor([1.0, 0, 0, 0, 1, 0]).expand(3, 22, 6))
+
+
+def test_unknown_fusion_is_refused():
+    with pytest.raises(ValueError, match="fusion"):
+        FusionConfig(fusion="sum")

@@ -1,0 +1,132 @@
+"""End to end on data the test synthesizes: train -> checkpoints -> export (parity) -> runtime -> eval."""
+
+import json
+
+import numpy as np
+import pytest
+
+from egoposevr.cli.main import main
+from egoposevr.model.dataset import load_split, split_camera
+from egoposevr.model.evaluate import METRIC_KEYS, replay_sequence
+from egoposevr.model.runtime import LoadedModel, ModelError, Pipeline
+from egoposevr.model.train import load_checkpoint
+from egoposevr.model.weights import model_files
+from egoposevr.model.zoo import ZOO
+
+
+def test_training_writes_resumable_checkpoints_with_their_config(tiny_runs):
+    names = {p.stem for p in tiny_runs.glob("*.pt")}
+    assert names == {"visual-rgb", "visual-rgbd"} | {f"fusion-{n}" for n in ZOO if ZOO[n].trained_as is None}
+    ckpt = load_checkpoint(tiny_runs / "fusion-hmd-rgbd.pt")
+    assert ckpt["step"] == ckpt["total_steps"] == 4 and ckpt["config"]["fusion"] == "cross"
+    assert ckpt["train_config"]["seed"] == 0 and ckpt["history"]
+
+
+def test_resume_continues_a_finished_run_without_retraining(tiny_data, tiny_runs, capsys):
+    before = (tiny_runs / "fusion-hmd.pt").stat().st_mtime_ns
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tiny_runs)]
+    assert main([*args, "--visual-steps", "4", "--fusion-steps", "4", "--resume", "--no-progress"]) == 0
+    assert (tiny_runs / "fusion-hmd.pt").stat().st_mtime_ns == before
+
+
+def test_export_writes_every_model_with_metadata(tiny_weights, capsys):
+    assert set(model_files(tiny_weights)) == set(ZOO)
+    model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+    assert model.info.kpo and model.info.inputs == ("hmd", "rgb", "depth")
+    assert model.info.visual_path.name == "visual-rgbd.onnx"
+    assert not LoadedModel.load(tiny_weights / "hmd-rgbd.onnx").info.kpo
+    assert LoadedModel.load(tiny_weights / "hmd.onnx").visual is None
+
+
+def test_export_parity_is_reported_under_the_tolerance(tiny_runs, tmp_path, capsys):
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(tmp_path), "--model", "hmd-rgb1"]) == 0
+    out = capsys.readouterr().out
+    errors = [float(line.rsplit("=", 1)[1]) for line in out.splitlines() if "max |torch - onnx|" in line]
+    assert len(errors) == 2 and max(errors) < 1e-4
+
+
+@pytest.fixture(scope="module")
+def val(tiny_data):
+    return load_split(tiny_data, "val")[0], split_camera(tiny_data, "val")
+
+
+@pytest.mark.parametrize("name", ["hmd-rgb", "egoposevr"])
+def test_incremental_cache_gives_the_same_poses_as_naive_reencoding(tiny_weights, val, name):
+    seq, camera = val
+    model = LoadedModel.load(tiny_weights / f"{name}.onnx")
+    incremental, naive = Pipeline(model), Pipeline(model, naive=True)
+    joints_a, rots_a = replay_sequence(incremental, seq, camera)
+    joints_b, rots_b = replay_sequence(naive, seq, camera)
+    np.testing.assert_allclose(joints_a, joints_b, atol=1e-6)
+    np.testing.assert_allclose(rots_a, rots_b, atol=1e-6)
+    # ... while naive runs the encoder on the whole window for every headset sample.
+    assert naive.frames_encoded > 3 * incremental.frames_encoded
+    assert 0 < incremental.frames_encoded <= len(seq["cam_t_us"])  # each frame once
+
+
+def test_poses_say_whether_the_camera_was_used(tiny_weights, val):
+    seq, camera = val
+    pipeline = Pipeline(LoadedModel.load(tiny_weights / "hmd-rgbd.onnx"))
+    t0 = int(seq["hmd_t_us"][0])
+    first = pipeline.push_hmd(t0, seq["hmd_poses"][0], seq["hmd_valid"][0])
+    assert first.camera is False  # no frame yet: HMD stream only
+    rgb = np.zeros((64, 80, 3), np.uint8)
+    depth = np.full((64, 80), 1500, np.uint16)
+    pipeline.push_rgbd(t0 + 1000, rgb, depth, camera["intrinsics"])
+    assert pipeline.push_hmd(t0 + 11_000, seq["hmd_poses"][1], seq["hmd_valid"][1]).camera is True
+    lost = pipeline.push_hmd(t0 + 900_000, seq["hmd_poses"][2], seq["hmd_valid"][2])
+    assert lost.camera is False  # the newest frame is older than the window allows
+    hmd_only = Pipeline(LoadedModel.load(tiny_weights / "hmd.onnx"))
+    assert hmd_only.push_hmd(t0, seq["hmd_poses"][0], seq["hmd_valid"][0]).camera is None
+
+
+def test_a_pose_is_a_consistent_smpl_pose(tiny_weights, val):
+    seq, _ = val
+    pipeline = Pipeline(LoadedModel.load(tiny_weights / "egoposevr.onnx"))
+    pose = pipeline.push_hmd(int(seq["hmd_t_us"][0]), seq["hmd_poses"][0], seq["hmd_valid"][0])
+    assert pose.global_orient.shape == (3,) and pose.body_pose.shape == (63,) and pose.joints.shape == (22, 3)
+    np.testing.assert_allclose(pose.transl, pose.joints[0])
+    assert {"features", "visual", "fusion", "fk_filter", "kpo"} <= set(pose.timing_us)
+
+
+def test_bad_headset_input_is_refused_and_the_pipeline_keeps_working(tiny_weights, val):
+    seq, _ = val
+    pipeline = Pipeline(LoadedModel.load(tiny_weights / "hmd.onnx"))
+    bad = seq["hmd_poses"][0].copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        pipeline.push_hmd(0, bad, seq["hmd_valid"][0])
+    with pytest.raises(ValueError, match=r"must be \(3, 7\)"):
+        pipeline.push_hmd(0, bad[:2], seq["hmd_valid"][0])
+    assert np.isfinite(pipeline.push_hmd(0, seq["hmd_poses"][0], seq["hmd_valid"][0]).joints).all()
+
+
+def test_files_that_are_not_models_are_refused_clearly(tiny_weights, tmp_path):
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a graph")
+    with pytest.raises(ModelError, match=r"junk\.onnx"):
+        LoadedModel.load(junk)
+    with pytest.raises(ModelError, match="not an EgoPoseVR model"):
+        LoadedModel.load(tiny_weights / "visual-rgb.onnx")
+    lonely = tmp_path / "hmd-rgb.onnx"
+    lonely.write_bytes((tiny_weights / "hmd-rgb.onnx").read_bytes())
+    with pytest.raises(ModelError, match=r"visual-rgb\.onnx is missing"):
+        LoadedModel.load(lonely)
+
+
+def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--json", str(out)]
+    assert main([*args, "--models", "hmd,egoposevr", "--no-progress"]) == 0
+    table = capsys.readouterr().out
+    assert table.splitlines()[0].startswith("| model | MPJPE-U cm") and "| egoposevr |" in table
+    results = json.loads(out.read_text())["models"]
+    assert list(results) == ["hmd", "egoposevr"]
+    assert set(results["hmd"]) == set(METRIC_KEYS)
+    assert all(np.isfinite(v) and v >= 0 for m in results.values() for v in m.values())
+
+
+def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "nope"]
+    assert main(args) == 2
+    assert "nope" in capsys.readouterr().err
