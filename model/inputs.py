@@ -131,10 +131,15 @@ def normalise_uv(uv_px: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
     return (uv_px + 0.5) / np.asarray(size_wh, dtype=np.float64)
 
 
-def camera_to_world(points_cam: np.ndarray, head_pose: np.ndarray, cam_from_head: np.ndarray) -> np.ndarray:
+def camera_to_world(
+    points_cam: np.ndarray,
+    head_pose: np.ndarray,
+    cam_from_head: np.ndarray,
+    head_from_cam: np.ndarray | None = None,
+) -> np.ndarray:
     """Camera-frame points (..., J, 3) -> world, given the headset pose (..., 7) at capture and the (4, 4)
-    headset-device -> camera transform."""
-    head_from_cam = np.linalg.inv(cam_from_head)
+    headset-device -> camera transform (or its inverse ``head_from_cam``, if the caller has it)."""
+    head_from_cam = np.linalg.inv(cam_from_head) if head_from_cam is None else head_from_cam
     in_head = points_cam @ head_from_cam[:3, :3].T + head_from_cam[:3, 3]
     world_from_head = quat_xyzw_to_matrix(head_pose[..., 3:])
     return in_head @ np.swapaxes(world_from_head, -1, -2) + head_pose[..., None, :3]

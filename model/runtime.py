@@ -156,7 +156,7 @@ class _Frame:
     t_us: int
     size_wh: tuple[int, int]
     intrinsics: np.ndarray
-    cam_from_head: np.ndarray
+    head_from_cam: np.ndarray  # (4, 4)
     kp_cam: np.ndarray | None = None  # (J, 3)
     confidence: np.ndarray | None = None  # (J,)
     image: np.ndarray | None = None  # (C, h, w), naive only
@@ -218,7 +218,9 @@ class Pipeline:
             t_us=int(t_us),
             size_wh=(rgb.shape[1], rgb.shape[0]),
             intrinsics=np.asarray(intrinsics, dtype=np.float64),
-            cam_from_head=self.default_cam_from_head if cam_from_head is None else np.asarray(cam_from_head),
+            head_from_cam=np.linalg.inv(
+                self.default_cam_from_head if cam_from_head is None else cam_from_head
+            ),
         )
         if self.naive:
             frame.image, frame.filter_before = image, copy.deepcopy(self.visibility)
@@ -333,7 +335,7 @@ class Pipeline:
         head_t = np.fromiter(self.head_t_us, dtype=np.int64)
         heads = np.stack(self.head_poses)[nearest_sample(np.array([f.t_us for f in picked]), head_t)]
         kp_world = np.stack(
-            [camera_to_world(f.kp_cam, h, f.cam_from_head) for f, h in zip(picked, heads, strict=True)]
+            [camera_to_world(f.kp_cam, h, None, f.head_from_cam) for f, h in zip(picked, heads, strict=True)]
         )
         confidence = np.stack([f.confidence for f in picked])
         age_s = np.array([(now_us - f.t_us) * 1e-6 for f in picked])
