@@ -25,6 +25,7 @@ NUM_JOINTS: Final = 22
 PARENTS: Final = np.array([-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19])
 JOINT_INDEX: Final = {name: i for i, name in enumerate(JOINT_NAMES)}
 PELVIS, HEAD, LEFT_WRIST, RIGHT_WRIST = 0, 15, 20, 21
+FOOT_JOINT_HEIGHT_M: Final = 0.035  # the foot joint (ball of the foot) above the floor when flat
 UPPER_BODY: Final = np.array([3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21])
 LOWER_BODY: Final = np.array([0, 1, 2, 4, 5, 7, 8, 10, 11])
 

@@ -61,7 +61,7 @@ class TrainConfig:
     weight_decay: float = 1e-2
     warmup_steps: int = 100
     visual_steps: int = 5000
-    fusion_steps: int = 3000
+    fusion_steps: int = 8000
     visual_width: int = 80
     visual_height: int = 64
     window: int = 40
@@ -73,6 +73,7 @@ class TrainConfig:
     drop_camera_p: float = 0.1  # whole visual window missing: teaches the HMD-only fallback
     drop_frame_p: float = 0.05
     position_weight: float = 10.0  # L1 metres vs L1 6D
+    rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
 
@@ -435,7 +436,7 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3), offsets)
         pos = pos + (anchor - pos[:, HEAD])[:, None]
         pos_loss = (pos - joints).abs().sum(-1).mean()
-        return {"rot": rot_loss, "pos": pos_loss * tc.position_weight}
+        return {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
 
     return loss
 

@@ -14,11 +14,10 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ..skeleton import NUM_JOINTS, forward_kinematics, rest_offsets
+from ..skeleton import FOOT_JOINT_HEIGHT_M, NUM_JOINTS, forward_kinematics, rest_offsets
 
 # Height of the SMPL foot (toe-base) and ankle joints above the sole when standing flat, metres. Used to put
 # the floor under a motion; the renderer's shoe capsules are sized to match.
-FOOT_JOINT_HEIGHT_M = 0.035
 ANKLE_JOINT_HEIGHT_M = 0.08
 FEET = (7, 8, 10, 11)  # left/right ankle, left/right foot
 

@@ -130,3 +130,19 @@ def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "nope"]
     assert main(args) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_body_size_follows_the_highest_head_unless_given(tiny_weights, val):
+    seq, _ = val
+    model = LoadedModel.load(tiny_weights / "hmd.onnx")
+    tall = seq["hmd_poses"][0].astype(np.float64).copy()
+    tall[:, 1] += 1.95 - tall[0, 1]  # a 1.95 m tall headset, everything raised with it
+    auto = Pipeline(model)
+    auto.push_hmd(0, tall, np.ones(3, bool))
+    fixed = Pipeline(model, bone_scale=np.ones(22))
+    fixed.push_hmd(0, tall, np.ones(3, bool))
+    auto_len = np.linalg.norm(auto.offsets, axis=-1).sum()
+    fixed_len = np.linalg.norm(fixed.offsets, axis=-1).sum()
+    assert 1.1 < auto_len / fixed_len <= 1.25
+    auto.reset()
+    assert np.linalg.norm(auto.offsets, axis=-1).sum() == pytest.approx(fixed_len)
