@@ -175,6 +175,21 @@ class _Frame:
     filter_before: VisibilityFilter | None = None  # naive only: Alg. 1 state before this frame
 
 
+def _check_frame(rgb: np.ndarray, depth_mm: np.ndarray, intrinsics: Any, cam_from_head: Any) -> None:
+    """Raise ValueError unless the frame is usable: shapes, dtypes, finite positive intrinsics."""
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if depth_mm.shape != rgb.shape[:2] or depth_mm.dtype != np.uint16:
+        raise ValueError(f"depth must be {rgb.shape[:2]} uint16, got {depth_mm.shape} {depth_mm.dtype}")
+    k = np.asarray(intrinsics, dtype=np.float64)
+    if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
+        raise ValueError(f"intrinsics must be 4 finite numbers (fx, fy > 0, cx, cy), got {intrinsics}")
+    if cam_from_head is not None:
+        m = np.asarray(cam_from_head, dtype=np.float64)
+        if m.shape != (4, 4) or not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3]) - 1.0) > 1e-3:
+            raise ValueError("cam_from_head must be a finite (4, 4) rigid transform")
+
+
 class Pipeline:
     """Per-session state machine around one :class:`LoadedModel`. Not thread-safe: one caller at a time.
 
@@ -225,14 +240,17 @@ class Pipeline:
         depth_mm: np.ndarray,
         intrinsics: np.ndarray,
         cam_from_head: np.ndarray | None = None,
-    ) -> None:
+    ) -> bool:
         """A decoded frame: rgb (H, W, 3) uint8, depth (H, W) uint16 mm, intrinsics (fx, fy, cx, cy) of
-        that W×H image, cam_from_head (4, 4) or None for the training camera's. Older frames than the
-        newest cached one are ignored (the cache is ordered by capture time)."""
-        if self.model.visual is None:
-            return
-        if self.frames and t_us <= self.frames[-1].t_us:
-            return
+        that W×H image, cam_from_head (4, 4) or None for the training camera's.
+
+        Returns False, doing nothing, when the model reads no camera or the frame is not newer than the
+        newest cached one (the cache is ordered by capture time); the caller counts those. Raises
+        ValueError for malformed frames.
+        """
+        _check_frame(rgb, depth_mm, intrinsics, cam_from_head)
+        if self.model.visual is None or (self.frames and t_us <= self.frames[-1].t_us):
+            return False
         started = time.perf_counter()
         vc = self.model.info.visual_config
         image = network_input(*resize_frame(rgb, depth_mm, (vc["width"], vc["height"])), vc["channels"])
@@ -252,6 +270,7 @@ class Pipeline:
             frame.confidence = self.visibility(frame.t_us, zeta)
         self.frames.append(frame)
         self._pending_visual_us += int((time.perf_counter() - started) * 1e6)
+        return True
 
     def _encode(self, frame: _Frame, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Encoder on (1, C, h, w) -> camera-frame keypoints (J, 3) and ζ (J,)."""
@@ -321,10 +340,11 @@ class Pipeline:
             targets[list(TRACKED_JOINTS)] = tracked_pos
             observed[list(TRACKED_JOINTS)] = valid
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
+            lap("kpo")
         local = rederive_rotations(local, joints, self.offsets)
         joints, _ = forward_kinematics(local, joints[0], self.offsets)  # rotations and joints agree exactly
         global_orient, body_pose = local_rot_to_smpl(local)
-        lap("kpo")
+        lap("rotations")
         return PoseResult(
             t_us=t_us,
             model=self.model.info.name,

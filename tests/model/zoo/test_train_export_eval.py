@@ -72,7 +72,8 @@ def test_poses_say_whether_the_camera_was_used(tiny_weights, val):
     assert first.camera is False  # no frame yet: HMD stream only
     rgb = np.zeros((64, 80, 3), np.uint8)
     depth = np.full((64, 80), 1500, np.uint16)
-    pipeline.push_rgbd(t0 + 1000, rgb, depth, camera["intrinsics"])
+    assert pipeline.push_rgbd(t0 + 1000, rgb, depth, camera["intrinsics"])
+    assert not pipeline.push_rgbd(t0 + 500, rgb, depth, camera["intrinsics"])  # older than the cache: refused
     assert pipeline.push_hmd(t0 + 11_000, seq["hmd_poses"][1], seq["hmd_valid"][1]).camera is True
     lost = pipeline.push_hmd(t0 + 900_000, seq["hmd_poses"][2], seq["hmd_valid"][2])
     assert lost.camera is False  # the newest frame is older than the window allows
@@ -86,7 +87,7 @@ def test_a_pose_is_a_consistent_smpl_pose(tiny_weights, val):
     pose = pipeline.push_hmd(int(seq["hmd_t_us"][0]), seq["hmd_poses"][0], seq["hmd_valid"][0])
     assert pose.global_orient.shape == (3,) and pose.body_pose.shape == (63,) and pose.joints.shape == (22, 3)
     np.testing.assert_allclose(pose.transl, pose.joints[0])
-    assert {"features", "visual", "fusion", "fk_filter", "kpo"} <= set(pose.timing_us)
+    assert {"features", "visual", "fusion", "fk_filter", "kpo", "rotations"} <= set(pose.timing_us)
 
 
 def test_bad_headset_input_is_refused_and_the_pipeline_keeps_working(tiny_weights, val):
@@ -146,3 +147,20 @@ def test_body_size_follows_the_highest_head_unless_given(tiny_weights, val):
     assert 1.1 < auto_len / fixed_len <= 1.25
     auto.reset()
     assert np.linalg.norm(auto.offsets, axis=-1).sum() == pytest.approx(fixed_len)
+
+
+@pytest.mark.parametrize(
+    ("rgb", "depth", "intrinsics", "match"),
+    [
+        (np.zeros((64, 80), np.uint8), np.zeros((64, 80), np.uint16), [80, 80, 40, 32], "rgb must be"),
+        (np.zeros((64, 80, 3), np.uint8), np.zeros((32, 80), np.uint16), [80, 80, 40, 32], "depth must be"),
+        (np.zeros((64, 80, 3), np.uint8), np.zeros((64, 80), np.float32), [80, 80, 40, 32], "depth must be"),
+        (np.zeros((64, 80, 3), np.uint8), np.zeros((64, 80), np.uint16), [np.nan, 80, 40, 32], "intrinsics"),
+        (np.zeros((64, 80, 3), np.uint8), np.zeros((64, 80), np.uint16), [80, 80, 40], "intrinsics"),
+    ],
+)
+def test_malformed_frames_are_refused_clearly(tiny_weights, rgb, depth, intrinsics, match):
+    pipeline = Pipeline(LoadedModel.load(tiny_weights / "hmd-rgbd.onnx"))
+    with pytest.raises(ValueError, match=match):
+        pipeline.push_rgbd(0, rgb, depth, intrinsics)
+    assert not pipeline.frames
