@@ -48,8 +48,6 @@ from .rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from .skeleton import HEAD, rest_offsets
 from .zoo import ZOO
 
-Progress = Callable[[Any], Any]
-
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -119,6 +117,14 @@ def build_net(ckpt: dict[str, Any]) -> torch.nn.Module:
         net = FusionNet(FusionConfig(**ckpt["config"]))
     net.load_state_dict(ckpt["state_dict"])
     return net.eval()
+
+
+def _finished(path: Path) -> bool:
+    """A checkpoint exists and reached its planned number of steps (resume skips it)."""
+    if not path.exists():
+        return False
+    ckpt = load_checkpoint(path)
+    return ckpt["step"] >= ckpt["total_steps"]
 
 
 def _tuples(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -279,7 +285,7 @@ def train_visual(
 ) -> Path:
     """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``."""
     path = out_dir / f"visual-{kind}.pt"
-    if resume and path.exists() and (c := load_checkpoint(path))["step"] >= c["total_steps"]:
+    if resume and _finished(path):
         return path
     torch.manual_seed(tc.seed)
     cfg = visual_config(kind, tc)
@@ -453,7 +459,7 @@ def train_fusion(
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt`` (its visual encoder must be trained)."""
     path = out_dir / f"fusion-{name}.pt"
-    if resume and path.exists() and (c := load_checkpoint(path))["step"] >= c["total_steps"]:
+    if resume and _finished(path):
         return path
     entry = ZOO[name]
     visual = None
