@@ -51,11 +51,6 @@ def to_heading(points: np.ndarray, rot: np.ndarray, origin: np.ndarray) -> np.nd
     return (points - origin[..., None, :]) @ rot
 
 
-def from_heading(points: np.ndarray, rot: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`to_heading`."""
-    return points @ np.swapaxes(rot, -1, -2) + origin[..., None, :]
-
-
 def canonicalize_hmd(window: np.ndarray, rot: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """HMD features (..., T, 72) in the world -> heading frame (rot (..., 3, 3), origin (..., 3)); float32.
 

@@ -356,15 +356,24 @@ def frame_keypoints(
     return world, conf
 
 
+def _cached(cache: dict[Any, Any] | None, key: Any, compute: Callable[[], Any]) -> Any:
+    """``compute()`` once per key across the zoo's fusion nets (no cache: every time)."""
+    if cache is None:
+        return compute()
+    if key not in cache:
+        cache[key] = compute()
+    return cache[key]
+
+
 def prepare_fusion_sequence(
     seq: dict[str, Any],
     camera: dict[str, Any],
     rng: np.random.Generator,
     tc: TrainConfig,
     visual: KeypointNet | None,
-    cache: dict[Any, tuple[np.ndarray, ...]] | None = None,
+    cache: dict[Any, Any] | None = None,
 ) -> FusionSequence:
-    """Stage-2 arrays of one sequence; ``cache`` keeps stage-1 predictions across zoo models."""
+    """Stage-2 arrays of one sequence; ``cache`` keeps HMD features and stage-1 predictions across zoo models."""
     t_us, poses = seq["hmd_t_us"], seq["hmd_poses"].astype(np.float64)
     rot, origin = heading_frame(poses[:, 0])
     local = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))  # (N, J, 3, 3)
@@ -373,18 +382,20 @@ def prepare_fusion_sequence(
     K, J = len(seq["cam_t_us"]), local.shape[1]
     kp_world, conf = np.zeros((K, J, 3)), np.zeros((K, J))
     if visual is not None and K:
-        key = (visual.cfg.channels, seq["name"])
-        if cache is None or key not in cache:
-            predictions = predict_keypoints(
-                visual, *decode_frames(seq, (visual.cfg.width, visual.cfg.height))
-            )
-            if cache is not None:
-                cache[key] = predictions
-        uv, depth_m, zeta = cache[key] if cache is not None else predictions
+        size = (visual.cfg.width, visual.cfg.height)
+        uv, depth_m, zeta = _cached(
+            cache,
+            (visual.cfg.channels, seq["name"]),
+            lambda: predict_keypoints(visual, *decode_frames(seq, size)),
+        )
         kp_world, conf = frame_keypoints(uv, depth_m, zeta, seq["cam_t_us"], camera, t_us, poses[:, 0])
     latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
     return FusionSequence(
-        hmd=hmd_features(t_us, poses, seq["hmd_valid"]).astype(np.float32),
+        hmd=_cached(
+            cache,
+            ("hmd", seq["name"]),
+            lambda: hmd_features(t_us, poses, seq["hmd_valid"]).astype(np.float32),
+        ),
         head_pose=poses[:, 0],
         t_us=t_us,
         target_sixd=matrix_to_sixd(local).astype(np.float32),
@@ -455,7 +466,7 @@ def train_fusion(
     resume: bool = False,
     progress: bool = True,
     seqs: list[dict[str, Any]] | None = None,
-    cache: dict[Any, tuple[np.ndarray, ...]] | None = None,
+    cache: dict[Any, Any] | None = None,
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt`` (its visual encoder must be trained)."""
     path = out_dir / f"fusion-{name}.pt"
@@ -511,7 +522,7 @@ def train_zoo(
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
     seqs = load_split(data_dir, "train", tc.limit_sequences)
     paths = {f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals}
-    cache: dict[Any, tuple[np.ndarray, ...]] = {}  # stage-1 keypoints, shared by the fusion nets
+    cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(f, data_dir, out_dir, tc, resume, progress, seqs, cache)
     return paths

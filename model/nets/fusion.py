@@ -19,7 +19,6 @@ import dataclasses
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from ..hmd import FEATURE_DIM
@@ -159,11 +158,3 @@ def set_input_statistics(encoder: StreamEncoder, samples: torch.Tensor) -> None:
     with torch.no_grad():
         encoder.input_mean.copy_(samples.mean(0))
         encoder.input_std.copy_(samples.std(0).clamp_min(1e-2))
-
-
-def rotation_6d_outputs(sixd: torch.Tensor) -> torch.Tensor:
-    """Raw head outputs (..., 6) -> valid 6D (orthonormal first two columns), as FK will read them."""
-    a, b = sixd[..., :3], sixd[..., 3:]
-    a = F.normalize(a, dim=-1)
-    b = F.normalize(b - (a * b).sum(-1, keepdim=True) * a, dim=-1)
-    return torch.cat([a, b], dim=-1)
