@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
+from .body import BodyCalibrator, BodyRegression
 from .filters import OneEuroFilter
 from .hmd import HmdFeatureExtractor
 from .inputs import (
@@ -46,20 +47,9 @@ from .inputs import (
 from .kpo import KpoWeights, rederive_rotations, solve_kpo
 from .rig import TRACKED_JOINTS, joints_from_devices
 from .rotations import sixd_to_matrix
-from .skeleton import (
-    FOOT_JOINT_HEIGHT_M,
-    HEAD,
-    NUM_JOINTS,
-    REST_JOINTS_M,
-    forward_kinematics,
-    local_rot_to_smpl,
-    rest_offsets,
-)
+from .skeleton import HEAD, NUM_JOINTS, forward_kinematics, local_rot_to_smpl, rest_offsets
 
 HEAD_HISTORY_S = 1.0
-# Body size from the headset: the head joint of the mean SMPL body standing straight, above the floor.
-STANDING_HEAD_HEIGHT_M = float(REST_JOINTS_M[HEAD, 1] - REST_JOINTS_M[10, 1] + FOOT_JOINT_HEIGHT_M)
-BODY_SCALE_RANGE = (0.8, 1.25)
 # One Euro on joint positions (paper Eq. 8). Chosen on 4 val clips: (4 Hz, 2) costs 0.2-0.3 cm MPJPE against no
 # filter and cuts jitter 4.5x; (2 Hz, 1) halves jitter again but lags by 0.6 cm upper body.
 POSITION_MIN_CUTOFF_HZ = 4.0
@@ -82,6 +72,7 @@ class ModelInfo:
     visual_config: dict[str, Any] | None  # VisualConfig fields
     camera: dict[str, Any] | None  # the training camera (default cam_from_head)
     rig_offsets_m: np.ndarray
+    body: BodyRegression | None  # bone scales from headset statistics (model/body.py); None: height only
 
 
 def _metadata(session: ort.InferenceSession) -> dict[str, str]:
@@ -135,6 +126,7 @@ class LoadedModel:
                 visual_config=json.loads(visual_meta["config"]) if visual_meta else None,
                 camera=json.loads(visual_meta["camera"]) if visual_meta else None,
                 rig_offsets_m=np.asarray(json.loads(meta["rig_offsets_m"])),
+                body=BodyRegression.from_json(meta["body"]) if "body" in meta else None,
             )
         except (KeyError, ValueError) as exc:
             raise ModelError(f"{path}: incomplete EgoPoseVR metadata ({exc})") from exc
@@ -193,9 +185,9 @@ def _check_frame(rgb: np.ndarray, depth_mm: np.ndarray, intrinsics: Any, cam_fro
 class Pipeline:
     """Per-session state machine around one :class:`LoadedModel`. Not thread-safe: one caller at a time.
 
-    Body size: with ``bone_scale`` (J,) given, the skeleton is that body's. Otherwise it is the mean SMPL
-    body scaled by the highest head the headset has shown (people stand up at some point), assuming a
-    stage reference space (floor at y = 0), within BODY_SCALE_RANGE.
+    Body size: with ``bone_scale`` (J,) given, the skeleton is that body's. Otherwise a
+    :class:`~egoposevr.model.body.BodyCalibrator` estimates it from the session's headset statistics,
+    assuming a stage reference space (floor at y = 0).
     """
 
     def __init__(
@@ -221,7 +213,7 @@ class Pipeline:
         """Forget everything (a new session, a model switch, a long pause)."""
         self.features = HmdFeatureExtractor()
         self.offsets = rest_offsets(self.bone_scale)
-        self.highest_head_m = 0.0
+        self.body = BodyCalibrator(self.model.info.body)
         self.hmd_window: np.ndarray | None = None  # (T, 72)
         self.head_t_us: deque[int] = deque()
         self.head_poses: deque[np.ndarray] = deque()
@@ -330,7 +322,8 @@ class Pipeline:
         device_poses = poses.copy()
         device_poses[0] = self.last_head_pose  # the newest tracked headset pose
         tracked_pos, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
-        self._calibrate_body(tracked_pos[0, 1])
+        if not self.fixed_body and self.body.push(tracked_pos, valid):
+            self.offsets = rest_offsets(self.body.bone_scale)
         joints, _ = forward_kinematics(local, np.zeros(3), self.offsets)
         joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
         lap("fk_filter")
@@ -356,14 +349,6 @@ class Pipeline:
             camera=camera,
             timing_us=timing,
         )
-
-    def _calibrate_body(self, head_height_m: float) -> None:
-        """Scale the skeleton when the head is higher than ever seen (by 5 mm; rebuilding offsets is cheap)."""
-        if self.fixed_body or head_height_m < self.highest_head_m + 0.005:
-            return
-        self.highest_head_m = head_height_m
-        scale = float(np.clip(head_height_m / STANDING_HEAD_HEIGHT_M, *BODY_SCALE_RANGE))
-        self.offsets = rest_offsets(np.full(NUM_JOINTS, scale))
 
     def _remember_head(self, t_us: int, head_pose: np.ndarray, head_valid: bool) -> None:
         if not head_valid:
