@@ -41,7 +41,9 @@ def test_untracked_devices_do_not_count():
     stats = BodyStatistics()
     assert not stats.push(tracked(1.7, (0, 0, 0), (0, 0, 0)), np.array([False, True, True]))
     assert not stats.seen
-    stats.push(tracked(1.6, (5.0, 0, 0), (0.2, -0.5, 0)), np.array([True, False, True]))  # left glitch ignored
+    stats.push(
+        tracked(1.6, (5.0, 0, 0), (0.2, -0.5, 0)), np.array([True, False, True])
+    )  # left glitch ignored
     assert stats.reach_m == pytest.approx(np.hypot(0.2, 0.5))
 
 
@@ -49,8 +51,8 @@ def test_push_reports_only_moves_of_5_mm():
     stats = BodyStatistics()
     sample = tracked(1.6, (0.3, -0.6, 0.0), (-0.3, -0.6, 0.0))
     assert stats.push(sample, ALL)
-    assert not stats.push(sample + [0, 0.002, 0], ALL)
-    assert stats.push(sample + [0, 0.01, 0], ALL)
+    assert not stats.push(sample + np.array([0, 0.002, 0]), ALL)
+    assert stats.push(sample + np.array([0, 0.01, 0]), ALL)
 
 
 def test_fit_recovers_a_linear_log_scale_relation():
