@@ -68,8 +68,53 @@ def canonicalize_hmd(window: np.ndarray, rot: np.ndarray, origin: np.ndarray) ->
     return out.astype(np.float32)
 
 
-def decode_rgbd(rgb_jpeg: bytes, depth_png: bytes) -> tuple[np.ndarray, np.ndarray]:
-    """Encoded frame -> RGB (H, W, 3) uint8 and depth (H, W) uint16 mm. Raises ValueError if undecodable."""
+def encoded_image_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a JPEG's frame header or a PNG's IHDR, without decoding the pixels.
+
+    Decoding first would let a few bytes claiming 60 000 × 60 000 pixels allocate gigabytes. Raises ValueError
+    for data that is neither or whose header is cut short.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] == b"\xff\xd8":
+        return _jpeg_size(data)
+    raise ValueError("image is neither a PNG with an IHDR header nor a JPEG")
+
+
+# JPEG start-of-frame markers carry the size; C4 (Huffman), C8 (reserved) and CC (arithmetic) do not.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int]:
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            raise ValueError(f"JPEG marker expected at byte {i}")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        length = int.from_bytes(data[i + 2 : i + 4], "big")
+        if marker in _JPEG_SOF and i + 9 <= len(data):
+            return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
+        i += 2 + length
+    raise ValueError("JPEG has no frame header")
+
+
+def decode_rgbd(
+    rgb_jpeg: bytes, depth_png: bytes, expected_wh: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Encoded frame -> RGB (H, W, 3) uint8 and depth (H, W) uint16 mm. Raises ValueError if undecodable.
+
+    With ``expected_wh`` the headers' sizes are checked before any pixel is decoded.
+    """
+    if expected_wh is not None:
+        for name, data in (("rgb", rgb_jpeg), ("depth", depth_png)):
+            size = encoded_image_size(data)
+            if size != tuple(expected_wh):
+                raise ValueError(
+                    f"{name} image is {size[0]}x{size[1]}, the message says {expected_wh[0]}x{expected_wh[1]}"
+                )
     bgr = cv2.imdecode(np.frombuffer(rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
     depth = cv2.imdecode(np.frombuffer(depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
     if bgr is None or depth is None:

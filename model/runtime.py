@@ -283,6 +283,30 @@ class Pipeline:
             f.confidence = vis_filter(f.t_us, zeta[k])
 
     # ------------------------------------------------------------------------------------------ headset
+    def observe_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> None:
+        """A sample that gets no pose (the server skipped it to catch up): it still feeds the HMD window,
+        the velocities and the body estimate, so the next answered sample sees an unbroken stream."""
+        self._ingest(int(t_us), poses, valid)
+
+    def _ingest(
+        self, t_us: int, poses: np.ndarray, valid: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Update the stream state -> poses (3, 7), valid (3,), tracked joint positions (3, 3)."""
+        poses = np.asarray(poses, dtype=np.float64)
+        valid = np.asarray(valid, dtype=bool)
+        x = self.features.push(t_us, poses, valid)  # validates shapes and finiteness
+        self._remember_head(t_us, poses[0], bool(valid[0]))
+        self.hmd_window = (
+            np.tile(x, (self.window, 1)) if self.hmd_window is None else np.roll(self.hmd_window, -1, 0)
+        )
+        self.hmd_window[-1] = x
+        device_poses = poses.copy()
+        device_poses[0] = self.last_head_pose  # the newest tracked headset pose
+        tracked_pos, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
+        if not self.fixed_body and self.body.push(tracked_pos, valid):
+            self.offsets = rest_offsets(self.body.bone_scale)
+        return poses, valid, tracked_pos
+
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
         timing: dict[str, int] = {}
@@ -295,14 +319,7 @@ class Pipeline:
             clock = now
 
         t_us = int(t_us)
-        poses = np.asarray(poses, dtype=np.float64)
-        valid = np.asarray(valid, dtype=bool)
-        x = self.features.push(t_us, poses, valid)  # validates shapes and finiteness
-        self._remember_head(t_us, poses[0], bool(valid[0]))
-        self.hmd_window = (
-            np.tile(x, (self.window, 1)) if self.hmd_window is None else np.roll(self.hmd_window, -1, 0)
-        )
-        self.hmd_window[-1] = x
+        poses, valid, tracked_pos = self._ingest(t_us, poses, valid)
         rot, origin = heading_frame(self.last_head_pose)
         inputs = {"hmd": canonicalize_hmd(self.hmd_window, rot, origin)[None]}
         lap("features")
@@ -319,11 +336,6 @@ class Pipeline:
         lap("fusion")
         local = sixd_to_matrix(sixd.astype(np.float64))
         local[0] = rot @ local[0]  # pelvis: heading frame -> world
-        device_poses = poses.copy()
-        device_poses[0] = self.last_head_pose  # the newest tracked headset pose
-        tracked_pos, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
-        if not self.fixed_body and self.body.push(tracked_pos, valid):
-            self.offsets = rest_offsets(self.body.bone_scale)
         joints, _ = forward_kinematics(local, np.zeros(3), self.offsets)
         joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
         lap("fk_filter")

@@ -187,6 +187,8 @@ class Pose(Message):
     joint positions, flattened row-major; ``timing_us`` maps pipeline stage names to microseconds.
     ``camera`` (optional): absent for models that read no camera; ``true`` if an RGB-D frame contributed,
     ``false`` if the model had to run on the headset stream alone (no frame yet, or the camera went quiet).
+    ``skipped`` (optional): headset samples of this session that got no pose since the previous pose, because
+    the server was behind and the newest sample won.
     """
 
     TYPE: ClassVar[str] = "pose"
@@ -200,6 +202,7 @@ class Pose(Message):
     joints: vec(66)
     timing_us: Annotated[dict[Annotated[str, Strict(), Field(max_length=32)], TimeUs], Len(0, 32)]
     camera: Annotated[bool, Strict()] | None = None
+    skipped: Seq | None = None
 
 
 class ModelInfo(BaseModel):

@@ -63,7 +63,7 @@ def test_protocol_does_no_io():
     "module",
     ["egoposevr.protocol", "egoposevr.model.skeleton", "egoposevr.model.hmd", "egoposevr.model.filters",
      "egoposevr.model.runtime", "egoposevr.model.evaluate", "egoposevr.model.kpo", "egoposevr.model.weights",
-     "egoposevr.cli.main"],
+     "egoposevr.cli.main", "egoposevr.server.app", "egoposevr.server.hub", "egoposevr.cli.serve_cmd"],
 )  # fmt: skip
 def test_importing_serving_modules_does_not_load_torch(module):
     code = f"import sys, {module}; assert 'torch' not in sys.modules, 'torch was imported'"

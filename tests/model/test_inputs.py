@@ -1,6 +1,8 @@
 """Network inputs shared by training and the runtime: heading frame, images, keypoints, visual tokens."""
 
+import cv2
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from egoposevr.model.hmd import hmd_features
@@ -9,6 +11,8 @@ from egoposevr.model.inputs import (
     VisibilityFilter,
     camera_to_world,
     canonicalize_hmd,
+    decode_rgbd,
+    encoded_image_size,
     heading_frame,
     lift_keypoints,
     nearest_sample,
@@ -112,3 +116,26 @@ def test_nearest_sample():
     t = np.array([0, 10, 20])
     assert list(nearest_sample(np.array([-5, 4, 6, 19, 99]), t)) == [0, 0, 1, 2, 2]
     assert list(nearest_sample(np.array([7]), np.array([3]))) == [0]
+
+
+@pytest.mark.parametrize("size_wh", [(80, 64), (321, 17)])
+def test_encoded_image_size_reads_headers_without_decoding(size_wh):
+    w, h = size_wh
+    jpeg = cv2.imencode(".jpg", np.zeros((h, w, 3), np.uint8))[1].tobytes()
+    png = cv2.imencode(".png", np.zeros((h, w), np.uint16))[1].tobytes()
+    assert encoded_image_size(jpeg) == size_wh
+    assert encoded_image_size(png) == size_wh
+    rgb, depth = decode_rgbd(jpeg, png, expected_wh=size_wh)
+    assert rgb.shape == (h, w, 3) and depth.shape == (h, w)
+
+
+def test_a_header_claiming_a_huge_image_is_refused_before_decoding():
+    png = bytearray(cv2.imencode(".png", np.zeros((4, 4), np.uint16))[1].tobytes())
+    png[16:24] = (60000).to_bytes(4, "big") * 2  # IHDR says 60000 x 60000
+    jpeg = cv2.imencode(".jpg", np.zeros((4, 4, 3), np.uint8))[1].tobytes()
+    with pytest.raises(ValueError, match="60000x60000"):
+        decode_rgbd(jpeg, bytes(png), expected_wh=(4, 4))
+    with pytest.raises(ValueError, match="neither"):
+        encoded_image_size(b"GIF89a....")
+    with pytest.raises(ValueError, match="JPEG"):
+        encoded_image_size(b"\xff\xd8\xff\xe0\x00")

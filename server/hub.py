@@ -1,0 +1,362 @@
+"""The protocol logic of every connection: handshake, roles, limits and routing into sessions. No sockets.
+
+The app's glue calls ``connect`` when a WebSocket opens, ``receive`` for each frame it reads, ``disconnect``
+when it closes, ``take_job`` / ``publish`` around each inference, and ``shutdown`` when stopping. Everything
+a client should get is put in its :class:`~egoposevr.server.broadcast.Outbox`; a fatal error also asks the
+outbox to close with the WebSocket code PROTOCOL.md §6 gives. All methods run on the event loop.
+
+Errors never escape ``receive``: a message that cannot be used gets an ``error`` reply (with its ``seq`` when
+it had one) and is counted; the connection stays up unless the error is fatal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hmac
+import time
+from collections.abc import Callable
+
+from ..protocol import (
+    Error,
+    ErrorCode,
+    Hello,
+    Hmd,
+    ListModels,
+    Message,
+    Models,
+    Ping,
+    Pong,
+    ProtocolError,
+    Rgbd,
+    SelectModel,
+    Welcome,
+    decode,
+    encode,
+)
+from .broadcast import Outbox
+from .config import ServerConfig
+from .metrics import Metrics
+from .recorder import Recorder
+from .registry import ModelRegistry
+from .session import Job, Received, RunResult, Session, TokenBucket
+
+CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_TOO_BIG, CLOSE_INTERNAL, CLOSE_TRY_LATER = (
+    1000, 1001, 1008, 1009, 1011, 1013,
+)  # fmt: skip
+CLOSE_CODES = {
+    ErrorCode.TOO_LARGE: CLOSE_TOO_BIG,
+    ErrorCode.HANDSHAKE_REQUIRED: CLOSE_POLICY,
+    ErrorCode.AUTH_FAILED: CLOSE_POLICY,
+    ErrorCode.SESSION_BUSY: CLOSE_POLICY,
+    ErrorCode.INVALID_FIELD: CLOSE_POLICY,  # only fatal for a hello whose session disagrees with the URL
+    ErrorCode.SERVER_FULL: CLOSE_TRY_LATER,
+    ErrorCode.INTERNAL: CLOSE_INTERNAL,
+    ErrorCode.SHUTTING_DOWN: CLOSE_GOING_AWAY,
+}
+RATE_ERROR_INTERVAL_NS = 1_000_000_000  # one rate_limited reply per second per client; all drops counted
+SERVER_MESSAGE_TYPES = frozenset({"welcome", "pose", "models", "error", "pong"})
+
+
+@dataclasses.dataclass(eq=False)
+class Client:
+    """One connection as the hub sees it."""
+
+    id: int
+    remote: str
+    outbox: Outbox
+    role: str | None = None
+    session: Session | None = None
+    label: str = ""  # hello.client, for logs
+    last_rate_error_ns: int = -RATE_ERROR_INTERVAL_NS
+
+    def __str__(self) -> str:
+        who = f"#{self.id} {self.remote}"
+        return f"{who} {self.role}@{self.session.id}" if self.session else who
+
+
+class Hub:
+    """All sessions and clients of one server."""
+
+    def __init__(
+        self,
+        config: ServerConfig,
+        registry: ModelRegistry,
+        metrics: Metrics,
+        recorder: Recorder | None = None,
+        on_work: Callable[[Session], None] = lambda s: None,
+        on_session_end: Callable[[Session], None] = lambda s: None,
+        server_name: str = "egoposevr/0",
+    ) -> None:
+        self.config, self.registry, self.metrics, self.recorder = config, registry, metrics, recorder
+        self.on_work, self.on_session_end, self.server_name = on_work, on_session_end, server_name
+        self.sessions: dict[str, Session] = {}
+        self.clients: set[Client] = set()
+        self.ready = False  # models loaded
+        self.accepting = True  # False once shutting down
+        self._next_id = 0
+
+    # ------------------------------------------------------------------------------ connections
+    def connect(self, remote: str, wake: Callable[[], None] = lambda: None) -> Client:
+        self._next_id += 1
+        client = Client(self._next_id, remote, Outbox(self.config.pose_queue, wake))
+        self.clients.add(client)
+        self.metrics.connections.inc()
+        return client
+
+    def disconnect(self, client: Client) -> None:
+        self.clients.discard(client)
+        session, client.session = client.session, None
+        if session is None:
+            return
+        self.metrics.clients.labels(client.role).dec()
+        if self.recorder is not None:
+            self.recorder.close(client)
+        if session.input is client:
+            session.input = None
+            session.restart_stream()
+        elif client in session.renders:
+            session.renders.remove(client)
+        if not session.clients:
+            del self.sessions[session.id]
+            self.metrics.sessions.set(len(self.sessions))
+            self.on_session_end(session)
+
+    def shutdown(self) -> None:
+        """Tell every client the server is stopping (fatal, close 1001); refuse new hellos."""
+        self.accepting = False
+        for client in list(self.clients):
+            self.fail(client, ErrorCode.SHUTTING_DOWN, "the server is shutting down", fatal=True)
+
+    def fail(
+        self, client: Client, code: ErrorCode, message: str, *, fatal: bool = False, seq: int | None = None
+    ) -> None:
+        """Send an ``error``; a fatal one closes the connection after it."""
+        client.outbox.put_control(
+            encode(Error(code=code.value, message=message[:1024], fatal=fatal, seq=seq))
+        )
+        self.metrics.errors.labels(code.value).inc()
+        if fatal:
+            client.outbox.close(CLOSE_CODES.get(code, CLOSE_POLICY), f"{code.value}: {message}")
+
+    # ------------------------------------------------------------------------------ messages
+    def receive(
+        self, client: Client, data: bytes | str, recv_ns: int, url_session: str | None = None
+    ) -> None:
+        """One WebSocket frame from ``client``, read at ``recv_ns`` (perf_counter ns)."""
+        if client.outbox.close_code is not None:
+            return  # closing: what still arrives is not answered
+        greeted = client.session is not None
+        try:
+            if isinstance(data, str):
+                raise ProtocolError(ErrorCode.MALFORMED, "text frame: protocol messages are binary msgpack")
+            msg = decode(data, max_bytes=self.config.max_message_bytes)
+        except ProtocolError as exc:
+            self.metrics.messages.labels("invalid").inc()
+            if exc.code is ErrorCode.TOO_LARGE:
+                self.fail(client, exc.code, exc.message, fatal=True)
+            elif not greeted:
+                self.fail(
+                    client,
+                    ErrorCode.HANDSHAKE_REQUIRED,
+                    f"the first message must be hello ({exc})",
+                    fatal=True,
+                )
+            else:
+                self.fail(client, exc.code, exc.message)
+            return
+        decode_ns = time.perf_counter_ns() - recv_ns
+        self.metrics.messages.labels(msg.type).inc()
+        if not greeted:
+            if isinstance(msg, Hello):
+                self._hello(client, msg, url_session, data)
+            else:
+                self.fail(
+                    client,
+                    ErrorCode.HANDSHAKE_REQUIRED,
+                    f"the first message must be hello, got {msg.type}",
+                    fatal=True,
+                )
+            return
+        if not client.session.rate.allow(recv_ns):
+            self._rate_limited(client, recv_ns)
+            return
+        self._dispatch(client, msg, Received(msg, recv_ns, decode_ns), data)
+
+    def _dispatch(self, client: Client, msg: Message, received: Received, data: bytes | str) -> None:
+        session = client.session
+        if isinstance(msg, Hmd | Rgbd | SelectModel) and client is not session.input:
+            self.fail(
+                client,
+                ErrorCode.WRONG_ROLE,
+                f"{msg.type} is for the input role; this client is {client.role}",
+                seq=getattr(msg, "seq", None),
+            )
+        elif isinstance(msg, Hmd):
+            self._record(client, data, received.recv_ns)
+            if session.offer_hmd(received):
+                self.metrics.skipped_samples.inc()
+            self.on_work(session)
+        elif isinstance(msg, Rgbd):
+            self._record(client, data, received.recv_ns)
+            if not session.offer_rgbd(received):
+                self.metrics.replaced_frames.inc()
+            self.on_work(session)
+        elif isinstance(msg, SelectModel):
+            self._record(client, data, received.recv_ns)
+            self._select(client, msg.model)
+        elif isinstance(msg, ListModels):
+            client.outbox.put_control(encode(self._models(session)))
+        elif isinstance(msg, Ping):
+            pong = Pong(nonce=msg.nonce, t_us=msg.t_us, server_t_us=time.monotonic_ns() // 1000)
+            client.outbox.put_control(encode(pong))
+        elif isinstance(msg, Hello):
+            self.fail(
+                client, ErrorCode.ALREADY_GREETED, f"this connection already joined session {session.id}"
+            )
+        else:
+            self.fail(client, ErrorCode.UNEXPECTED_MESSAGE, f"{msg.type} is a server-to-client message")
+
+    def _rate_limited(self, client: Client, now_ns: int) -> None:
+        self.metrics.rate_limited.inc()
+        if now_ns - client.last_rate_error_ns >= RATE_ERROR_INTERVAL_NS:
+            client.last_rate_error_ns = now_ns
+            cfg = self.config
+            self.fail(
+                client,
+                ErrorCode.RATE_LIMITED,
+                f"session {client.session.id} is over {cfg.rate_limit_hz:g} messages/s (burst {cfg.rate_burst}); excess messages are dropped",
+            )
+
+    # ------------------------------------------------------------------------------ handshake
+    def _hello(self, client: Client, hello: Hello, url_session: str | None, data: bytes | str) -> None:
+        refusal = self._refuse_hello(hello, url_session)
+        if refusal is not None:
+            self.fail(client, *refusal, fatal=True)
+            return
+        session = self.sessions.get(hello.session) or self._new_session(hello)
+        if session is None:
+            return self.fail(
+                client,
+                ErrorCode.SERVER_FULL,
+                f"{self.config.max_sessions} sessions are open; try again later",
+                fatal=True,
+            )
+        if hello.role == "input":
+            if session.input is not None:
+                return self.fail(
+                    client,
+                    ErrorCode.SESSION_BUSY,
+                    f"session {hello.session} already has an input client",
+                    fatal=True,
+                )
+            session.input = client
+            session.restart_stream()
+        else:
+            if len(session.renders) >= self.config.max_renders_per_session:
+                return self.fail(
+                    client,
+                    ErrorCode.SERVER_FULL,
+                    f"session {hello.session} has {len(session.renders)} render clients, the limit",
+                    fatal=True,
+                )
+            session.renders.append(client)
+        client.role, client.session, client.label = hello.role, session, hello.client or ""
+        self.metrics.clients.labels(hello.role).inc()
+        if hello.role == "input" and self.recorder is not None:
+            self.recorder.open(client, session.id)
+            self._record(client, data, time.perf_counter_ns())
+        welcome = Welcome(
+            session=session.id,
+            role=hello.role,
+            server=self.server_name,
+            model=session.model_name,
+            models=self.registry.names(),
+        )
+        client.outbox.put_control(encode(welcome))
+        if hello.role == "input" and hello.model is not None:
+            self._select(client, hello.model, announce=False)
+        client.outbox.put_control(encode(self._models(session)))
+
+    def _refuse_hello(self, hello: Hello, url_session: str | None) -> tuple[ErrorCode, str] | None:
+        if not self.accepting:
+            return ErrorCode.SHUTTING_DOWN, "the server is shutting down"
+        if not self.ready:
+            return ErrorCode.SERVER_FULL, "models are still loading; try again shortly"
+        token = self.config.token
+        if token is not None and not hmac.compare_digest(
+            (hello.token or "").encode(), token.get_secret_value().encode()
+        ):
+            return ErrorCode.AUTH_FAILED, "missing or wrong token"
+        if url_session is not None and url_session != hello.session:
+            return (
+                ErrorCode.INVALID_FIELD,
+                f"hello.session {hello.session!r} differs from the URL's session {url_session!r}",
+            )
+        return None
+
+    def _new_session(self, hello: Hello) -> Session | None:
+        if len(self.sessions) >= self.config.max_sessions:
+            return None
+        name = self.default_model_name()
+        cfg = self.config
+        session = Session(
+            hello.session, name, self.registry.get(name), TokenBucket(cfg.rate_limit_hz, cfg.rate_burst)
+        )
+        self.sessions[session.id] = session
+        self.metrics.sessions.set(len(self.sessions))
+        return session
+
+    def default_model_name(self) -> str:
+        names = self.registry.names()
+        return self.config.default_model if self.config.default_model in names else names[0]
+
+    def _select(self, client: Client, name: str, announce: bool = True) -> None:
+        session = client.session
+        model = self.registry.get(name)
+        if model is None:
+            known = ", ".join(self.registry.names())
+            self.fail(
+                client,
+                ErrorCode.UNKNOWN_MODEL,
+                f"no model {name!r}; the session keeps {session.model_name} (models: {known})",
+            )
+        elif name != session.model_name or not announce:
+            session.select(name, model)
+        if announce:
+            models = encode(self._models(session))
+            for member in session.clients:
+                member.outbox.put_control(models)
+
+    def _models(self, session: Session) -> Models:
+        return Models(active=session.model_name, models=self.registry.wire_infos())
+
+    def _record(self, client: Client, data: bytes | str, recv_ns: int) -> None:
+        if self.recorder is not None and isinstance(data, bytes):
+            self.recorder.record(client, data, recv_ns)
+
+    # ------------------------------------------------------------------------------ inference
+    def take_job(self, session: Session) -> Job | None:
+        job = session.take_job()
+        if job is not None and len(job.samples) > 1:
+            self.metrics.skipped_samples.inc(len(job.samples) - 1)
+        return job
+
+    def publish(self, session: Session, result: RunResult) -> None:
+        """Deliver one run's pose to every client of the session and its errors to the input client."""
+        for error in result.errors:
+            if session.input is not None:
+                session.input.outbox.put_control(encode(error))
+            self.metrics.errors.labels(error.code).inc()
+        if result.stale_frame:
+            self.metrics.stale_frames.inc()
+        if result.pose is None:
+            return
+        session.answered += 1
+        self.metrics.poses.labels(result.model).inc()
+        self.metrics.observe_timing(result.timing_us)
+        for member in session.clients:
+            if not member.outbox.put_pose(result.pose):
+                self.metrics.dropped_poses.labels(member.role).inc()
+
+    def internal_error(self, client: Client, what: str) -> None:
+        self.fail(client, ErrorCode.INTERNAL, f"server error while {what}; the connection closes", fatal=True)

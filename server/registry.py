@@ -1,0 +1,124 @@
+"""The servable models: the bundled zoo plus ``--models-dir``, loaded once, rescanned while running.
+
+A model file that fails to load is remembered with its reason (``failures``), logged once and skipped; the
+others keep serving. A file dropped into the models directory appears at the next ``rescan``; a changed file
+is reloaded; a removed one disappears from the list (sessions that use it keep their loaded copy until they
+switch). Files in the models directory win over bundled ones of the same name. Visual encoders are shared
+between the models that use them.
+
+Loading is blocking work (onnxruntime builds its graphs); the app runs ``rescan`` in a worker thread and swaps
+the result in on the event loop, so readers never see a half-updated registry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Any
+
+from ..model.runtime import LoadedModel, ModelError
+from ..model.weights import WEIGHTS_DIR, model_files
+from ..protocol import ModelInfo as WireModelInfo
+
+log = logging.getLogger("egoposevr.server")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Stamp:
+    """What identifies one version of a model file on disk."""
+
+    path: Path
+    mtime_ns: int
+    size: int
+
+
+def _stamp(path: Path) -> _Stamp:
+    stat = path.stat()
+    return _Stamp(path, stat.st_mtime_ns, stat.st_size)
+
+
+class ModelRegistry:
+    """{name: LoadedModel} for every servable model; ``failures`` {path: reason} for files that would not load."""
+
+    def __init__(self, models_dir: Path | None = None, bundled: bool = True, ort_threads: int = 1) -> None:
+        self.models_dir, self.bundled, self.ort_threads = models_dir, bundled, ort_threads
+        self.models: dict[str, LoadedModel] = {}
+        self.failures: dict[Path, str] = {}
+        self._stamps: dict[str, _Stamp] = {}  # the file version each model was loaded from
+        self._failed: dict[Path, _Stamp] = {}  # not retried until the file changes
+        self._shared: dict[Path, Any] = {}  # visual encoder sessions, by path
+        self._encoder_stamps: dict[Path, _Stamp] = {}
+
+    def names(self) -> list[str]:
+        return list(self.models)
+
+    def get(self, name: str) -> LoadedModel | None:
+        return self.models.get(name)
+
+    def wire_infos(self) -> list[WireModelInfo]:
+        """The ``models`` message's list."""
+        return [
+            WireModelInfo(name=n, inputs=list(m.info.inputs), description=m.info.description[:1024])
+            for n, m in self.models.items()
+        ]
+
+    def _candidates(self) -> dict[str, Path]:
+        found = dict(model_files(WEIGHTS_DIR)) if self.bundled else {}
+        if self.models_dir is not None and self.models_dir.is_dir():
+            found |= model_files(self.models_dir)  # the user's files win
+        return found
+
+    def rescan(self) -> list[str]:
+        """Load new and changed files, drop removed ones; returns what happened (also logged)."""
+        events: list[str] = []
+        candidates = self._candidates()
+        stale_encoders = self._forget_changed_encoders()
+        models = dict(self.models)
+        for name in set(models) - set(candidates):
+            del models[name], self._stamps[name]
+            events.append(f"model {name} removed")
+        for name, path in candidates.items():
+            try:
+                stamp = _stamp(path)
+            except OSError:
+                continue  # vanished between listing and stat: the next rescan sees it gone
+            uses_stale = name in models and models[name].info.visual_path in stale_encoders
+            if (self._stamps.get(name) == stamp and not uses_stale) or self._failed.get(path) == stamp:
+                continue
+            events.append(self._load(name, stamp, models))
+        self.models = {n: models[n] for n in candidates if n in models}  # zoo order, then by name
+        for event in events:
+            log.info("%s", event)
+        return events
+
+    def _forget_changed_encoders(self) -> set[Path]:
+        """Drop cached visual encoders whose file changed or vanished; returns their paths."""
+        stale = set()
+        for path, stamp in list(self._encoder_stamps.items()):
+            try:
+                current = _stamp(path)
+            except OSError:
+                current = None
+            if current != stamp:
+                stale.add(path)
+                self._shared.pop(path, None)
+                del self._encoder_stamps[path]
+        return stale
+
+    def _load(self, name: str, stamp: _Stamp, models: dict[str, LoadedModel]) -> str:
+        try:
+            model = LoadedModel.load(stamp.path, threads=self.ort_threads, shared=self._shared)
+        except (ModelError, OSError) as exc:
+            self._failed[stamp.path], self.failures[stamp.path] = stamp, str(exc)
+            models.pop(name, None)
+            self._stamps.pop(name, None)
+            log.warning("model %s failed to load: %s", name, exc)
+            return f"model {name} failed: {exc}"
+        if model.info.visual_path is not None and model.info.visual_path not in self._encoder_stamps:
+            self._encoder_stamps[model.info.visual_path] = _stamp(model.info.visual_path)
+        self._failed.pop(stamp.path, None)
+        self.failures.pop(stamp.path, None)
+        reloaded = name in models
+        models[name], self._stamps[name] = model, stamp
+        return f"model {name} {'reloaded' if reloaded else 'loaded'} from {stamp.path}"

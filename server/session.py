@@ -1,0 +1,239 @@
+"""One session: its clients, its model, the headset's pending work and the inference pipeline.
+
+No sockets and no asyncio. Threading contract: everything except :meth:`Session.run` is called on the event
+loop; ``run`` is called in a worker thread with a job from :meth:`Session.take_job`, and never twice at once
+for one session (the app's per-session worker awaits each run before taking the next job). Only ``run``
+touches the pipeline, so model switches and resets travel inside the job.
+
+Newest wins: headset samples that arrive while inference is busy wait in ``pending``; the next job answers
+only the newest of them and feeds the older ones to the pipeline as history (``observe_hmd``), counting them
+as skipped. Only the newest RGB-D frame is kept; a frame replaced before use is counted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ..model.inputs import decode_rgbd
+from ..model.runtime import LoadedModel, Pipeline, PoseResult
+from ..protocol import Error, ErrorCode, Hmd, Pose, Rgbd, encode
+
+# Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
+MAX_PENDING_SAMPLES = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class Received:
+    """A decoded client message with when it arrived (perf_counter ns) and how long decoding took."""
+
+    msg: Any  # Hmd | Rgbd
+    recv_ns: int
+    decode_ns: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """What one ``run`` does: switch or reset first, push the frame, then the samples (the last answered)."""
+
+    samples: tuple[Received, ...]
+    frame: Received | None
+    model: tuple[str, LoadedModel] | None
+    reset: bool
+    skipped: int  # samples not answered since the previous pose, these jobs' history ones included
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What a run produced, for the loop to send and count."""
+
+    pose: bytes | None = None
+    model: str = ""  # the model that made the pose
+    timing_us: dict[str, int] = dataclasses.field(default_factory=dict)
+    errors: list[Error] = dataclasses.field(default_factory=list)
+    stale_frame: bool = False
+
+
+class TokenBucket:
+    """The per-session message-rate cap: ``rate_hz`` sustained, ``burst`` at once."""
+
+    def __init__(self, rate_hz: float, burst: int) -> None:
+        self.rate_hz, self.burst = rate_hz, float(burst)
+        self.tokens = float(burst)
+        self.last_ns = time.perf_counter_ns()
+
+    def allow(self, now_ns: int) -> bool:
+        self.tokens = min(self.burst, self.tokens + (now_ns - self.last_ns) * 1e-9 * self.rate_hz)
+        self.last_ns = now_ns
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+class Session:
+    """State of one session id; ``input`` and ``renders`` hold the app's client handles."""
+
+    def __init__(self, session_id: str, model_name: str, model: LoadedModel, rate: TokenBucket) -> None:
+        self.id = session_id
+        self.model_name = model_name  # the active model as clients see it
+        self.rate = rate
+        self.input: Any = None
+        self.renders: list[Any] = []
+        self.pending: deque[Received] = deque()
+        self.frame: Received | None = None
+        self.answered = 0
+        self.skipped = 0  # since the last pose
+        self.dropped_history = 0
+        self.replaced_frames = 0
+        self._next_model: tuple[str, LoadedModel] | None = None
+        self._reset = False
+        self._pipeline = Pipeline(model)  # run() only
+        self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
+        self._previous_encode_us = 0
+
+    # ------------------------------------------------------------------------------ event loop side
+    @property
+    def clients(self) -> list[Any]:
+        return ([self.input] if self.input is not None else []) + self.renders
+
+    def offer_hmd(self, received: Received) -> bool:
+        """Queue a sample; returns True when the oldest pending one had to be dropped (counted as skipped)."""
+        dropped = len(self.pending) == MAX_PENDING_SAMPLES
+        if dropped:
+            self.pending.popleft()
+            self.skipped += 1
+            self.dropped_history += 1
+        self.pending.append(received)
+        return dropped
+
+    def offer_rgbd(self, received: Received) -> bool:
+        """Keep only the newest frame; returns False when an unused frame was replaced."""
+        replaced = self.frame is not None
+        self.replaced_frames += replaced
+        self.frame = received
+        return not replaced
+
+    def select(self, name: str, model: LoadedModel) -> None:
+        """Switch model at the next job; the pipeline starts fresh (its caches belong to the old model)."""
+        self.model_name = name
+        self._next_model = (name, model)
+        self._reset = False  # a new pipeline is a reset
+
+    def restart_stream(self) -> None:
+        """A new input client: forget the previous headset's history at the next job; drop its leftovers."""
+        self.pending.clear()
+        self.frame = None
+        self._reset = self._next_model is None
+
+    @property
+    def has_work(self) -> bool:
+        return bool(self.pending) or self.frame is not None
+
+    def take_job(self) -> Job | None:
+        if not self.has_work:
+            return None
+        samples = tuple(self.pending)
+        self.skipped += max(len(samples) - 1, 0)
+        job = Job(samples, self.frame, self._next_model, self._reset, self.skipped)
+        self.pending.clear()
+        self.frame, self._next_model, self._reset = None, None, False
+        if samples:
+            self.skipped = 0
+        return job
+
+    # ------------------------------------------------------------------------------ worker thread side
+    def run(self, job: Job) -> RunResult:
+        """Push the job through the pipeline; the newest sample's pose comes back encoded."""
+        started_ns = time.perf_counter_ns()
+        result = RunResult()
+        if job.model is not None:
+            self._pipeline_model_name, model = job.model
+            self._pipeline = Pipeline(model)
+        elif job.reset:
+            self._pipeline.reset()
+        image_us = self._push_frame(job.frame, result) if job.frame is not None else None
+        for received in job.samples[:-1]:
+            self._observe(received.msg, result)
+        if not job.samples:
+            return result
+        newest = job.samples[-1]
+        pose = self._infer(newest.msg, result)
+        if pose is None:
+            return result
+        timing = {
+            "decode": newest.decode_ns // 1000,
+            "queue": max(started_ns - newest.recv_ns - newest.decode_ns, 0) // 1000,
+            **({"image": image_us} if image_us is not None else {}),
+            **pose.timing_us,
+            "encode": self._previous_encode_us,
+        }
+        timing["total"] = (time.perf_counter_ns() - newest.recv_ns) // 1000
+        before_encode_ns = time.perf_counter_ns()
+        result.pose = encode_pose(pose, newest.msg.seq, self._pipeline_model_name, timing, job.skipped)
+        self._previous_encode_us = (time.perf_counter_ns() - before_encode_ns) // 1000
+        result.timing_us, result.model = timing, self._pipeline_model_name
+        return result
+
+    def _push_frame(self, received: Received, result: RunResult) -> int:
+        msg: Rgbd = received.msg
+        started = time.perf_counter_ns()
+        try:
+            rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
+        except ValueError as exc:
+            result.errors.append(_error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg.seq))
+            return (time.perf_counter_ns() - started) // 1000
+        image_us = (time.perf_counter_ns() - started) // 1000
+        cam_from_head = None if msg.cam_from_head is None else np.reshape(msg.cam_from_head, (4, 4))
+        try:
+            pushed = self._pipeline.push_rgbd(msg.t_us, rgb, depth, np.asarray(msg.intrinsics), cam_from_head)
+        except ValueError as exc:
+            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg.seq))
+            return image_us
+        result.stale_frame = not pushed and self._pipeline.model.visual is not None
+        return image_us
+
+    def _observe(self, msg: Hmd, result: RunResult) -> None:
+        try:
+            self._pipeline.observe_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
+        except ValueError as exc:
+            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg.seq))
+
+    def _infer(self, msg: Hmd, result: RunResult) -> PoseResult | None:
+        try:
+            pose = self._pipeline.push_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
+        except ValueError as exc:
+            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg.seq))
+            return None
+        if not (np.isfinite(pose.joints).all() and np.isfinite(pose.body_pose).all()):
+            result.errors.append(
+                _error(ErrorCode.INTERNAL, f"hmd {msg.seq}: the model produced non-finite numbers", msg.seq)
+            )
+            return None
+        return pose
+
+
+def _error(code: ErrorCode, message: str, seq: int | None = None) -> Error:
+    return Error(code=code.value, message=message[:1024], fatal=False, seq=seq)
+
+
+def encode_pose(pose: PoseResult, seq: int, model: str, timing_us: dict[str, int], skipped: int) -> bytes:
+    """The wire ``pose`` for a pipeline result. Built without re-validation: the values come from the
+    pipeline (finite, checked by the caller) and the shapes are fixed by it."""
+    message = Pose.model_construct(
+        seq=seq,
+        t_us=pose.t_us,
+        model=model,
+        global_orient=pose.global_orient.tolist(),
+        body_pose=pose.body_pose.tolist(),
+        transl=pose.transl.tolist(),
+        joints=pose.joints.reshape(-1).tolist(),
+        timing_us=timing_us,
+        camera=pose.camera,
+        skipped=skipped,
+    )
+    return encode(message)

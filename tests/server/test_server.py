@@ -1,0 +1,251 @@
+"""The server over a real loopback socket: sessions, broadcast, model switches, reconnects, HTTP, recording."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import threading
+import time
+import urllib.parse
+
+import pytest
+from websockets.client import ClientProtocol
+from websockets.protocol import State
+from websockets.sync.client import connect
+from websockets.uri import parse_uri
+
+from egoposevr.model.weights import WEIGHTS_DIR
+from egoposevr.protocol import Hello, ListModels, Ping, SelectModel, decode, encode
+from egoposevr.recordings.egrec import KIND_CLIENT, read_header, read_records
+
+from .conftest import Client, recorded_messages, replay, running_server
+
+WALK = recorded_messages("walk-0000", limit=400)  # ~3.3 s: 300 hmd samples at 90 Hz + 100 frames
+SQUAT = recorded_messages("squat-0001", limit=400)
+
+
+def test_http_endpoints(server):
+    assert server.get("/healthz") == (200, "ok\n")
+    assert server.get("/readyz") == (200, "ready\n")
+    status, body = server.get("/metrics")
+    assert status == 200 and "egoposevr_sessions" in body and "egoposevr_stage_seconds" in body
+    assert server.get("/nope")[0] == 404
+
+
+def test_headsets_and_viewers_each_get_their_sessions_poses(server):
+    clients = {}
+    for session in ("walker", "squatter"):
+        headset = Client(server.url, session)
+        headset.hello("input", session, model="hmd")
+        viewers = [Client(server.url, session) for _ in range(2)]
+        for v in viewers:
+            v.hello("render", session)
+        clients[session] = (headset.collect(), [v.collect() for v in viewers])
+    sent = {}
+    threads = [
+        threading.Thread(target=lambda s=s, m=m: sent.__setitem__(s, replay(clients[s][0], m)))
+        for s, m in (("walker", WALK), ("squatter", SQUAT))
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for session, (headset, viewers) in clients.items():
+        headset.wait_for(lambda h=headset, s=session: _accounted(h, sent[s]))
+        seqs = {p.seq for p in headset.poses()}
+        assert seqs <= set(sent[session]) and len(seqs) >= 0.5 * len(sent[session])
+        for viewer in viewers:
+            count = len(seqs)
+            viewer.wait_for(lambda v=viewer, n=count: len(v.poses()) >= n)
+            assert {p.seq for p in viewer.poses()} == seqs  # every pose of its session, no other session's
+            assert all(p.model == "hmd" for p in viewer.poses())
+        for c in (headset, *viewers):
+            c.close()
+
+
+def _accounted(headset: Client, sent: dict[int, float]) -> bool:
+    """Every sample sent got a pose or was reported skipped."""
+    poses = headset.poses()
+    return len(poses) + sum(p.skipped or 0 for p in poses) == len(sent)
+
+
+def test_pose_carries_stage_timings_and_camera_flag(server):
+    with Client(server.url, "timed") as headset:
+        headset.hello("input", "timed")  # the default model reads the camera
+        headset.collect()
+        sent = replay(headset, WALK[:60])
+        headset.wait_for(lambda: _accounted(headset, sent))
+    pose = headset.poses()[-1]
+    assert pose.model == "egoposevr" and pose.camera is True
+    for stage in (
+        "decode",
+        "queue",
+        "features",
+        "visual",
+        "fusion",
+        "fk_filter",
+        "kpo",
+        "rotations",
+        "total",
+    ):
+        assert stage in pose.timing_us
+    assert pose.timing_us["total"] >= pose.timing_us["fusion"]
+
+
+def test_a_stalled_viewer_does_not_hold_back_the_headset_or_other_viewers():
+    with running_server(send_buffer_bytes=8192) as server:
+        _stalled_viewer_case(server)
+
+
+def _stalled_viewer_case(server):
+    session = "stalled"
+    headset = Client(server.url, session)
+    headset.hello("input", session, model="hmd")
+    healthy = Client(server.url, session)
+    healthy.hello("render", session)
+    stalled = stalled_viewer(server.url, session)
+    headset.collect()
+    healthy.collect()
+    dropped_before = server.metric("egoposevr_dropped_poses_total", role="render")
+    sent = replay(headset, WALK)
+    headset.wait_for(lambda: _accounted(headset, sent))
+    answered = headset.poses()
+    assert len(answered) >= 0.9 * len(sent)  # the headset was not slowed into skipping
+    healthy.wait_for(lambda: len(healthy.poses()) >= len(answered))
+    assert server.metric("egoposevr_dropped_poses_total", role="render") > dropped_before
+    for c in (headset, healthy):
+        c.close()
+    stalled.close()
+
+
+def stalled_viewer(url: str, session: str) -> socket.socket:
+    """A render client that joins and then never reads: a raw socket with a 4 KiB window, driven by the
+    sans-I/O protocol for the handshake only, so nothing drains it in the background."""
+    protocol = ClientProtocol(parse_uri(url + f"?session={session}"))
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connecting: it sets the TCP window
+    sock.connect(_address(url))
+    protocol.send_request(protocol.connect())
+    sock.sendall(b"".join(protocol.data_to_send()))
+    while protocol.state is State.CONNECTING:
+        protocol.receive_data(sock.recv(4096))
+    protocol.send_binary(encode(Hello(role="render", session=session)))
+    sock.sendall(b"".join(protocol.data_to_send()))
+    return sock
+
+
+def _address(url: str) -> tuple[str, int]:
+    parts = urllib.parse.urlsplit(url)
+    return parts.hostname, parts.port
+
+
+def test_model_switch_mid_session_resets_cleanly(server):
+    with Client(server.url, "switch") as headset:
+        headset.hello("input", "switch", model="hmd")
+        viewer = Client(server.url, "switch")
+        viewer.hello("render", "switch")
+        headset.collect()
+        viewer.collect()
+        replay(headset, WALK[:100])
+        headset.send(SelectModel(model="hmd-rgbd"))
+        headset.wait_for(
+            lambda: any(m.type == "models" and m.active == "hmd-rgbd" for _, m in headset.received)
+        )
+        viewer.wait_for(
+            lambda: any(m.type == "models" and m.active == "hmd-rgbd" for _, m in viewer.received)
+        )
+        replay(headset, WALK[100:200])
+        headset.wait_for(lambda: any(p.model == "hmd-rgbd" and p.camera for p in headset.poses()))
+        models = [p.model for p in headset.poses()]
+        switched = models.index("hmd-rgbd")
+        assert set(models[:switched]) == {"hmd"} and set(models[switched:]) == {"hmd-rgbd"}
+        viewer.close()
+
+
+def test_headset_reconnects_and_viewers_keep_their_subscription(server):
+    viewer = Client(server.url, "again")
+    viewer.hello("render", "again")
+    viewer.collect()
+    for attempt in range(2):
+        with Client(server.url, "again") as headset:
+            assert headset.hello("input", "again", model="hmd").type == "welcome"
+            sent = replay(headset, WALK[attempt * 100 : attempt * 100 + 60])
+            headset.collect()
+            viewer.wait_for(lambda s=sent: set(s) & {p.seq for p in viewer.poses()} != set())
+        # a second input while the first is still connected is refused (tested in test_server_limits)
+    seqs = {p.seq for p in viewer.poses()}
+    assert min(seqs) < 100 <= max(seqs)  # poses from both connections
+    viewer.close()
+
+
+def test_select_and_list_models(server):
+    with Client(server.url, "lister") as headset:
+        headset.hello("input", "lister")
+        headset.send(ListModels())
+        models = headset.recv_type("models")
+        assert models.active == "egoposevr"
+        assert [m.name for m in models.models][:6] == [
+            "hmd", "hmd-rgb1", "hmd-rgb", "hmd-rgbd", "egoposevr", "hmd-rgbd-concat",
+        ]  # fmt: skip
+        headset.send(Ping(nonce=7, t_us=5))
+        pong = headset.recv_type("pong")
+        assert (pong.nonce, pong.t_us) == (7, 5) and pong.server_t_us > 0
+
+
+def test_a_model_dropped_into_the_models_dir_appears_and_a_broken_one_is_reported(tmp_path):
+    with running_server(models_dir=tmp_path) as server, Client(server.url, "hot") as headset:
+        headset.hello("input", "hot")
+        shutil.copy(WEIGHTS_DIR / "hmd.onnx", tmp_path / "mine.onnx")
+        (tmp_path / "broken.onnx").write_bytes(b"not an onnx graph")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            headset.send(ListModels())
+            names = [m.name for m in headset.recv_type("models").models]
+            if "mine" in names and server.metric("egoposevr_model_failures") == 1:
+                break
+            time.sleep(0.1)
+        assert "mine" in names and "broken" not in names
+        assert server.metric("egoposevr_model_failures") == 1
+        headset.send(SelectModel(model="mine"))
+        assert headset.recv_type("models").active == "mine"
+        headset.collect()
+        replay(headset, WALK[:30])
+        headset.wait_for(lambda: any(p.model == "mine" for p in headset.poses()))
+
+
+def test_recording_writes_a_replayable_egrec(tmp_path):
+    with running_server(record=tmp_path) as server, Client(server.url, "rec") as headset:
+        headset.hello("input", "rec", model="hmd")
+        replay(headset, WALK[:40])
+        headset.collect()
+        time.sleep(0.2)
+    (path,) = tmp_path.glob("rec-*.egrec")
+    assert read_header(path)["session"] == "rec"
+    kinds = [decode(r.payload).type for r in read_records(path) if r.kind == KIND_CLIENT]
+    assert kinds[0] == "hello" and kinds[1:] == [k for _, k, _ in WALK[:40]]
+
+
+def test_metrics_count_what_happened(server):
+    before_hmd = server.metric("egoposevr_messages_total", type="hmd")
+    before_err = server.metric("egoposevr_errors_total", code="unknown_model")
+    with Client(server.url, "counted") as headset:
+        headset.hello("input", "counted", model="hmd")
+        headset.send(SelectModel(model="nope"))
+        assert headset.recv_type("error").code == "unknown_model"
+        headset.collect()
+        sent = replay(headset, WALK[:50])
+        headset.wait_for(lambda: _accounted(headset, sent))
+        assert server.metric("egoposevr_sessions") >= 1
+    assert server.metric("egoposevr_messages_total", type="hmd") - before_hmd == len(sent)
+    assert server.metric("egoposevr_errors_total", code="unknown_model") - before_err == 1
+    assert server.metric("egoposevr_stage_seconds_count", stage="fusion") >= len(headset.poses())
+
+
+def test_origin_allow_list_refuses_other_browsers():
+    with running_server(origins=("http://good.example",)) as server:
+        with Client(server.url, "o", origin="http://good.example") as ok:
+            assert ok.hello("render", "o").type == "welcome"
+        with Client(server.url, "o") as no_origin:  # headsets and scripts send no Origin
+            assert no_origin.hello("render", "o").type == "welcome"
+        with pytest.raises(Exception, match="403"):
+            connect(server.url, origin="http://evil.example", open_timeout=5)
