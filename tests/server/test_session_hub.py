@@ -1,0 +1,164 @@
+"""The socket-free core: Session (newest wins, history, frames, model switches) and Hub (handshake, roles,
+routing, broadcast, shutdown), driven directly without a network."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from egoposevr.model.runtime import Pipeline
+from egoposevr.protocol import Hello, Ping, SelectModel, decode, encode
+from egoposevr.protocol.examples import example_messages
+from egoposevr.server.hub import Hub
+from egoposevr.server.metrics import Metrics
+from egoposevr.server.registry import ModelRegistry
+from egoposevr.server.session import MAX_PENDING_SAMPLES, Received, Session, TokenBucket
+
+from .conftest import recorded_messages, server_config
+
+
+@pytest.fixture(scope="module")
+def registry():
+    registry = ModelRegistry()
+    registry.rescan()
+    return registry
+
+
+@pytest.fixture(scope="module")
+def samples():
+    return [decode(data) for _, kind, data in recorded_messages("walk-0000", limit=200) if kind == "hmd"]
+
+
+def received(msg) -> Received:
+    return Received(msg, time.perf_counter_ns(), 1000)
+
+
+def new_session(registry, model="hmd") -> Session:
+    return Session("s", model, registry.get(model), TokenBucket(1000, 100))
+
+
+def test_the_newest_sample_wins_and_older_ones_feed_the_history(registry, samples):
+    session = new_session(registry)
+    for msg in samples[:5]:
+        session.offer_hmd(received(msg))
+    job = session.take_job()
+    assert len(job.samples) == 5 and job.skipped == 4
+    result = session.run(job)
+    pose = decode(result.pose)
+    assert (pose.seq, pose.skipped, pose.model) == (samples[4].seq, 4, "hmd")
+    reference = Pipeline(registry.get("hmd"))
+    for msg in samples[:5]:
+        reference.push_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
+    assert np.allclose(session._pipeline.hmd_window, reference.hmd_window)  # no sample lost from the window
+    session.offer_hmd(received(samples[5]))
+    assert decode(session.run(session.take_job()).pose).skipped == 0
+
+
+def test_pending_samples_are_bounded(registry, samples):
+    session = new_session(registry)
+    for msg in samples[: MAX_PENDING_SAMPLES + 3]:
+        session.offer_hmd(received(msg))
+    assert len(session.pending) == MAX_PENDING_SAMPLES and session.dropped_history == 3
+    assert session.take_job().skipped == MAX_PENDING_SAMPLES + 2
+
+
+def test_only_the_newest_frame_is_kept_and_a_bad_one_is_reported_with_its_seq(registry, samples):
+    session = new_session(registry, "hmd-rgbd")
+    rgbd = example_messages()["rgbd"]
+    assert session.offer_rgbd(received(rgbd))
+    bad = rgbd.model_copy(update={"seq": 9, "width": 8})
+    assert not session.offer_rgbd(received(bad))  # replaced the unused one
+    assert session.replaced_frames == 1
+    session.offer_hmd(received(samples[0]))
+    result = session.run(session.take_job())
+    assert [(e.code, e.seq) for e in result.errors] == [("image_decode", 9)]
+    assert decode(result.pose).camera is False  # the sample was still answered, from the headset alone
+
+
+def test_a_model_switch_starts_a_fresh_pipeline(registry, samples):
+    session = new_session(registry)
+    session.offer_hmd(received(samples[0]))
+    session.run(session.take_job())
+    session.select("hmd-rgbd", registry.get("hmd-rgbd"))
+    assert session.model_name == "hmd-rgbd"
+    session.offer_hmd(received(samples[1]))
+    job = session.take_job()
+    assert job.model[0] == "hmd-rgbd"
+    result = session.run(job)
+    assert decode(result.pose).model == result.model == "hmd-rgbd"
+    assert session._pipeline.model is registry.get("hmd-rgbd")
+
+
+def hub_with(registry, **config) -> tuple[Hub, list, list]:
+    woken, ended = [], []
+    hub = Hub(server_config(**config), registry, Metrics(), on_work=woken.append, on_session_end=ended.append)
+    hub.ready = True
+    return hub, woken, ended
+
+
+def sent(client) -> list:
+    out = []
+    while (data := client.outbox.take()) is not None:
+        out.append(decode(data))
+    return out
+
+
+def test_hello_then_routing(registry, samples):
+    hub, woken, ended = hub_with(registry)
+    viewer = hub.connect("v")
+    hub.receive(viewer, encode(Hello(role="render", session="s")), time.perf_counter_ns())
+    assert [m.type for m in sent(viewer)] == ["welcome", "models"]
+    headset = hub.connect("h")
+    hub.receive(headset, encode(Hello(role="input", session="s", model="nope")), time.perf_counter_ns())
+    replies = sent(headset)
+    assert [m.type for m in replies] == ["welcome", "error", "models"]
+    assert replies[1].code == "unknown_model" and replies[2].active == "egoposevr"
+    hub.receive(headset, encode(samples[0]), time.perf_counter_ns())
+    assert woken == [hub.sessions["s"]]
+    hub.receive(viewer, encode(samples[1]), time.perf_counter_ns())
+    assert sent(viewer)[0].code == "wrong_role"
+    hub.disconnect(headset)
+    assert "s" in hub.sessions and not ended
+    hub.disconnect(viewer)
+    assert "s" not in hub.sessions and len(ended) == 1
+
+
+def test_publish_reaches_every_client_and_a_full_queue_drops_the_oldest(registry, samples):
+    hub, _, _ = hub_with(registry, pose_queue=2)
+    clients = [hub.connect(str(i)) for i in range(3)]
+    for client, role in zip(clients, ("input", "render", "render"), strict=True):
+        hub.receive(client, encode(Hello(role=role, session="s", model="hmd")), time.perf_counter_ns())
+        sent(client)
+    session = hub.sessions["s"]
+    for msg in samples[:3]:
+        hub.receive(clients[0], encode(msg), time.perf_counter_ns())
+        hub.publish(session, session.run(hub.take_job(session)))
+    for client in clients:
+        assert [m.seq for m in sent(client)] == [
+            s.seq for s in samples[1:3]
+        ]  # queue of 2: the oldest dropped
+        assert client.outbox.dropped_poses == 1
+
+
+def test_handshake_rules_and_shutdown(registry):
+    hub, _, _ = hub_with(registry)
+    early = hub.connect("e")
+    hub.receive(early, encode(Ping()), time.perf_counter_ns())
+    assert sent(early)[0].code == "handshake_required" and early.outbox.close_code == 1008
+    hub.ready = False
+    loading = hub.connect("l")
+    hub.receive(loading, encode(Hello(role="input", session="x")), time.perf_counter_ns())
+    assert sent(loading)[0].code == "server_full" and loading.outbox.close_code == 1013
+    hub.ready = True
+    member = hub.connect("m")
+    hub.receive(member, encode(Hello(role="input", session="x")), time.perf_counter_ns())
+    hub.receive(member, encode(SelectModel(model="hmd")), time.perf_counter_ns())
+    assert [m.type for m in sent(member)] == ["welcome", "models", "models"]
+    hub.shutdown()
+    error = sent(member)[0]
+    assert (error.code, error.fatal, member.outbox.close_code) == ("shutting_down", True, 1001)
+    late = hub.connect("late")
+    hub.receive(late, encode(Hello(role="input", session="y")), time.perf_counter_ns())
+    assert sent(late)[0].code == "shutting_down"
