@@ -23,7 +23,7 @@ from .hmd import FEATURE_DIM
 from .inputs import VISUAL_TOKEN_DIM
 from .rig import DEFAULT_OFFSETS_M
 from .skeleton import JOINT_NAMES
-from .train import BODY_FILE, build_net, load_checkpoint
+from .train import build_net, load_checkpoint
 from .zoo import ZOO
 
 FORMAT_VERSION = "1"
@@ -116,9 +116,7 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
         inputs["visual"] = rng.normal(size=(1, cfg.visual_window, VISUAL_TOKEN_DIM)).astype(np.float32)
     example = tuple(torch.from_numpy(v) for v in inputs.values())
     _export(net, example, out_path, (list(inputs), ["rot6d"]), None)
-    body_path = runs_dir / BODY_FILE
-    body = {"body": json.loads(body_path.read_text())} if body_path.exists() else {}
-    _set_metadata(out_path, body | {
+    _set_metadata(out_path, {
         "format": FORMAT_VERSION, "kind": "model", "name": name, "description": entry.description,
         "inputs": entry.inputs, "config": ckpt["config"], "kpo": "true" if entry.kpo else "false",
         "visual_encoder": f"visual-{entry.visual}.onnx" if entry.visual else "",

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from .body import BodyCalibrator, BodyRegression
+from .body import BodyCalibrator
 from .filters import OneEuroFilter
 from .hmd import HmdFeatureExtractor
 from .inputs import (
@@ -72,7 +72,6 @@ class ModelInfo:
     visual_config: dict[str, Any] | None  # VisualConfig fields
     camera: dict[str, Any] | None  # the training camera (default cam_from_head)
     rig_offsets_m: np.ndarray
-    body: BodyRegression | None  # bone scales from headset statistics (model/body.py); None: height only
 
 
 def _metadata(session: ort.InferenceSession) -> dict[str, str]:
@@ -126,7 +125,6 @@ class LoadedModel:
                 visual_config=json.loads(visual_meta["config"]) if visual_meta else None,
                 camera=json.loads(visual_meta["camera"]) if visual_meta else None,
                 rig_offsets_m=np.asarray(json.loads(meta["rig_offsets_m"])),
-                body=BodyRegression.from_json(meta["body"]) if "body" in meta else None,
             )
         except (KeyError, ValueError) as exc:
             raise ModelError(f"{path}: incomplete EgoPoseVR metadata ({exc})") from exc
@@ -213,7 +211,7 @@ class Pipeline:
         """Forget everything (a new session, a model switch, a long pause)."""
         self.features = HmdFeatureExtractor()
         self.offsets = rest_offsets(self.bone_scale)
-        self.body = BodyCalibrator(self.model.info.body)
+        self.body = BodyCalibrator()
         self.hmd_window: np.ndarray | None = None  # (T, 72)
         self.head_t_us: deque[int] = deque()
         self.head_poses: deque[np.ndarray] = deque()

@@ -14,7 +14,6 @@ Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22, `
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from collections.abc import Callable
@@ -26,7 +25,6 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .body import fit_body_regression, sequence_features
 from .dataset import decode_frames, load_split, split_camera
 from .hmd import hmd_features
 from .inputs import (
@@ -49,8 +47,6 @@ from .rig import joints_from_devices
 from .rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from .skeleton import HEAD, rest_offsets
 from .zoo import ZOO
-
-BODY_FILE = "body.json"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -510,19 +506,6 @@ def _set_statistics(
         set_input_statistics(net.visual_stream, torch.from_numpy(np.concatenate([x[1] for x in inputs])))
 
 
-def fit_body(out_dir: Path, seqs: list[dict[str, Any]], resume: bool = False) -> Path:
-    """Stage 0: the headset-statistics -> bone-scale regression (model/body.py) -> out_dir/body.json."""
-    path = out_dir / BODY_FILE
-    if resume and path.exists():
-        return path
-    examples = []
-    for seq in seqs:
-        tracked, _ = joints_from_devices(seq["hmd_poses"])
-        examples.append((sequence_features(tracked, seq["hmd_valid"]), seq["bone_scale"]))
-    path.write_text(json.dumps(fit_body_regression(examples).to_json(), indent=1))
-    return path
-
-
 def train_zoo(
     names: list[str],
     data_dir: Path,
@@ -538,8 +521,7 @@ def train_zoo(
     fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
     seqs = load_split(data_dir, "train", tc.limit_sequences)
-    paths = {"body": fit_body(out_dir, seqs, resume)}
-    paths |= {f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals}
+    paths = {f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals}
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(f, data_dir, out_dir, tc, resume, progress, seqs, cache)

@@ -6,10 +6,8 @@ import numpy as np
 import pytest
 
 from egoposevr.cli.main import main
-from egoposevr.model.body import sequence_features
 from egoposevr.model.dataset import load_split, split_camera
 from egoposevr.model.evaluate import METRIC_KEYS, replay_sequence
-from egoposevr.model.rig import joints_from_devices
 from egoposevr.model.runtime import LoadedModel, ModelError, Pipeline
 from egoposevr.model.skeleton import rest_offsets
 from egoposevr.model.train import load_checkpoint
@@ -136,20 +134,32 @@ def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
     assert "nope" in capsys.readouterr().err
 
 
-def test_body_size_is_estimated_from_the_headset_unless_given(tiny_weights, val):
+def test_body_size_follows_the_highest_head_unless_given(tiny_weights, val):
     seq, _ = val
     model = LoadedModel.load(tiny_weights / "hmd.onnx")
-    assert model.info.body is not None  # the regression fitted by train, embedded by export
-    auto, fixed = Pipeline(model), Pipeline(model, bone_scale=np.ones(22))
-    for i in range(30):
-        auto.push_hmd(int(seq["hmd_t_us"][i]), seq["hmd_poses"][i], seq["hmd_valid"][i])
-        fixed.push_hmd(int(seq["hmd_t_us"][i]), seq["hmd_poses"][i], seq["hmd_valid"][i])
-    tracked, _ = joints_from_devices(seq["hmd_poses"][:30])
-    want = rest_offsets(model.info.body.bone_scale(sequence_features(tracked, seq["hmd_valid"][:30])))
-    assert np.allclose(auto.offsets, want, atol=0.01)  # within the 5 mm update step's effect
-    assert np.allclose(fixed.offsets, rest_offsets(np.ones(22)))
+    tall = seq["hmd_poses"][0].astype(np.float64).copy()
+    tall[:, 1] += 1.95 - tall[0, 1]  # a 1.95 m tall headset, everything raised with it
+    auto = Pipeline(model)
+    auto.push_hmd(0, tall, np.ones(3, bool))
+    fixed = Pipeline(model, bone_scale=np.ones(22))
+    fixed.push_hmd(0, tall, np.ones(3, bool))
+    auto_len = np.linalg.norm(auto.offsets, axis=-1).sum()
+    fixed_len = np.linalg.norm(fixed.offsets, axis=-1).sum()
+    assert 1.1 < auto_len / fixed_len <= 1.25
     auto.reset()
     assert np.allclose(auto.offsets, rest_offsets(np.ones(22)))
+
+
+def test_observed_samples_feed_the_window_like_answered_ones(tiny_weights, val):
+    seq, _ = val
+    model = LoadedModel.load(tiny_weights / "hmd.onnx")
+    answered, observed = Pipeline(model), Pipeline(model)
+    for i in range(12):
+        args = (int(seq["hmd_t_us"][i]), seq["hmd_poses"][i], seq["hmd_valid"][i])
+        answered.push_hmd(*args)
+        (observed.push_hmd if i == 11 else observed.observe_hmd)(*args)
+    assert np.allclose(answered.hmd_window, observed.hmd_window)
+    assert np.allclose(answered.offsets, observed.offsets)
 
 
 @pytest.mark.parametrize(
