@@ -19,6 +19,7 @@ Shape legend: ``J`` = 22 joints, ``L`` = 27 links (21 bones + 6 sibling pairs, s
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Final
 
 import numpy as np
@@ -74,8 +75,7 @@ def solve_kpo(
     weight = np.where(observed, w.align, w.stay)
     links_pred = INCIDENCE @ p_pred
     lengths_pred = np.linalg.norm(links_pred, axis=-1)
-    # The linear terms' Hessian is the same for x, y and z: (J, J) ⊗ I3.
-    h_linear = np.kron(np.diag(weight) + w.direction * INCIDENCE.T @ INCIDENCE, np.eye(3))
+    h_linear = _linear_hessian(tuple(weight), w.direction)
 
     def energy(p: np.ndarray) -> float:
         lengths = np.linalg.norm(INCIDENCE @ p, axis=-1)
@@ -114,17 +114,34 @@ def solve_kpo(
     return p
 
 
-_LINK_A: Final = np.array([a for a, _ in LINKS])
-_LINK_B: Final = np.array([b for _, b in LINKS])
+@functools.lru_cache(maxsize=64)
+def _linear_hessian(weight: tuple[float, ...], direction: float) -> np.ndarray:
+    """The quadratic terms' Hessian, the same for x, y and z: (J, J) ⊗ I3 -> (3J, 3J). Cached: it depends
+    only on which devices are tracked."""
+    h = np.kron(np.diag(weight) + direction * INCIDENCE.T @ INCIDENCE, np.eye(3))
+    h.flags.writeable = False
+    return h
+
+
+def _scatter_links() -> np.ndarray:
+    """(J·J, L): the ±1 pattern of Σ_links (e eᵀ) — each link adds to (a,a), (b,b) and subtracts at (a,b), (b,a)."""
+    s = np.zeros((NUM_JOINTS, NUM_JOINTS, len(LINKS)))
+    for k, (a, b) in enumerate(LINKS):
+        s[a, a, k] += 1
+        s[b, b, k] += 1
+        s[a, b, k] -= 1
+        s[b, a, k] -= 1
+    return s.reshape(NUM_JOINTS * NUM_JOINTS, len(LINKS))
+
+
+_SCATTER: Final = _scatter_links()
 
 
 def _link_hessian(blocks: np.ndarray) -> np.ndarray:
-    """Σ_links (e eᵀ) ⊗ B for per-link blocks (L, 3, 3), e the link's incidence row -> (3J, 3J)."""
-    h = np.zeros((NUM_JOINTS, NUM_JOINTS, 3, 3))
-    np.add.at(h, (_LINK_A, _LINK_A), blocks)
-    np.add.at(h, (_LINK_B, _LINK_B), blocks)
-    np.add.at(h, (_LINK_A, _LINK_B), -blocks)
-    np.add.at(h, (_LINK_B, _LINK_A), -blocks)
+    """Σ_links (e eᵀ) ⊗ B for per-link blocks (L, 3, 3), e the link's incidence row -> (3J, 3J).
+
+    One matrix product with a precomputed scatter pattern (np.add.at costs ~20 µs a call)."""
+    h = (_SCATTER @ blocks.reshape(len(LINKS), 9)).reshape(NUM_JOINTS, NUM_JOINTS, 3, 3)
     return h.transpose(0, 2, 1, 3).reshape(3 * NUM_JOINTS, 3 * NUM_JOINTS)
 
 

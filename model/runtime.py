@@ -160,6 +160,7 @@ class _Frame:
     intrinsics: np.ndarray
     head_from_cam: np.ndarray  # (4, 4)
     kp_cam: np.ndarray | None = None  # (J, 3)
+    kp_world: np.ndarray | None = None  # (J, 3), kept once the headset pose at capture is settled
     confidence: np.ndarray | None = None  # (J,)
     image: np.ndarray | None = None  # (C, h, w), naive only
     filter_before: VisibilityFilter | None = None  # naive only: Alg. 1 state before this frame
@@ -370,6 +371,20 @@ class Pipeline:
             self.head_t_us.popleft()
             self.head_poses.popleft()
 
+    def _world_keypoints(self, frame: _Frame) -> np.ndarray:
+        """(J, 3) world keypoints of a frame, placed with the headset sample nearest its capture time.
+
+        Cached once a headset sample at or after the capture exists (later samples are farther away, so
+        the nearest one cannot change); the naive baseline recomputes, as it re-encodes everything."""
+        if frame.kp_world is not None and not self.naive:
+            return frame.kp_world
+        head_t = np.fromiter(self.head_t_us, dtype=np.int64)
+        head = self.head_poses[int(nearest_sample(frame.t_us, head_t))]
+        kp_world = camera_to_world(frame.kp_cam, head, None, frame.head_from_cam)
+        if head_t[-1] >= frame.t_us:
+            frame.kp_world = kp_world
+        return kp_world
+
     def _visual_tokens(self, now_us: int, rot: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, bool]:
         """Tokens (Tv, 90) from the cached frames, and whether any frame was usable."""
         frames = list(self.frames)
@@ -378,11 +393,7 @@ class Pipeline:
         if not picked or not self.head_t_us:
             return visual_tokens(np.zeros((0, NUM_JOINTS, 3)), np.zeros((0, NUM_JOINTS)), np.zeros(0),
                                  self.visual_window, rot, origin), False  # fmt: skip
-        head_t = np.fromiter(self.head_t_us, dtype=np.int64)
-        heads = np.stack(self.head_poses)[nearest_sample(np.array([f.t_us for f in picked]), head_t)]
-        kp_world = np.stack(
-            [camera_to_world(f.kp_cam, h, None, f.head_from_cam) for f, h in zip(picked, heads, strict=True)]
-        )
+        kp_world = np.stack([self._world_keypoints(f) for f in picked])
         confidence = np.stack([f.confidence for f in picked])
         age_s = np.array([(now_us - f.t_us) * 1e-6 for f in picked])
         return visual_tokens(kp_world, confidence, age_s, self.visual_window, rot, origin), True
