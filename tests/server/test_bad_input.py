@@ -13,12 +13,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from loopback import Client, recorded_messages, replay, running_server
 from websockets.exceptions import ConnectionClosed
 
 from egoposevr.protocol import Hello, Ping, SelectModel, encode
 from egoposevr.protocol.examples import example_messages
-
-from .conftest import Client, recorded_messages, replay, running_server
 
 EXAMPLES = example_messages()
 

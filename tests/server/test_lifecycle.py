@@ -11,12 +11,11 @@ import time
 from pathlib import Path
 
 import pytest
+from loopback import Client, recorded_messages, replay
 from websockets.exceptions import ConnectionClosed
 
 from egoposevr.protocol import decode
 from egoposevr.recordings.egrec import KIND_CLIENT, read_records
-
-from .conftest import Client, recorded_messages, replay
 
 SERVE = [sys.executable, "-m", "egoposevr.cli.main", "serve", "--port", "0"]
 

@@ -9,6 +9,7 @@ import time
 import urllib.parse
 
 import pytest
+from loopback import Client, recorded_messages, replay, running_server
 from websockets.client import ClientProtocol
 from websockets.protocol import State
 from websockets.sync.client import connect
@@ -17,8 +18,6 @@ from websockets.uri import parse_uri
 from egoposevr.model.weights import WEIGHTS_DIR
 from egoposevr.protocol import Hello, ListModels, Ping, SelectModel, decode, encode
 from egoposevr.recordings.egrec import KIND_CLIENT, read_header, read_records
-
-from .conftest import Client, recorded_messages, replay, running_server
 
 WALK = recorded_messages("walk-0000", limit=400)  # ~3.3 s: 300 hmd samples at 90 Hz + 100 frames
 SQUAT = recorded_messages("squat-0001", limit=400)

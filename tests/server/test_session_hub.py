@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from loopback import recorded_messages, server_config
 
 from egoposevr.model.runtime import Pipeline
 from egoposevr.protocol import Hello, Ping, SelectModel, decode, encode
@@ -15,8 +16,6 @@ from egoposevr.server.hub import Hub
 from egoposevr.server.metrics import Metrics
 from egoposevr.server.registry import ModelRegistry
 from egoposevr.server.session import MAX_PENDING_SAMPLES, Received, Session, TokenBucket
-
-from .conftest import recorded_messages, server_config
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,1 @@
+"""Clients of the EgoPoseVR server: the mock headset (replay). No torch here."""

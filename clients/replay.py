@@ -1,0 +1,232 @@
+"""The mock headset: replay a recorded session (``.egrec``) against a server at the recorded pace.
+
+``hmd`` and ``rgbd`` messages are sent when their recorded send times come (scaled by ``speed``); every pose
+that comes back is matched to the sample it answers. The report gives end-to-end latency (sample sent → pose
+received, one clock), answered and skipped samples, and, when the recording carries ground truth, MPJPE of
+the upper and lower body. With ``loop`` the recording repeats, with ``seq`` and ``t_us`` shifted so they keep
+increasing (the server sees one continuous stream).
+
+Shape legend: ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from ..model.skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY
+from ..protocol import Hello, Message, ProtocolError, decode, encode
+from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, read_header, read_records
+
+LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
+REPORT_KEYS = ("latency_ms", "answered", "skipped", "mpjpe_u_cm", "mpjpe_l_cm")
+
+
+class ReplayError(RuntimeError):
+    """The replay could not run: unreadable recording, unreachable server, or a fatal error from it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """A session's client messages and ground truth, ready to send."""
+
+    path: Path
+    header: dict[str, Any]
+    messages: list[tuple[int, Message, bytes]]  # (send time µs from start, decoded, exact bytes), no hello
+    hello: Hello | None
+    truth: dict[int, np.ndarray]  # hmd seq -> (J, 3) true joints, m
+
+    @classmethod
+    def load(cls, path: str | Path) -> Recording:
+        path = Path(path)
+        header = read_header(path)
+        messages, hello, truth = [], None, {}
+        for record in read_records(path):
+            if record.kind == KIND_CLIENT:
+                try:
+                    msg = decode(record.payload)
+                except ProtocolError as exc:
+                    raise ReplayError(f"{path}: a recorded message is not protocol v1 ({exc})") from None
+                if isinstance(msg, Hello):
+                    hello = msg
+                elif msg.type in ("hmd", "rgbd", "select_model"):
+                    messages.append((record.t_us, msg, record.payload))
+            elif record.kind == KIND_TRUTH:
+                truth[int(record.payload["seq"])] = np.asarray(record.payload["joints"]).reshape(
+                    NUM_JOINTS, 3
+                )
+        if not any(m.type == "hmd" for _, m, _ in messages):
+            raise ReplayError(f"{path}: no hmd messages to replay")
+        return cls(path, header, messages, hello, truth)
+
+    @property
+    def duration_us(self) -> int:
+        return self.messages[-1][0] - self.messages[0][0]
+
+
+@dataclasses.dataclass
+class ReplayStats:
+    """What the replay measured so far; ``report`` turns it into the JSON the CLI writes."""
+
+    sent: int = 0
+    answered: int = 0
+    skipped: int = 0
+    errors: dict[str, int] = dataclasses.field(default_factory=dict)
+    latency_ms: list[float] = dataclasses.field(default_factory=list)
+    error_u_m: list[float] = dataclasses.field(default_factory=list)
+    error_l_m: list[float] = dataclasses.field(default_factory=list)
+    models: set[str] = dataclasses.field(default_factory=set)
+
+    def report(self) -> dict[str, Any]:
+        lat = np.asarray(self.latency_ms)
+        percentiles = {f"p{q}": float(np.percentile(lat, q)) if len(lat) else None for q in (50, 95, 99)}
+        return {
+            "latency_ms": percentiles | {"max": float(lat.max()) if len(lat) else None},
+            "answered": self.answered,
+            "skipped": self.skipped,
+            "sent": self.sent,
+            "unanswered": max(self.sent - self.answered - self.skipped, 0),
+            "mpjpe_u_cm": 100 * float(np.mean(self.error_u_m)) if self.error_u_m else None,
+            "mpjpe_l_cm": 100 * float(np.mean(self.error_l_m)) if self.error_l_m else None,
+            "errors": dict(self.errors),
+            "models": sorted(self.models),
+        }
+
+
+def summary_line(report: dict[str, Any]) -> str:
+    """One human line: latency percentiles, counts, accuracy."""
+    lat = report["latency_ms"]
+    text = "no poses yet"
+    if lat["p50"] is not None:
+        text = f"latency p50 {lat['p50']:.1f} / p95 {lat['p95']:.1f} / p99 {lat['p99']:.1f} / max {lat['max']:.1f} ms"
+    text += f"  answered {report['answered']}  skipped {report['skipped']}"
+    if report["mpjpe_u_cm"] is not None:
+        text += f"  MPJPE upper {report['mpjpe_u_cm']:.1f} cm  lower {report['mpjpe_l_cm']:.1f} cm"
+    if report["errors"]:
+        text += "  errors " + ", ".join(f"{k} {v}" for k, v in sorted(report["errors"].items()))
+    return text
+
+
+class Replayer:
+    """One replay run against ``url``; ``run`` returns the stats (also readable while it runs)."""
+
+    def __init__(
+        self,
+        recording: Recording,
+        url: str,
+        session: str | None = None,
+        model: str | None = None,
+        speed: float = 1.0,
+        loop: bool = False,
+        seconds: float | None = None,
+        token: str | None = None,
+    ) -> None:
+        if speed <= 0:
+            raise ValueError(f"speed must be > 0, got {speed}")
+        self.recording, self.url, self.speed, self.loop, self.seconds = recording, url, speed, loop, seconds
+        recorded = recording.hello
+        self.session = session or (
+            recorded.session if recorded else recording.header.get("session", "replay")
+        )
+        self.model = model or (recorded.model if recorded else None)
+        self.token = token
+        self.stats = ReplayStats()
+        self._sent_at: dict[int, float] = {}  # hmd seq -> perf_counter at send
+
+    async def run(self, on_second: Callable[[ReplayStats], None] | None = None) -> ReplayStats:
+        separator = "&" if "?" in self.url else "?"
+        try:
+            async with connect(f"{self.url}{separator}session={self.session}", compression=None,
+                               max_size=None, open_timeout=10) as ws:  # fmt: skip
+                await ws.send(encode(Hello(role="input", session=self.session, model=self.model,
+                                           token=self.token, client="egoposevr replay")))  # fmt: skip
+                reader = asyncio.create_task(self._receive(ws))
+                ticker = asyncio.create_task(self._tick(on_second)) if on_second else None
+                try:
+                    await self._send_all(ws, reader)
+                    await asyncio.wait({reader}, timeout=1.0)  # the last poses
+                finally:
+                    for task in (reader, ticker):
+                        if task is not None:
+                            task.cancel()
+                if reader.done() and not reader.cancelled() and reader.exception():
+                    raise reader.exception()
+        except (OSError, TimeoutError) as exc:
+            raise ReplayError(f"cannot reach {self.url}: {exc}") from None
+        return self.stats
+
+    async def _send_all(self, ws: Any, reader: asyncio.Task) -> None:
+        start = time.perf_counter()
+        first_us = self.recording.messages[0][0]
+        period_us = self.recording.duration_us + 11_111  # one headset interval between loops
+        repeat = 0
+        while True:
+            for t_us, msg, data in self.recording.messages:
+                due_s = (t_us - first_us + repeat * period_us) * 1e-6 / self.speed
+                if self.seconds is not None and due_s >= self.seconds:
+                    return
+                delay = due_s - (time.perf_counter() - start)
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                if reader.done():  # the server closed the connection
+                    return
+                await ws.send(self._shifted(msg, data, repeat, period_us))
+            repeat += 1
+            if not self.loop:
+                return
+
+    def _shifted(self, msg: Message, data: bytes, repeat: int, period_us: int) -> bytes:
+        """The message for this loop: seq and t_us moved on so the stream keeps increasing."""
+        seq = getattr(msg, "seq", None)
+        if repeat and seq is not None:
+            msg = msg.model_copy(
+                update={"seq": seq + repeat * LOOP_SEQ_STRIDE, "t_us": msg.t_us + repeat * period_us}
+            )
+            data = encode(msg)
+        if msg.type == "hmd":
+            self.stats.sent += 1
+            self._sent_at[msg.seq] = time.perf_counter()
+        return data
+
+    async def _receive(self, ws: Any) -> None:
+        try:
+            async for data in ws:
+                received = time.perf_counter()
+                msg = decode(data)
+                if msg.type == "pose":
+                    self._on_pose(msg, received)
+                elif msg.type == "error":
+                    self.stats.errors[msg.code] = self.stats.errors.get(msg.code, 0) + 1
+                    if msg.fatal:
+                        raise ReplayError(f"the server refused the session: {msg.code}: {msg.message}")
+        except ConnectionClosed:
+            return
+
+    def _on_pose(self, pose: Any, received: float) -> None:
+        stats = self.stats
+        sent = self._sent_at.pop(pose.seq, None)
+        if sent is not None:
+            stats.latency_ms.append((received - sent) * 1e3)
+        for seq in [s for s in self._sent_at if s < pose.seq]:  # older samples will get no pose now
+            del self._sent_at[seq]
+        stats.answered += 1
+        stats.skipped += pose.skipped or 0
+        stats.models.add(pose.model)
+        truth = self.recording.truth.get(pose.seq % LOOP_SEQ_STRIDE)
+        if truth is not None:
+            error = np.linalg.norm(np.asarray(pose.joints).reshape(NUM_JOINTS, 3) - truth, axis=-1)
+            stats.error_u_m.append(float(error[UPPER_BODY].mean()))
+            stats.error_l_m.append(float(error[LOWER_BODY].mean()))
+
+    async def _tick(self, on_second: Callable[[ReplayStats], None]) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            on_second(self.stats)
