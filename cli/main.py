@@ -1,6 +1,6 @@
 """``egoposevr`` entry point. Subcommands register here; each imports its heavy modules only when run.
 
-Only subcommands that work are listed (later issues add view, render, bridge, bench and demo).
+Only subcommands that work are listed (later issues add view, render, bridge and bench).
 """
 
 from __future__ import annotations
@@ -10,10 +10,21 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
-from . import decode_cmd, eval_cmd, export_cmd, models_cmd, replay_cmd, serve_cmd, synth_cmd, train_cmd
+from . import (
+    decode_cmd,
+    demo_cmd,
+    eval_cmd,
+    export_cmd,
+    models_cmd,
+    replay_cmd,
+    serve_cmd,
+    synth_cmd,
+    train_cmd,
+)
 
 # (name, module): each module has `add_arguments(parser)`, `run(args) -> int` and a docstring for --help.
 SUBCOMMANDS = (
+    ("demo", demo_cmd),
     ("serve", serve_cmd),
     ("models", models_cmd),
     ("replay", replay_cmd),
