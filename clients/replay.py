@@ -84,6 +84,7 @@ class ReplayStats:
     error_u_m: list[float] = dataclasses.field(default_factory=list)
     error_l_m: list[float] = dataclasses.field(default_factory=list)
     models: set[str] = dataclasses.field(default_factory=set)
+    stages_us: dict[str, list[int]] = dataclasses.field(default_factory=dict)  # the server's timing_us
 
     def report(self) -> dict[str, Any]:
         lat = np.asarray(self.latency_ms)
@@ -220,6 +221,8 @@ class Replayer:
         stats.answered += 1
         stats.skipped += pose.skipped or 0
         stats.models.add(pose.model)
+        for stage, us in pose.timing_us.items():
+            stats.stages_us.setdefault(stage, []).append(us)
         truth = self.recording.truth.get(pose.seq % LOOP_SEQ_STRIDE)
         if truth is not None:
             error = np.linalg.norm(np.asarray(pose.joints).reshape(NUM_JOINTS, 3) - truth, axis=-1)

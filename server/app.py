@@ -33,7 +33,7 @@ from websockets.http11 import Request, Response
 
 from ..protocol import Error, ErrorCode
 from .config import ConfigError, ServerConfig
-from .hub import Client, Hub
+from .hub import CLOSE_NORMAL, Client, Hub
 from .metrics import CONTENT_TYPE, Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
@@ -210,6 +210,7 @@ class Server:
             self.hub.internal_error(client, "handling a message")
         finally:
             self.hub.disconnect(client)
+            client.outbox.close(CLOSE_NORMAL)  # lets the sender finish (a no-op after a fatal error's close)
             with contextlib.suppress(TimeoutError, ConnectionClosed, asyncio.CancelledError):
                 await asyncio.wait_for(sender, 1.0)  # lets queued replies and the close frame go out
             sender.cancel()
@@ -276,9 +277,9 @@ class Server:
             while (job := self.hub.take_job(session)) is not None:
                 try:
                     result = await loop.run_in_executor(self._pool, session.run, job)
-                except RuntimeError:  # the pool is shutting down
-                    return
                 except Exception:
+                    if self.stopping:  # the pool refuses work while shutting down
+                        return
                     if not failed:  # logged once per session: a model that fails tends to fail every time
                         log.exception("inference failed in session %s", session.id)
                     failed = True

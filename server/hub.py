@@ -351,7 +351,6 @@ class Hub:
             self.metrics.stale_frames.inc()
         if result.pose is None:
             return
-        session.answered += 1
         self.metrics.poses.labels(result.model).inc()
         self.metrics.observe_timing(result.timing_us)
         for member in session.clients:

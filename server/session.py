@@ -86,7 +86,6 @@ class Session:
         self.renders: list[Any] = []
         self.pending: deque[Received] = deque()
         self.frame: Received | None = None
-        self.answered = 0
         self.skipped = 0  # since the last pose
         self.dropped_history = 0
         self.replaced_frames = 0

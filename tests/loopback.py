@@ -53,14 +53,6 @@ class ServerThread:
             raise self._error
         return self
 
-    def call(self, fn: Any, *args: Any) -> Any:
-        """Run ``fn(*args)`` on the server's loop (where hub state lives) and return its result."""
-
-        async def wrapped() -> Any:
-            return fn(*args)
-
-        return asyncio.run_coroutine_threadsafe(wrapped(), self.loop).result(10)
-
     def stop(self) -> None:
         if self._thread.is_alive():
             asyncio.run_coroutine_threadsafe(self.server.stop(), self.loop).result(30)
