@@ -265,6 +265,9 @@ class Hub:
         if hello.role == "input" and self.recorder is not None:
             self.recorder.open(client, session.id)
             self._record(client, data, time.perf_counter_ns())
+        requested = hello.model if hello.role == "input" else None  # viewers do not choose the model
+        if requested is not None and requested != session.model_name and self.registry.get(requested):
+            session.select(requested, self.registry.get(requested))
         welcome = Welcome(
             session=session.id,
             role=hello.role,
@@ -273,8 +276,8 @@ class Hub:
             models=self.registry.names(),
         )
         client.outbox.put_control(encode(welcome))
-        if hello.role == "input" and hello.model is not None:
-            self._select(client, hello.model, announce=False)
+        if requested is not None and self.registry.get(requested) is None:
+            self._unknown_model(client, requested)
         client.outbox.put_control(encode(self._models(session)))
 
     def _refuse_hello(self, hello: Hello, url_session: str | None) -> tuple[ErrorCode, str] | None:
@@ -310,22 +313,22 @@ class Hub:
         names = self.registry.names()
         return self.config.default_model if self.config.default_model in names else names[0]
 
-    def _select(self, client: Client, name: str, announce: bool = True) -> None:
+    def _select(self, client: Client, name: str) -> None:
+        """select_model: swap the session's model and tell every client of the session."""
         session = client.session
         model = self.registry.get(name)
         if model is None:
-            known = ", ".join(self.registry.names())
-            self.fail(
-                client,
-                ErrorCode.UNKNOWN_MODEL,
-                f"no model {name!r}; the session keeps {session.model_name} (models: {known})",
-            )
-        elif name != session.model_name or not announce:
+            self._unknown_model(client, name)
+        elif name != session.model_name:
             session.select(name, model)
-        if announce:
-            models = encode(self._models(session))
-            for member in session.clients:
-                member.outbox.put_control(models)
+        models = encode(self._models(session))
+        for member in session.clients:
+            member.outbox.put_control(models)
+
+    def _unknown_model(self, client: Client, name: str) -> None:
+        known = ", ".join(self.registry.names())
+        message = f"no model {name!r}; the session keeps {client.session.model_name} (models: {known})"
+        self.fail(client, ErrorCode.UNKNOWN_MODEL, message)
 
     def _models(self, session: Session) -> Models:
         return Models(active=session.model_name, models=self.registry.wire_infos())

@@ -1,0 +1,97 @@
+"""The input library against a real loopback server: streaming, frame encoding, reconnect and resume."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+
+import numpy as np
+import pytest
+from loopback import RECORDINGS, running_server
+
+from egoposevr.clients.input import HeadsetClient, InputClientError, encode_frame
+from egoposevr.model.inputs import decode_rgbd
+from egoposevr.protocol import decode
+from egoposevr.recordings.egrec import KIND_CLIENT, read_records
+
+MESSAGES = [decode(r.payload) for r in read_records(RECORDINGS / "walk-0000.egrec") if r.kind == KIND_CLIENT]
+
+
+async def stream(headset: HeadsetClient, count: int) -> None:
+    """Send the first ``count`` hmd samples and the frames between them, as a rig would (decoded images)."""
+    sent = 0
+    for msg in MESSAGES:
+        if msg.type == "rgbd":
+            rgb, depth = decode_rgbd(msg.rgb, msg.depth)
+            await headset.send_rgbd(
+                msg.t_us, rgb, depth, msg.intrinsics, np.reshape(msg.cam_from_head, (4, 4))
+            )
+        elif msg.type == "hmd":
+            await headset.send_hmd(msg.t_us, msg.head, msg.left, msg.right, msg.valid)
+            sent += 1
+            if sent == count:
+                return
+        await asyncio.sleep(0.004)
+
+
+async def first_poses(headset: HeadsetClient, n: int) -> list:
+    out = []
+    async for pose in headset.poses():
+        out.append(pose)
+        if len(out) == n:
+            return out
+    return out
+
+
+@pytest.mark.asyncio
+async def test_a_rig_streams_and_gets_poses_with_the_camera():
+    with running_server() as server:
+        async with HeadsetClient(server.url, "rig", model="hmd-rgbd") as headset:
+            assert headset.welcome.model == "hmd-rgbd"
+            await stream(headset, 40)
+            poses = await asyncio.wait_for(first_poses(headset, 30), 10)
+    assert [p.seq for p in poses] == sorted(p.seq for p in poses)
+    assert poses[-1].camera is True and poses[-1].model == "hmd-rgbd"
+    assert not headset.errors
+
+
+@pytest.mark.asyncio
+async def test_reconnects_and_resumes_the_session_after_a_server_restart():
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with running_server(port=port) as server:
+        headset = HeadsetClient(server.url, "resume", model="hmd", backoff_s=(0.05, 0.2))
+        await headset.connect()
+        await stream(headset, 10)
+        await asyncio.wait_for(first_poses(headset, 5), 10)
+    await asyncio.sleep(0.3)  # offline now: what is sent is dropped and counted
+    await headset.send_hmd(10**9, MESSAGES[1].head, MESSAGES[1].left, MESSAGES[1].right)
+    assert headset.dropped_offline >= 1
+    with running_server(port=port):
+        await headset.wait_online(10)
+        assert headset.reconnects == 1
+        await stream(headset, 10)
+        poses = await asyncio.wait_for(first_poses(headset, 5), 10)
+        assert all(p.model == "hmd" for p in poses)
+        await headset.close()
+
+
+@pytest.mark.asyncio
+async def test_a_refused_session_raises():
+    with running_server(token="s3cret") as server, pytest.raises(InputClientError, match="auth_failed"):
+        await HeadsetClient(server.url, "no-token").connect()
+
+
+def test_encode_frame_round_trips_and_checks_its_input():
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[..., 0] = 200  # red stays red: RGB in, RGB out (OpenCV's BGR stays inside)
+    rgb[..., 1] = np.linspace(0, 255, 64, dtype=np.uint8)
+    depth = np.full((48, 64), 1234, np.uint16)
+    jpeg, png = encode_frame(rgb, depth)
+    rgb_back, depth_back = decode_rgbd(jpeg, png, expected_wh=(64, 48))
+    assert np.array_equal(depth_back, depth) and np.abs(rgb_back.astype(int) - rgb).mean() < 3
+    with pytest.raises(ValueError, match="uint16"):
+        encode_frame(rgb, depth.astype(np.float32))
+    with pytest.raises(ValueError, match="rgb must be"):
+        encode_frame(rgb[..., 0], depth)
