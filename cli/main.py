@@ -1,6 +1,6 @@
 """``egoposevr`` entry point. Subcommands register here; each imports its heavy modules only when run.
 
-Only subcommands that work are listed (later issues add view, render, bridge and bench).
+Only subcommands that work are listed (later issues add view, bridge and bench).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from . import (
     eval_cmd,
     export_cmd,
     models_cmd,
+    render_cmd,
     replay_cmd,
     serve_cmd,
     synth_cmd,
@@ -28,6 +29,7 @@ SUBCOMMANDS = (
     ("serve", serve_cmd),
     ("models", models_cmd),
     ("replay", replay_cmd),
+    ("render", render_cmd),
     ("decode", decode_cmd),
     ("synth", synth_cmd),
     ("train", train_cmd),
