@@ -65,11 +65,20 @@ class Recording:
                 )
         if not any(m.type == "hmd" for _, m, _ in messages):
             raise ReplayError(f"{path}: no hmd messages to replay")
-        return cls(path, header, messages, hello, truth)
+        return cls(path, header, [_with_truth(m, truth) for m in messages], hello, truth)
 
     @property
     def duration_us(self) -> int:
         return self.messages[-1][0] - self.messages[0][0]
+
+
+def _with_truth(entry: tuple[int, Message, bytes], truth: dict[int, np.ndarray]) -> tuple[int, Message, bytes]:
+    """An hmd message carrying its recorded ground truth (``hmd.truth``), so viewers can draw it."""
+    t_us, msg, _ = entry
+    if msg.type != "hmd" or msg.truth is not None or msg.seq not in truth:
+        return entry
+    msg = msg.model_copy(update={"truth": truth[msg.seq].reshape(-1).tolist()})
+    return t_us, msg, encode(msg)
 
 
 @dataclasses.dataclass

@@ -71,7 +71,10 @@ class Hello(Message):
 
 
 class Hmd(Message):
-    """One headset sample: head and controller poses at ``t_us``; ``valid`` = (head, left, right) tracked."""
+    """One headset sample: head and controller poses at ``t_us``; ``valid`` = (head, left, right) tracked.
+
+    ``truth`` (optional, replayed recordings only): the true 22 joints (66 floats, m), passed through to the
+    pose so that viewers can show the ground truth; the model never sees it."""
 
     TYPE: ClassVar[str] = "hmd"
     type: Literal["hmd"] = "hmd"
@@ -81,6 +84,7 @@ class Hmd(Message):
     left: DevicePose
     right: DevicePose
     valid: vec(3, Bool)
+    truth: vec(66, Coord) | None = None  # ground-truth joints (recorded sessions): echoed in the pose
 
     @model_validator(mode="after")
     def _tracked_quaternions_are_unit(self) -> Hmd:
@@ -188,7 +192,8 @@ class Pose(Message):
     ``camera`` (optional): absent for models that read no camera; ``true`` if an RGB-D frame contributed,
     ``false`` if the model had to run on the headset stream alone (no frame yet, or the camera went quiet).
     ``skipped`` (optional): headset samples of this session that got no pose since the previous pose, because
-    the server was behind and the newest sample won.
+    the server was behind and the newest sample won. ``truth`` (optional): the ground-truth joints the
+    answered ``hmd`` sample carried (recorded sessions), so that viewers can draw them beside the pose.
     """
 
     TYPE: ClassVar[str] = "pose"
@@ -203,6 +208,7 @@ class Pose(Message):
     timing_us: Annotated[dict[Annotated[str, Strict(), Field(max_length=32)], TimeUs], Len(0, 32)]
     camera: Annotated[bool, Strict()] | None = None
     skipped: Seq | None = None
+    truth: vec(66) | None = None  # the answered hmd sample's ground-truth joints, when it carried them
 
 
 class ModelInfo(BaseModel):

@@ -184,7 +184,7 @@ class Hub:
 
     def _dispatch(self, client: Client, msg: Message, received: Received, data: bytes | str) -> None:
         session = client.session
-        if isinstance(msg, Hmd | Rgbd | SelectModel) and client is not session.input:
+        if isinstance(msg, Hmd | Rgbd) and client is not session.input:
             self.fail(
                 client,
                 ErrorCode.WRONG_ROLE,

@@ -173,7 +173,7 @@ class Session:
         }
         timing["total"] = (time.perf_counter_ns() - newest.recv_ns) // 1000
         before_encode_ns = time.perf_counter_ns()
-        result.pose = encode_pose(pose, newest.msg.seq, self._pipeline_model_name, timing, job.skipped)
+        result.pose = encode_pose(pose, newest.msg, self._pipeline_model_name, timing, job.skipped)
         self._previous_encode_us = (time.perf_counter_ns() - before_encode_ns) // 1000
         result.timing_us, result.model = timing, self._pipeline_model_name
         return result
@@ -220,11 +220,11 @@ def _error(code: ErrorCode, message: str, seq: int | None = None) -> Error:
     return Error(code=code.value, message=message[:1024], fatal=False, seq=seq)
 
 
-def encode_pose(pose: PoseResult, seq: int, model: str, timing_us: dict[str, int], skipped: int) -> bytes:
-    """The wire ``pose`` for a pipeline result. Built without re-validation: the values come from the
-    pipeline (finite, checked by the caller) and the shapes are fixed by it."""
+def encode_pose(pose: PoseResult, sample: Hmd, model: str, timing_us: dict[str, int], skipped: int) -> bytes:
+    """The wire ``pose`` answering ``sample``. Built without re-validation: the values come from the pipeline
+    (finite, checked by the caller) and the validated sample, and the shapes are fixed by them."""
     message = Pose.model_construct(
-        seq=seq,
+        seq=sample.seq,
         t_us=pose.t_us,
         model=model,
         global_orient=pose.global_orient.tolist(),
@@ -234,5 +234,6 @@ def encode_pose(pose: PoseResult, seq: int, model: str, timing_us: dict[str, int
         timing_us=timing_us,
         camera=pose.camera,
         skipped=skipped,
+        truth=sample.truth,
     )
     return encode(message)

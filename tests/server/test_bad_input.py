@@ -111,12 +111,14 @@ def test_errors_name_the_offending_seq_and_count_in_metrics(server):
     assert server.metric("egoposevr_errors_total", code="image_decode") == before + 1
 
 
-def test_a_render_client_may_not_send_headset_data(server):
+def test_a_render_client_may_not_send_headset_data_but_may_switch_models(server):
     with Client(server.url, "roles") as viewer:
         viewer.hello("render", "roles")
-        for msg in (EXAMPLES["hmd"], EXAMPLES["rgbd"], SelectModel(model="hmd")):
+        for msg in (EXAMPLES["hmd"], EXAMPLES["rgbd"]):
             viewer.send(msg)
             assert viewer.recv_type("error").code == "wrong_role"
+        viewer.send(SelectModel(model="hmd"))
+        assert viewer.recv_type("models").active == "hmd"
         viewer.send(Ping(nonce=2))
         assert viewer.recv_type("pong").nonce == 2
 
