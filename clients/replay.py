@@ -72,7 +72,9 @@ class Recording:
         return self.messages[-1][0] - self.messages[0][0]
 
 
-def _with_truth(entry: tuple[int, Message, bytes], truth: dict[int, np.ndarray]) -> tuple[int, Message, bytes]:
+def _with_truth(
+    entry: tuple[int, Message, bytes], truth: dict[int, np.ndarray]
+) -> tuple[int, Message, bytes]:
     """An hmd message carrying its recorded ground truth (``hmd.truth``), so viewers can draw it."""
     t_us, msg, _ = entry
     if msg.type != "hmd" or msg.truth is not None or msg.seq not in truth:

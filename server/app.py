@@ -8,13 +8,15 @@ rescan task) → ``stop`` (refuse new hellos and connections, tell every client 
 Threads: the event loop receives, decodes (microseconds), routes and sends; each session's inference runs in
 the shared worker pool (onnxruntime and OpenCV release the GIL), one job at a time per session, so the loop
 never waits for a model. HTTP: ``/healthz`` (alive), ``/readyz`` (models loaded, not stopping), ``/metrics``
-(Prometheus); the WebSocket endpoint is ``/ws?session=ID``.
+(Prometheus), ``/api/sessions`` (JSON), ``/viewer/`` (the web viewer); the WebSocket is ``/ws?session=ID``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib.resources
+import json
 import logging
 import signal
 import socket
@@ -24,6 +26,7 @@ from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from http import HTTPStatus
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
 
 from websockets.asyncio.server import Server as WsServer
 from websockets.asyncio.server import ServerConnection, serve
@@ -41,6 +44,12 @@ from .session import RunResult, Session
 
 log = logging.getLogger("egoposevr.server")
 WS_PATH = "/ws"
+# The web viewer's static files ship inside the clients package (data only: the server imports no client code).
+VIEWER_DIR = Path(str(importlib.resources.files("egoposevr.clients") / "viewer"))
+STATIC_TYPES = {
+    ".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8",
+    ".md": "text/plain; charset=utf-8", ".png": "image/png",
+}  # fmt: skip
 # websockets refuses frames above max_size by closing with 1009 and no explanation; the headroom lets a
 # message up to twice the protocol limit arrive so that the client gets a `too_large` error first.
 FRAME_HEADROOM = 2
@@ -185,9 +194,21 @@ class Server:
             return connection.respond(HTTPStatus.OK if ready else HTTPStatus.SERVICE_UNAVAILABLE,
                                       "ready\n" if ready else "not ready\n")  # fmt: skip
         if path == "/metrics":
-            body = self.metrics.exposition()
-            headers = Headers([("Content-Type", CONTENT_TYPE), ("Content-Length", str(len(body)))])
-            return Response(HTTPStatus.OK, "OK", headers, body)
+            return _response(HTTPStatus.OK, self.metrics.exposition(), CONTENT_TYPE)
+        if path == "/api/sessions":
+            return _response(
+                HTTPStatus.OK, json.dumps(self.hub.describe_sessions()).encode(), "application/json"
+            )
+        if path == "/viewer":  # the page's relative links need the trailing slash
+            query = urllib.parse.urlsplit(request.path).query
+            return _response(
+                HTTPStatus.FOUND,
+                b"",
+                "text/plain",
+                [("Location", "/viewer/" + (f"?{query}" if query else ""))],
+            )
+        if path.startswith("/viewer/"):
+            return _static_file(path.removeprefix("/viewer/") or "index.html")
         return connection.respond(HTTPStatus.NOT_FOUND, f"no such path {path}; the WebSocket is {WS_PATH}\n")
 
     # ------------------------------------------------------------------------------ connections
@@ -288,6 +309,25 @@ class Server:
                     )
                     result = RunResult(errors=[error])
                 self.hub.publish(session, result)
+
+
+def _response(
+    status: HTTPStatus, body: bytes, content_type: str, extra: list[tuple[str, str]] | None = None
+) -> Response:
+    headers = Headers([("Content-Type", content_type), ("Content-Length", str(len(body))), *(extra or [])])
+    return Response(status, status.phrase, headers, body)
+
+
+def _static_file(relative: str) -> Response:
+    """A file of the web viewer (clients/viewer, package data); nothing outside that folder."""
+    root = VIEWER_DIR.resolve()
+    path = (root / urllib.parse.unquote(relative)).resolve()
+    if root not in path.parents or not path.is_file():
+        return _response(
+            HTTPStatus.NOT_FOUND, f"no viewer file {relative}\n".encode(), "text/plain; charset=utf-8"
+        )
+    content_type = STATIC_TYPES.get(path.suffix, "text/plain; charset=utf-8")
+    return _response(HTTPStatus.OK, path.read_bytes(), content_type, [("Cache-Control", "no-cache")])
 
 
 @contextlib.asynccontextmanager

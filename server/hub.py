@@ -127,6 +127,13 @@ class Hub:
         for client in list(self.clients):
             self.fail(client, ErrorCode.SHUTTING_DOWN, "the server is shutting down", fatal=True)
 
+    def describe_sessions(self) -> list[dict[str, object]]:
+        """For /api/sessions and the viewer's session picker."""
+        return [
+            {"session": s.id, "model": s.model_name, "input": s.input is not None, "viewers": len(s.renders)}
+            for s in sorted(self.sessions.values(), key=lambda s: s.id)
+        ]
+
     def fail(
         self, client: Client, code: ErrorCode, message: str, *, fatal: bool = False, seq: int | None = None
     ) -> None:

@@ -1,0 +1,248 @@
+// EgoPoseVR web viewer: joins a session as a `render` client (PROTOCOL.md) and draws every pose.
+//
+// The avatar is capsules between the 22 SMPL joints (`pose.joints`); the headset and controllers are boxes
+// placed and turned by the SMPL rotations (`global_orient`, `body_pose`) through forward kinematics, with the
+// device offsets of model/rig.py. The ground truth (`pose.truth`, recorded sessions) is a grey line ghost.
+// World: right-handed, y up, metres, as on the wire. `window.viewerState` exposes what the page saw (tests
+// and curious users read it). Without WebGL the page falls back to a 2D canvas projection.
+import * as THREE from "./vendor/three/three.module.js";
+
+const { encode, decode } = window.MessagePack;
+const PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19];
+const LEFT = new Set([1, 4, 7, 10, 13, 16, 18, 20]);
+const RIGHT = new Set([2, 5, 8, 11, 14, 17, 19, 21]);
+// Devices on the body (model/rig.py): offsets in the joint's frame; device = joint turned 180° about y.
+const DEVICES = [
+  { joint: 15, offset: [0.0, 0.06, 0.11], size: [0.18, 0.1, 0.12] },
+  { joint: 20, offset: [0.085, -0.015, 0.015], size: [0.05, 0.05, 0.14] },
+  { joint: 21, offset: [-0.085, -0.015, 0.015], size: [0.05, 0.05, 0.14] },
+];
+const DEVICE_FROM_JOINT = new THREE.Quaternion().setFromAxisAngle(new THREE.Vector3(0, 1, 0), Math.PI);
+
+const state = (window.viewerState = {
+  connected: false, session: null, model: null, models: [], poses: 0, lastSeq: null, fps: 0,
+  serverMs: null, camera: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
+});
+
+const $ = (id) => document.getElementById(id);
+let ws = null;
+let latest = null; // newest pose not yet drawn
+let arrivals = []; // pose arrival times (ms) over the last second, for FPS
+
+// ------------------------------------------------------------------------------------------ connection
+function wsUrl(session) {
+  const scheme = location.protocol === "https:" ? "wss:" : "ws:";
+  return `${scheme}//${location.host}/ws?session=${encodeURIComponent(session)}`;
+}
+
+function connect(session) {
+  if (ws) { ws.onclose = null; ws.close(); }
+  state.session = session; state.connected = false; state.poses = 0; state.lastSeq = null;
+  const url = new URL(location.href);
+  url.searchParams.set("session", session);
+  history.replaceState(null, "", url);
+  ws = new WebSocket(wsUrl(session));
+  ws.binaryType = "arraybuffer";
+  ws.onopen = () => ws.send(encode({ type: "hello", v: 1, role: "render", session, client: "egoposevr viewer" }));
+  ws.onmessage = (event) => onMessage(decode(new Uint8Array(event.data)));
+  ws.onclose = () => { state.connected = false; setTimeout(() => connect(state.session), 1000); };
+}
+
+function onMessage(msg) {
+  if (msg.type === "welcome") { state.connected = true; state.model = msg.model; }
+  else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(); }
+  else if (msg.type === "pose") { onPose(msg); }
+  else if (msg.type === "error") { state.errors.push(`${msg.code}: ${msg.message}`); }
+}
+
+function onPose(pose) {
+  const now = performance.now();
+  arrivals.push(now);
+  while (arrivals.length && arrivals[0] < now - 1000) arrivals.shift();
+  latest = pose;
+  state.poses += 1; state.lastSeq = pose.seq; state.model = pose.model; state.fps = arrivals.length;
+  state.serverMs = pose.timing_us && pose.timing_us.total !== undefined ? pose.timing_us.total / 1000 : null;
+  state.camera = pose.camera === undefined ? null : pose.camera;
+  state.skipped += pose.skipped || 0;
+  state.truthSeen = state.truthSeen || Boolean(pose.truth);
+}
+
+async function refreshSessions() {
+  try {
+    const reply = await fetch("/api/sessions");
+    state.sessions = (await reply.json()).map((s) => s.session);
+  } catch { return; }
+  const select = $("session");
+  const names = new Set(state.sessions);
+  if (state.session) names.add(state.session);
+  const wanted = [...names].sort();
+  if (wanted.join() !== [...select.options].map((o) => o.value).join()) {
+    select.replaceChildren(...wanted.map((n) => new Option(n, n, false, n === state.session)));
+  }
+  if (!state.session && state.sessions.length) connect(state.sessions[0]);
+}
+
+function fillModels() {
+  const select = $("model");
+  select.replaceChildren(...state.models.map((n) => new Option(n, n, false, n === state.model)));
+}
+
+$("session").onchange = (e) => connect(e.target.value);
+$("model").onchange = (e) => ws && ws.readyState === 1 && ws.send(encode({ type: "select_model", v: 1, model: e.target.value }));
+
+// ------------------------------------------------------------------------------------------ kinematics
+function jointsOf(flat) {
+  const out = [];
+  for (let j = 0; j < 22; j++) out.push(new THREE.Vector3(flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]));
+  return out;
+}
+
+function axisAngle(x, y, z) {
+  const angle = Math.hypot(x, y, z);
+  if (angle < 1e-9) return new THREE.Quaternion();
+  return new THREE.Quaternion().setFromAxisAngle(new THREE.Vector3(x / angle, y / angle, z / angle), angle);
+}
+
+function globalRotations(pose) {
+  const rot = [axisAngle(...pose.global_orient)];
+  for (let j = 1; j < 22; j++) {
+    const b = pose.body_pose.slice(3 * (j - 1), 3 * j);
+    rot.push(rot[PARENTS[j]].clone().multiply(axisAngle(...b)));
+  }
+  return rot;
+}
+
+function colourOf(j) { return LEFT.has(j) ? 0xff8c3c : RIGHT.has(j) ? 0x3ca0ff : 0xe6e6e6; }
+
+// ------------------------------------------------------------------------------------------ WebGL scene
+function webglView(stage) {
+  const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(window.devicePixelRatio || 1);
+  stage.appendChild(renderer.domElement);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0x202225);
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 2.0));
+  const sun = new THREE.DirectionalLight(0xffffff, 1.5);
+  sun.position.set(2, 4, 3);
+  scene.add(sun);
+  scene.add(new THREE.GridHelper(10, 20, 0x666666, 0x3a3a3a));
+  const camera = new THREE.PerspectiveCamera(50, 1, 0.05, 50);
+  const unitCylinder = new THREE.CylinderGeometry(1, 1, 1, 12);
+  const unitSphere = new THREE.SphereGeometry(1, 16, 12);
+  const bones = [], spheres = [];
+  for (let j = 1; j < 22; j++) {
+    const mesh = new THREE.Mesh(unitCylinder, new THREE.MeshStandardMaterial({ color: colourOf(j), roughness: 0.6 }));
+    scene.add(mesh); bones.push(mesh);
+  }
+  for (let j = 0; j < 22; j++) {
+    const mesh = new THREE.Mesh(unitSphere, new THREE.MeshStandardMaterial({ color: colourOf(j), roughness: 0.6 }));
+    mesh.scale.setScalar(j === 15 ? 0.09 : 0.035); scene.add(mesh); spheres.push(mesh);
+  }
+  const devices = DEVICES.map((d) => {
+    const mesh = new THREE.Mesh(new THREE.BoxGeometry(...d.size), new THREE.MeshStandardMaterial({ color: 0x50dc50 }));
+    scene.add(mesh); return mesh;
+  });
+  const truthGeometry = new THREE.BufferGeometry();
+  truthGeometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(21 * 2 * 3), 3));
+  const truthLines = new THREE.LineSegments(truthGeometry, new THREE.LineBasicMaterial({ color: 0x9a9a9a }));
+  truthLines.visible = false; scene.add(truthLines);
+  const focus = new THREE.Vector3(0, 1, 0);
+  const up = new THREE.Vector3(0, 1, 0);
+
+  function resize() {
+    const w = stage.clientWidth, h = stage.clientHeight;
+    renderer.setSize(w, h, false); camera.aspect = w / Math.max(h, 1); camera.updateProjectionMatrix();
+  }
+  window.addEventListener("resize", resize); resize();
+
+  function show(pose) {
+    const joints = jointsOf(pose.joints);
+    for (let j = 1; j < 22; j++) {
+      const a = joints[PARENTS[j]], b = joints[j], mesh = bones[j - 1];
+      const length = a.distanceTo(b);
+      mesh.position.copy(a).add(b).multiplyScalar(0.5);
+      mesh.scale.set(0.025, Math.max(length, 1e-4), 0.025);
+      mesh.quaternion.setFromUnitVectors(up, b.clone().sub(a).normalize());
+    }
+    joints.forEach((p, j) => spheres[j].position.copy(p));
+    const rot = globalRotations(pose);
+    DEVICES.forEach((d, k) => {
+      devices[k].position.copy(new THREE.Vector3(...d.offset).applyQuaternion(rot[d.joint]).add(joints[d.joint]));
+      devices[k].quaternion.copy(rot[d.joint]).multiply(DEVICE_FROM_JOINT);
+    });
+    const showTruth = Boolean(pose.truth) && $("truth").checked;
+    truthLines.visible = showTruth;
+    if (showTruth) {
+      const truth = jointsOf(pose.truth), buffer = truthGeometry.attributes.position.array;
+      for (let j = 1; j < 22; j++) {
+        truth[PARENTS[j]].toArray(buffer, 6 * (j - 1)); truth[j].toArray(buffer, 6 * (j - 1) + 3);
+      }
+      truthGeometry.attributes.position.needsUpdate = true;
+    }
+    focus.lerp(new THREE.Vector3(joints[0].x, 1.0, joints[0].z), 0.1); // a steady camera that follows
+    camera.position.set(focus.x - 1.7, 1.5, focus.z - 2.1);
+    camera.lookAt(focus);
+  }
+  return { show, draw: () => renderer.render(scene, camera), name: "webgl" };
+}
+
+// ------------------------------------------------------------------------------------------ 2D fallback
+function canvasView(stage) {
+  const canvas = document.createElement("canvas");
+  stage.appendChild(canvas);
+  const ctx = canvas.getContext("2d");
+  let pose = null;
+  function project(p, focus, w, h) { // a fixed oblique view: x right, y up, z towards the viewer
+    const s = Math.min(w, h) / 3;
+    return [w / 2 + s * ((p.x - focus.x) - 0.35 * (p.z - focus.z)), h * 0.85 - s * (p.y + 0.25 * (p.z - focus.z))];
+  }
+  function draw() {
+    const w = (canvas.width = stage.clientWidth), h = (canvas.height = stage.clientHeight);
+    ctx.fillStyle = "#202225"; ctx.fillRect(0, 0, w, h);
+    if (!pose) return;
+    const joints = jointsOf(pose.joints), focus = joints[0];
+    const line = (pts, colour, width) => {
+      ctx.strokeStyle = colour; ctx.lineWidth = width; ctx.beginPath();
+      ctx.moveTo(...project(pts[0], focus, w, h)); ctx.lineTo(...project(pts[1], focus, w, h)); ctx.stroke();
+    };
+    for (let k = -5; k <= 5; k++) {
+      line([new THREE.Vector3(focus.x + k * 0.5, 0, focus.z - 2.5), new THREE.Vector3(focus.x + k * 0.5, 0, focus.z + 2.5)], "#3a3a3a", 1);
+      line([new THREE.Vector3(focus.x - 2.5, 0, focus.z + k * 0.5), new THREE.Vector3(focus.x + 2.5, 0, focus.z + k * 0.5)], "#3a3a3a", 1);
+    }
+    if (pose.truth && $("truth").checked) {
+      const truth = jointsOf(pose.truth);
+      for (let j = 1; j < 22; j++) line([truth[PARENTS[j]], truth[j]], "#9a9a9a", 2);
+    }
+    for (let j = 1; j < 22; j++) line([joints[PARENTS[j]], joints[j]], "#" + colourOf(j).toString(16).padStart(6, "0"), 5);
+  }
+  return { show: (p) => { pose = p; }, draw, name: "2d" };
+}
+
+function makeView(stage) {
+  try { return webglView(stage); } catch (error) {
+    console.warn("WebGL unavailable, drawing in 2D:", error);
+    return canvasView(stage);
+  }
+}
+
+// ------------------------------------------------------------------------------------------ main loop
+const view = makeView($("stage"));
+state.renderer = view.name;
+
+function frame() {
+  if (latest) { view.show(latest); latest = null; }
+  view.draw();
+  const s = state;
+  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}` : "connecting…";
+  $("hud").textContent = s.poses
+    ? `poses ${s.poses}  ·  ${s.fps} FPS  ·  server ${s.serverMs?.toFixed(1) ?? "?"} ms  ·  camera ${s.camera === null ? "n/a" : s.camera ? "on" : "off"}  ·  skipped ${s.skipped}` +
+      (s.errors.length ? `  ·  last error ${s.errors[s.errors.length - 1]}` : "")
+    : "waiting for poses…";
+  requestAnimationFrame(frame);
+}
+
+const requested = new URLSearchParams(location.search).get("session");
+if (requested) connect(requested);
+refreshSessions();
+setInterval(refreshSessions, 2000);
+requestAnimationFrame(frame);
