@@ -60,11 +60,8 @@ async def _demo(args: argparse.Namespace) -> int:
         )
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, task.cancel)
-        try:
-            stats = await task
-        except asyncio.CancelledError:
-            stats = replayer.stats
+            loop.add_signal_handler(sig, replayer.stop)
+        stats = await task
         print("final: " + summary_line(stats.report()), flush=True)
         return 0 if stats.answered else 1
 

@@ -151,7 +151,12 @@ class Replayer:
         self.model = model or (recorded.model if recorded else None)
         self.token = token
         self.stats = ReplayStats()
+        self.stopping = False  # set by stop(): the replay ends after the current message, cleanly
         self._sent_at: dict[int, float] = {}  # hmd seq -> perf_counter at send
+
+    def stop(self) -> None:
+        """Ask a running replay to finish (safe from another thread or a signal handler)."""
+        self.stopping = True
 
     async def run(self, on_second: Callable[[ReplayStats], None] | None = None) -> ReplayStats:
         separator = "&" if "?" in self.url else "?"
@@ -188,7 +193,7 @@ class Replayer:
                 delay = due_s - (time.perf_counter() - start)
                 if delay > 0:
                     await asyncio.sleep(delay)
-                if reader.done():  # the server closed the connection
+                if reader.done() or self.stopping:  # the server closed the connection, or stop()
                     return
                 await ws.send(self._shifted(msg, data, repeat, period_us))
             repeat += 1

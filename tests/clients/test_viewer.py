@@ -86,26 +86,17 @@ class Browser:
 @contextlib.contextmanager
 def streaming_headset(server: Any, session: str) -> Iterator[None]:
     """A headset replaying a recording (with truth) on loop until the block ends."""
-    stop = threading.Event()
+    replayer = Replayer(Recording.load(RECORDINGS / "walk-0000.egrec"), server.url, session, "hmd", loop=True)
 
-    def run() -> None:
-        recording = Recording.load(RECORDINGS / "walk-0000.egrec")  # the mock headset sends recorded truth
-        replayer = Replayer(recording, server.url, session, "hmd", loop=True, seconds=60)
-
-        async def until_stopped() -> None:
-            task = asyncio.create_task(replayer.run())
-            while not stop.is_set() and not task.done():
-                await asyncio.sleep(0.05)
-            task.cancel()
-
-        asyncio.run(until_stopped())
+    def run() -> None:  # the mock headset sends the recorded truth too
+        asyncio.run(replayer.run())
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
     try:
         yield
     finally:
-        stop.set()
+        replayer.stop()
         thread.join(10)
 
 
