@@ -1,8 +1,7 @@
 """Run the demo: the server with the bundled models, and a mock headset replaying a bundled recording on loop.
 
-Prints where the server listens and one live line per second (latency, answered samples, accuracy against
-the recording's ground truth). Any client can join session "demo" as a viewer meanwhile. Ctrl-C stops
-everything cleanly.
+Prints the web viewer's URL (open it in a browser to watch the avatar) and one live line per second
+(latency, answered samples, accuracy against the recording's ground truth). Ctrl-C stops everything cleanly.
 
 Examples:
   egoposevr demo
@@ -47,12 +46,10 @@ async def _demo(args: argparse.Namespace) -> int:
 
     recording = Recording.load(_recording_path(args.recording))
     async with running(ServerConfig(host=args.host, port=args.port)) as server:
-        print(
-            f"EgoPoseVR demo: server {server.url}  health/metrics http://{args.host}:{server.port}/healthz|/metrics"
-        )
-        print(
-            f"replaying {recording.path.name} on loop as session {SESSION!r}; viewers: {server.url}?session={SESSION}"
-        )
+        http = f"http://{'127.0.0.1' if args.host in ('0.0.0.0', '') else args.host}:{server.port}"
+        print(f"EgoPoseVR demo: server {server.url}  (health {http}/healthz, metrics {http}/metrics)")
+        print(f"replaying {recording.path.name} on loop as session {SESSION!r}")
+        print(f"viewer: {http}/viewer/?session={SESSION}")
         print("Ctrl-C stops", flush=True)
         replayer = Replayer(recording, server.url, SESSION, args.model, loop=True, seconds=args.seconds)
         task = asyncio.create_task(
