@@ -1,6 +1,6 @@
 """``egoposevr`` entry point. Subcommands register here; each imports its heavy modules only when run.
 
-Only subcommands that work are listed (the benchmark issue adds bench).
+Only subcommands that work are listed.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
 from . import (
+    bench_cmd,
     bridge_cmd,
     decode_cmd,
     demo_cmd,
@@ -32,6 +33,7 @@ SUBCOMMANDS = (
     ("replay", replay_cmd),
     ("render", render_cmd),
     ("bridge", bridge_cmd),
+    ("bench", bench_cmd),
     ("decode", decode_cmd),
     ("synth", synth_cmd),
     ("train", train_cmd),

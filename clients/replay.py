@@ -71,6 +71,30 @@ class Recording:
     def duration_us(self) -> int:
         return self.messages[-1][0] - self.messages[0][0]
 
+    def retimed(self, hmd_rate_hz: float, camera_rate_hz: float) -> Recording:
+        """The same session at other rates: a headset sample every 1/hmd_rate and a frame every 1/camera_rate
+        (0: no camera), each the recorded one nearest its tick, re-stamped and renumbered."""
+        if hmd_rate_hz <= 0 or camera_rate_hz < 0:
+            raise ValueError(f"rates must be positive, got hmd {hmd_rate_hz} Hz, camera {camera_rate_hz} Hz")
+        start, end = self.messages[0][1].t_us, self.messages[-1][1].t_us
+        streams = []
+        for kind, rate in (("hmd", hmd_rate_hz), ("rgbd", camera_rate_hz)):
+            recorded = [m for _, m, _ in self.messages if m.type == kind]
+            if rate == 0 or not recorded:
+                continue
+            times = np.array([m.t_us for m in recorded])
+            ticks = start + np.arange(0, end - start + 1, 1e6 / rate).astype(np.int64)
+            nearest = np.clip(np.searchsorted(times, ticks), 1, len(times) - 1)
+            nearest -= np.abs(times[nearest - 1] - ticks) <= np.abs(times[nearest] - ticks)
+            for seq, (tick, k) in enumerate(zip(ticks, nearest, strict=True), start=1):
+                msg = recorded[k].model_copy(update={"seq": seq, "t_us": int(tick)})
+                streams.append((int(tick) - start, msg, encode(msg)))
+        streams.sort(key=lambda entry: entry[0])
+        truth = {
+            m.seq: np.reshape(m.truth, (NUM_JOINTS, 3)) for _, m, _ in streams if m.type == "hmd" and m.truth
+        }
+        return dataclasses.replace(self, messages=streams, truth=truth)
+
 
 def _with_truth(
     entry: tuple[int, Message, bytes], truth: dict[int, np.ndarray]

@@ -309,9 +309,8 @@ class Hub:
             return None
         name = self.default_model_name()
         cfg = self.config
-        session = Session(
-            hello.session, name, self.registry.get(name), TokenBucket(cfg.rate_limit_hz, cfg.rate_burst)
-        )
+        bucket = TokenBucket(cfg.rate_limit_hz, cfg.rate_burst)
+        session = Session(hello.session, name, self.registry.get(name), bucket, naive=cfg.naive)
         self.sessions[session.id] = session
         self.metrics.sessions.set(len(self.sessions))
         return session

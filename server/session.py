@@ -78,7 +78,9 @@ class TokenBucket:
 class Session:
     """State of one session id; ``input`` and ``renders`` hold the app's client handles."""
 
-    def __init__(self, session_id: str, model_name: str, model: LoadedModel, rate: TokenBucket) -> None:
+    def __init__(
+        self, session_id: str, model_name: str, model: LoadedModel, rate: TokenBucket, naive: bool = False
+    ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it
         self.rate = rate
@@ -91,7 +93,8 @@ class Session:
         self.replaced_frames = 0
         self._next_model: tuple[str, LoadedModel] | None = None
         self._reset = False
-        self._pipeline = Pipeline(model)  # run() only
+        self.naive = naive  # the benchmark's baseline: re-encode the whole visual window per request
+        self._pipeline = Pipeline(model, naive=naive)  # run() only
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
 
@@ -152,7 +155,7 @@ class Session:
         result = RunResult()
         if job.model is not None:
             self._pipeline_model_name, model = job.model
-            self._pipeline = Pipeline(model)
+            self._pipeline = Pipeline(model, naive=self.naive)
         elif job.reset:
             self._pipeline.reset()
         image_us = self._push_frame(job.frame, result) if job.frame is not None else None

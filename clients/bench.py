@@ -1,0 +1,208 @@
+"""The latency benchmark: N mock headsets at real rate against a server, per model; sweeps, flat-out
+throughput and the incremental-vs-naive comparison.
+
+Latency is end to end on one clock (the bench's): ``hmd`` sent → its ``pose`` received. The server's own
+stage times come back in every pose (``timing_us``); CPU use is the server process' CPU time over the wall
+time of the run (100 % = one core). The bench drives all sessions from one asyncio loop in its own process;
+the server runs in another (``start_server``) unless a URL is given.
+
+Shape legend: none (scalars and per-stage dicts).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import re
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..model.inputs import decode_rgbd
+from ..model.runtime import LoadedModel, Pipeline
+from .replay import Recording, Replayer, ReplayStats
+
+FRAME_BUDGET_MS = 11.1  # one display frame at 90 Hz
+STAGES = (
+    "decode",
+    "queue",
+    "image",
+    "features",
+    "visual",
+    "fusion",
+    "fk_filter",
+    "kpo",
+    "rotations",
+    "encode",
+    "total",
+)
+
+
+@contextlib.contextmanager
+def server_process(*args: str) -> Iterator[tuple[str, int]]:
+    """``egoposevr serve --port 0 ARGS`` in a subprocess -> (WebSocket URL, pid), stopped on exit."""
+    cmd = [sys.executable, "-m", "egoposevr.cli.main", "serve", "--port", "0", *args]
+    process = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    try:
+        url = None
+        for line in process.stderr:  # the startup line names the port
+            if match := re.search(r"on (ws://\S+)", line):
+                url = match.group(1)
+                break
+        if url is None:
+            raise RuntimeError(f"the server did not start (exit {process.wait()})")
+        # Keep reading its log (connects and closes), or a full pipe would stall the server.
+        threading.Thread(target=lambda: [None for _ in process.stderr], daemon=True).start()
+        yield url, process.pid
+    finally:
+        process.terminate()
+        try:
+            process.wait(15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+        process.stderr.close()
+
+
+def serving(url: str | None, *args: str) -> contextlib.AbstractContextManager[tuple[str, int | None]]:
+    """The given server (no pid: its CPU use is not measured), or a fresh one with the bench's limits."""
+    if url is not None:
+        return contextlib.nullcontext((url, None))
+    return server_process("--max-sessions", "64", "--rate-limit-hz", "2000", "--rate-burst", "1000", *args)
+
+
+def _cpu_seconds(pid: int | None) -> float | None:
+    if pid is None:
+        return None
+    try:
+        import psutil
+
+        times = psutil.Process(pid).cpu_times()
+        return times.user + times.system
+    except (ImportError, OSError):
+        return None
+
+
+def _percentiles(values: list[float] | np.ndarray) -> dict[str, float | None]:
+    v = np.asarray(values, dtype=np.float64)
+    if not len(v):
+        return {"p50": None, "p95": None, "p99": None, "max": None, "mean": None}
+    return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)),
+            "p99": float(np.percentile(v, 99)), "max": float(v.max()), "mean": float(v.mean())}  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class Load:
+    """What to drive: sessions, how long, at which rates, from which recordings."""
+
+    sessions: int = 1
+    seconds: float = 20.0
+    hmd_rate_hz: float = 90.0
+    camera_rate_hz: float = 30.0
+    recordings: tuple[Path, ...] = ()
+
+
+async def _drive(
+    url: str, recordings: list[Recording], load: Load, model: str, tag: str
+) -> list[ReplayStats]:
+    async def session(i: int) -> ReplayStats:
+        # Real headsets are not in phase: spread the sessions' samples over one headset period.
+        await asyncio.sleep(i / (load.hmd_rate_hz * load.sessions))
+        recording = recordings[i % len(recordings)]
+        return await Replayer(recording, url, f"{tag}-{i}", model, loop=True, seconds=load.seconds).run()
+
+    return list(await asyncio.gather(*(session(i) for i in range(load.sessions))))
+
+
+def measure(url: str, pid: int | None, load: Load, model: str, tag: str = "bench") -> dict[str, Any]:
+    """One run of ``load`` against a server: latency, stages, skipped, CPU."""
+    recordings = [Recording.load(p).retimed(load.hmd_rate_hz, load.camera_rate_hz) for p in load.recordings]
+    cpu_before, wall_before = _cpu_seconds(pid), time.perf_counter()
+    stats = asyncio.run(_drive(url, recordings, load, model, tag))
+    cpu_after, wall = _cpu_seconds(pid), time.perf_counter() - wall_before
+    latency = [v for s in stats for v in s.latency_ms]
+    stages = {k: [v * 1e-3 for s in stats for v in s.stages_us.get(k, [])] for k in STAGES}
+    cpu = None if cpu_before is None or cpu_after is None else 100 * (cpu_after - cpu_before) / wall
+    return {
+        "sessions": load.sessions,
+        "latency_ms": _percentiles(latency),
+        "stages_ms": {k: _percentiles(v) for k, v in stages.items() if v},
+        "answered": sum(s.answered for s in stats),
+        "skipped": sum(s.skipped for s in stats),
+        "sent": sum(s.sent for s in stats),
+        "errors": {k: sum(s.errors.get(k, 0) for s in stats) for k in {c for s in stats for c in s.errors}},
+        "server_cpu_percent": cpu,
+        "latency_samples_ms": latency,  # for the plot; dropped from the JSON
+    }
+
+
+def sweep(url: str, pid: int | None, load: Load, model: str, max_sessions: int = 16) -> dict[str, Any]:
+    """Add sessions until p99 exceeds one 90 Hz frame; the most sessions that held, and every step."""
+    steps, best = [], 0
+    for n in range(1, max_sessions + 1):
+        result = measure(url, pid, dataclasses.replace(load, sessions=n), model, tag=f"sweep{n}")
+        steps.append({"sessions": n, "p99_ms": result["latency_ms"]["p99"], "skipped": result["skipped"]})
+        if result["latency_ms"]["p99"] is None or result["latency_ms"]["p99"] > FRAME_BUDGET_MS:
+            break
+        best = n
+    return {"max_sessions_p99_within_frame": best, "steps": steps}
+
+
+def flat_out_fps(
+    model_path: Path, recording: Recording, samples: int = 300, repeats: int = 3, naive: bool = False
+) -> float:
+    """The paper's FPS: one stream, batch 1, a NEW RGB-D frame before every headset sample (image decode and
+    visual encoder included), as fast as it goes, in-process. Median over ``repeats``."""
+    hmd = [m for _, m, _ in recording.messages if m.type == "hmd"]
+    frames = [m for _, m, _ in recording.messages if m.type == "rgbd"]
+    pipeline = Pipeline(LoadedModel.load(model_path), naive=naive)
+    rates = []
+    for _ in range(repeats):
+        pipeline.reset()
+        started = time.perf_counter()
+        for i in range(samples):
+            sample = hmd[i % len(hmd)]
+            t_us = sample.t_us + (i // len(hmd)) * (recording.duration_us + 11_111)
+            if pipeline.model.visual is not None and frames:
+                frame = frames[i % len(frames)]
+                rgb, depth = decode_rgbd(frame.rgb, frame.depth)
+                pipeline.push_rgbd(t_us - 1, rgb, depth, np.asarray(frame.intrinsics))
+            pipeline.push_hmd(t_us, np.asarray(sample.poses()), np.asarray(sample.valid))
+        rates.append(samples / (time.perf_counter() - started))
+    return statistics.median(rates)
+
+
+def plot(results: dict[str, dict[str, Any]], path: Path) -> None:
+    """Latency distribution (CDF per model) and the median stage times (stacked bars)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for name, result in results.items():
+        latency = np.sort(result.get("latency_samples_ms", []))
+        if len(latency):
+            left.plot(latency, np.linspace(0, 1, len(latency)), label=f"{name} ({result['sessions']} sess.)")
+    left.axvline(FRAME_BUDGET_MS, color="grey", linestyle="--", label="one 90 Hz frame")
+    left.set(xlabel="end-to-end latency (ms)", ylabel="fraction of poses", title="Latency distribution")
+    left.legend()
+    stages = [s for s in STAGES if s != "total"]
+    bottom = np.zeros(len(results))
+    names = list(results)
+    for stage in stages:
+        heights = [((results[n]["stages_ms"].get(stage) or {}).get("p50") or 0.0) for n in names]
+        right.bar(names, heights, bottom=bottom, label=stage)
+        bottom += heights
+    right.set(ylabel="server time, p50 per stage (ms)", title="Where the server's time goes")
+    right.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
