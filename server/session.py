@@ -158,7 +158,7 @@ class Session:
             self._pipeline = Pipeline(model, naive=self.naive)
         elif job.reset:
             self._pipeline.reset()
-        image_us = self._push_frame(job.frame, result) if job.frame is not None else None
+        image_us = self._push_frame(job.frame, result) if job.frame is not None else None  # µs or None
         for received in job.samples[:-1]:
             self._observe(received.msg, result)
         if not job.samples:
@@ -181,8 +181,10 @@ class Session:
         result.timing_us, result.model = timing, self._pipeline_model_name
         return result
 
-    def _push_frame(self, received: Received, result: RunResult) -> int:
+    def _push_frame(self, received: Received, result: RunResult) -> int | None:
         msg: Rgbd = received.msg
+        if self._pipeline.model.visual is None:
+            return None  # this model reads no camera: decoding the images would only cost time
         started = time.perf_counter_ns()
         try:
             rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
