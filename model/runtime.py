@@ -166,6 +166,58 @@ class _Frame:
     filter_before: VisibilityFilter | None = None  # naive only: Alg. 1 state before this frame
 
 
+@dataclasses.dataclass(frozen=True)
+class EncodedFrame:
+    """A camera frame through the visual encoder, ready for a pipeline's cache (:meth:`Pipeline.add_frame`)."""
+
+    t_us: int
+    size_wh: tuple[int, int]
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy of the W×H image
+    head_from_cam: np.ndarray  # (4, 4)
+    kp_cam: np.ndarray  # (J, 3) camera-frame keypoints, m
+    zeta: np.ndarray  # (J,) visibility before Alg. 1's filter
+    encoder: Path  # the visual encoder that made it
+    encode_us: int  # resize + encoder + lifting time
+
+
+def _head_from_cam(model: LoadedModel, cam_from_head: np.ndarray | None) -> np.ndarray:
+    default = model.info.camera["cam_from_head"] if model.info.camera else np.eye(4).ravel()
+    cam = np.asarray(default, dtype=np.float64).reshape(4, 4) if cam_from_head is None else cam_from_head
+    return np.linalg.inv(cam)
+
+
+def encode_frame(
+    model: LoadedModel,
+    t_us: int,
+    rgb: np.ndarray,
+    depth_mm: np.ndarray,
+    intrinsics: np.ndarray,
+    cam_from_head: np.ndarray | None = None,
+) -> EncodedFrame:
+    """The visual encoder on one decoded frame (arguments as :meth:`Pipeline.push_rgbd`). Stateless, so the
+    server runs it beside the session's headset inference; the pipeline takes the result with ``add_frame``.
+    Raises ValueError for malformed frames or a model that reads no camera."""
+    _check_frame(rgb, depth_mm, intrinsics, cam_from_head)
+    if model.visual is None:
+        raise ValueError(f"model {model.info.name} reads no camera")
+    started = time.perf_counter()
+    vc = model.info.visual_config
+    image = network_input(*resize_frame(rgb, depth_mm, (vc["width"], vc["height"])), vc["channels"])
+    uv, depth_m, zeta = model.encode_frames(image[None])
+    size_wh = (rgb.shape[1], rgb.shape[0])
+    intrinsics = np.asarray(intrinsics, dtype=np.float64)
+    return EncodedFrame(
+        t_us=int(t_us),
+        size_wh=size_wh,
+        intrinsics=intrinsics,
+        head_from_cam=_head_from_cam(model, cam_from_head),
+        kp_cam=lift_keypoints(uv[0], depth_m[0], intrinsics, size_wh),
+        zeta=zeta[0],
+        encoder=model.info.visual_path,
+        encode_us=int((time.perf_counter() - started) * 1e6),
+    )
+
+
 def _check_frame(rgb: np.ndarray, depth_mm: np.ndarray, intrinsics: Any, cam_from_head: Any) -> None:
     """Raise ValueError unless the frame is usable: shapes, dtypes, finite positive intrinsics."""
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
@@ -204,8 +256,6 @@ class Pipeline:
         self.bone_scale = (
             np.ones(NUM_JOINTS) if bone_scale is None else np.asarray(bone_scale, dtype=np.float64)
         )
-        default = info.camera["cam_from_head"] if info.camera else np.eye(4).ravel()
-        self.default_cam_from_head = np.asarray(default, dtype=np.float64).reshape(4, 4)
         self.reset()
 
     def reset(self) -> None:
@@ -242,6 +292,8 @@ class Pipeline:
         _check_frame(rgb, depth_mm, intrinsics, cam_from_head)
         if self.model.visual is None or (self.frames and t_us <= self.frames[-1].t_us):
             return False
+        if not self.naive:
+            return self.add_frame(encode_frame(self.model, t_us, rgb, depth_mm, intrinsics, cam_from_head))
         started = time.perf_counter()
         vc = self.model.info.visual_config
         image = network_input(*resize_frame(rgb, depth_mm, (vc["width"], vc["height"])), vc["channels"])
@@ -249,18 +301,28 @@ class Pipeline:
             t_us=int(t_us),
             size_wh=(rgb.shape[1], rgb.shape[0]),
             intrinsics=np.asarray(intrinsics, dtype=np.float64),
-            head_from_cam=np.linalg.inv(
-                self.default_cam_from_head if cam_from_head is None else cam_from_head
-            ),
+            head_from_cam=_head_from_cam(self.model, cam_from_head),
         )
-        if self.naive:
-            frame.image, frame.filter_before = image, copy.deepcopy(self.visibility)
-            self.visibility(frame.t_us, self._encode(frame, image[None])[1])  # keep Alg. 1's state going
-        else:
-            frame.kp_cam, zeta = self._encode(frame, image[None])
-            frame.confidence = self.visibility(frame.t_us, zeta)
+        frame.image, frame.filter_before = image, copy.deepcopy(self.visibility)
+        self.visibility(frame.t_us, self._encode(frame, image[None])[1])  # keep Alg. 1's state going
         self.frames.append(frame)
         self._pending_visual_us += int((time.perf_counter() - started) * 1e6)
+        return True
+
+    def add_frame(self, frame: EncodedFrame) -> bool:
+        """An already encoded frame (:func:`encode_frame`, possibly run in another thread) into the cache:
+        Alg. 1's filter, then the keypoint cache. Returns False, doing nothing, for a model without a camera,
+        a frame from another model's encoder (a model switch happened meanwhile) or a frame not newer than
+        the newest cached one."""
+        if self.model.visual is None or frame.encoder != self.model.info.visual_path:
+            return False
+        if self.frames and frame.t_us <= self.frames[-1].t_us:
+            return False
+        cached = _Frame(frame.t_us, frame.size_wh, frame.intrinsics, frame.head_from_cam, kp_cam=frame.kp_cam)
+        cached.confidence = self.visibility(frame.t_us, frame.zeta)
+        self.frames.append(cached)
+        self.frames_encoded += 1
+        self._pending_visual_us += frame.encode_us
         return True
 
     def _encode(self, frame: _Frame, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
