@@ -31,19 +31,9 @@ from ..model.runtime import LoadedModel, Pipeline
 from .replay import Recording, Replayer, ReplayStats
 
 FRAME_BUDGET_MS = 11.1  # one display frame at 90 Hz
-STAGES = (
-    "decode",
-    "queue",
-    "image",
-    "features",
-    "visual",
-    "fusion",
-    "fk_filter",
-    "kpo",
-    "rotations",
-    "encode",
-    "total",
-)
+# Every stage a pose reports (PROTOCOL.md, pose.timing_us), in pipeline order.
+STAGES = ("decode", "queue", "image", "features", "visual", "fusion", "fk_filter", "kpo", "rotations", "encode",
+          "total")  # fmt: skip
 
 
 @contextlib.contextmanager
