@@ -39,6 +39,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections import deque
 from collections.abc import AsyncIterator, Sequence
 from typing import Any
 
@@ -77,7 +78,7 @@ class HeadsetClient:
         self.reconnect, self.backoff_s, self.jpeg_quality = reconnect, backoff_s, jpeg_quality
         self.welcome: Welcome | None = None
         self.models: Models | None = None
-        self.errors: list[Error] = []
+        self.errors: deque[Error] = deque(maxlen=100)  # the newest error replies
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
         self.reconnects = 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,8 @@ from ..protocol import Hello, Message, ProtocolError, decode, encode
 from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, read_header, read_records
 
 LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
+KEEP_SAMPLES = 200_000  # per measured quantity: about 37 minutes of poses at 90 Hz
+MAX_UNANSWERED = 10_000  # samples awaiting their pose
 REPORT_KEYS = ("latency_ms", "answered", "skipped", "mpjpe_u_cm", "mpjpe_l_cm")
 
 
@@ -115,11 +118,12 @@ class ReplayStats:
     answered: int = 0
     skipped: int = 0
     errors: dict[str, int] = dataclasses.field(default_factory=dict)
-    latency_ms: list[float] = dataclasses.field(default_factory=list)
-    error_u_m: list[float] = dataclasses.field(default_factory=list)
-    error_l_m: list[float] = dataclasses.field(default_factory=list)
+    # Bounded, so a demo looping for days keeps its memory: percentiles cover the newest KEEP_SAMPLES poses.
+    latency_ms: deque[float] = dataclasses.field(default_factory=lambda: deque(maxlen=KEEP_SAMPLES))
+    error_u_m: deque[float] = dataclasses.field(default_factory=lambda: deque(maxlen=KEEP_SAMPLES))
+    error_l_m: deque[float] = dataclasses.field(default_factory=lambda: deque(maxlen=KEEP_SAMPLES))
     models: set[str] = dataclasses.field(default_factory=set)
-    stages_us: dict[str, list[int]] = dataclasses.field(default_factory=dict)  # the server's timing_us
+    stages_us: dict[str, deque[int]] = dataclasses.field(default_factory=dict)  # the server's timing_us
 
     def report(self) -> dict[str, Any]:
         lat = np.asarray(self.latency_ms)
@@ -235,6 +239,8 @@ class Replayer:
         if msg.type == "hmd":
             self.stats.sent += 1
             self._sent_at[msg.seq] = time.perf_counter()
+            if len(self._sent_at) > MAX_UNANSWERED:  # a server that stopped answering: forget the oldest
+                del self._sent_at[next(iter(self._sent_at))]
         return data
 
     async def _receive(self, ws: Any) -> None:
@@ -262,7 +268,7 @@ class Replayer:
         stats.skipped += pose.skipped or 0
         stats.models.add(pose.model)
         for stage, us in pose.timing_us.items():
-            stats.stages_us.setdefault(stage, []).append(us)
+            stats.stages_us.setdefault(stage, deque(maxlen=KEEP_SAMPLES)).append(us)
         truth = self.recording.truth.get(pose.seq % LOOP_SEQ_STRIDE)
         if truth is not None:
             error = np.linalg.norm(np.asarray(pose.joints).reshape(NUM_JOINTS, 3) - truth, axis=-1)

@@ -292,6 +292,8 @@ class Hub:
             return ErrorCode.SHUTTING_DOWN, "the server is shutting down"
         if not self.ready:
             return ErrorCode.SERVER_FULL, "models are still loading; try again shortly"
+        if not self.registry.names():
+            return ErrorCode.SERVER_FULL, "no model is loaded (all were removed from the models folder)"
         token = self.config.token
         if token is not None and not hmac.compare_digest(
             (hello.token or "").encode(), token.get_secret_value().encode()

@@ -52,7 +52,7 @@ function onMessage(msg) {
   if (msg.type === "welcome") { state.connected = true; state.model = msg.model; }
   else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(); }
   else if (msg.type === "pose") { onPose(msg); }
-  else if (msg.type === "error") { state.errors.push(`${msg.code}: ${msg.message}`); }
+  else if (msg.type === "error") { state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`]; }
 }
 
 function onPose(pose) {
