@@ -397,7 +397,7 @@ class Pipeline:
         lap("fusion")
         local = sixd_to_matrix(sixd.astype(np.float64))
         local[0] = rot @ local[0]  # pelvis: heading frame -> world
-        joints, _ = forward_kinematics(local, np.zeros(3), self.offsets)
+        joints, glob_pred = forward_kinematics(local, np.zeros(3), self.offsets)
         joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
         lap("fk_filter")
         if self.model.info.kpo:
@@ -407,7 +407,7 @@ class Pipeline:
             observed[list(TRACKED_JOINTS)] = valid
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             lap("kpo")
-        local = rederive_rotations(local, joints, self.offsets)
+        local = rederive_rotations(local, joints, self.offsets, glob_pred)
         joints, _ = forward_kinematics(local, joints[0], self.offsets)  # rotations and joints agree exactly
         global_orient, body_pose = local_rot_to_smpl(local)
         lap("rotations")
