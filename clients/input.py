@@ -49,6 +49,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from ..protocol import Error, Hello, Hmd, Message, Models, Pose, Rgbd, SelectModel, Welcome, decode, encode
+from . import session_url
 
 log = logging.getLogger("egoposevr.input")
 PERMANENT_REFUSALS = frozenset({"auth_failed", "session_busy", "invalid_field"})
@@ -106,8 +107,7 @@ class HeadsetClient:
         return welcome
 
     async def _open(self) -> Welcome:
-        separator = "&" if "?" in self.url else "?"
-        ws = await connect(f"{self.url}{separator}session={self.session}", compression=None, max_size=None)
+        ws = await connect(session_url(self.url, self.session), compression=None, max_size=None)
         hello = Hello(
             role="input", session=self.session, model=self.model, token=self.token, client=self.label
         )

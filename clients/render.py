@@ -26,6 +26,7 @@ from ..model.inputs import decode_rgbd
 from ..model.runtime import LoadedModel, Pipeline
 from ..model.skeleton import JOINT_NAMES, LOWER_BODY, NUM_JOINTS, PARENTS, UPPER_BODY
 from ..protocol import Hello, decode, encode
+from . import session_url
 from .replay import Recording
 
 # BGR colours: the predicted body warm on the left side, cool on the right, the truth grey.
@@ -150,9 +151,8 @@ def frames_from_recording(recording: Recording, model: LoadedModel, name: str, f
 
 
 async def _live_poses(url: str, session: str, seconds: float) -> list[tuple[float, Any]]:
-    separator = "&" if "?" in url else "?"
     out: list[tuple[float, Any]] = []
-    async with connect(f"{url}{separator}session={session}", compression=None, max_size=None) as ws:
+    async with connect(session_url(url, session), compression=None, max_size=None) as ws:
         await ws.send(encode(Hello(role="render", session=session, client="egoposevr render")))
         start = time.perf_counter()
         while (left := seconds - (time.perf_counter() - start)) > 0:

@@ -26,6 +26,7 @@ from websockets.exceptions import ConnectionClosed
 from ..model.skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY
 from ..protocol import Hello, Message, ProtocolError, decode, encode
 from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, read_header, read_records
+from . import session_url
 
 LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
 KEEP_SAMPLES = 200_000  # per measured quantity: about 37 minutes of poses at 90 Hz
@@ -187,9 +188,8 @@ class Replayer:
         self.stopping = True
 
     async def run(self, on_second: Callable[[ReplayStats], None] | None = None) -> ReplayStats:
-        separator = "&" if "?" in self.url else "?"
         try:
-            async with connect(f"{self.url}{separator}session={self.session}", compression=None,
+            async with connect(session_url(self.url, self.session), compression=None,
                                max_size=None, open_timeout=10) as ws:  # fmt: skip
                 await ws.send(encode(Hello(role="input", session=self.session, model=self.model,
                                            token=self.token, client="egoposevr replay")))  # fmt: skip

@@ -36,6 +36,7 @@ from websockets.asyncio.client import connect
 
 from ..model.skeleton import NUM_JOINTS, rest_offsets, smpl_to_local_rot
 from ..protocol import Hello, decode, encode
+from . import session_url
 
 # Unity HumanBodyBones names in SMPL joint order.
 UNITY_BONES: Final = (
@@ -99,11 +100,10 @@ def _bundle(messages: list[Any]) -> bytes:
 
 async def bridge(url: str, session: str, to: tuple[str, int], seconds: float | None = None) -> dict[str, int]:
     """Join ``session`` as a viewer and forward every pose to ``to`` (host, port) as VMC bundles."""
-    separator = "&" if "?" in url else "?"
     counts = {"poses": 0, "bundles": 0, "bytes": 0}
     started = time.perf_counter()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-        async with connect(f"{url}{separator}session={session}", compression=None, max_size=None) as ws:
+        async with connect(session_url(url, session), compression=None, max_size=None) as ws:
             await ws.send(encode(Hello(role="render", session=session, client="egoposevr bridge vmc")))
             while seconds is None or (left := seconds - (time.perf_counter() - started)) > 0:
                 try:
