@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
+from . import kernels
 from .body import BodyCalibrator
 from .filters import OneEuroFilter
 from .hmd import HmdFeatureExtractor
@@ -46,14 +47,16 @@ from .inputs import (
 )
 from .kpo import KpoWeights, rederive_rotations, solve_kpo
 from .rig import TRACKED_JOINTS, joints_from_devices
-from .rotations import sixd_to_matrix
-from .skeleton import HEAD, NUM_JOINTS, forward_kinematics, local_rot_to_smpl, rest_offsets
+from .skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 
 HEAD_HISTORY_S = 1.0
 # One Euro on joint positions (paper Eq. 8). Chosen on 4 val clips: (4 Hz, 2) costs 0.2-0.3 cm MPJPE against no
 # filter and cuts jitter 4.5x; (2 Hz, 1) halves jitter again but lags by 0.6 cm upper body.
 POSITION_MIN_CUTOFF_HZ = 4.0
 POSITION_BETA = 2.0
+_PARENTS = PARENTS.astype(np.int64)
+_TRACKED = np.array(TRACKED_JOINTS)
+_ORIGIN = np.zeros(3)
 
 
 class ModelError(Exception):
@@ -99,6 +102,7 @@ class LoadedModel:
     @classmethod
     def load(cls, path: str | Path, threads: int = 1, shared: dict[Path, Any] | None = None) -> LoadedModel:
         path = Path(path)
+        kernels.warm_up()  # compiled (or loaded from numba's cache) before the first pose, not during it
         fusion = _session(path, threads)
         meta = _metadata(fusion)
         if meta.get("kind") != "model":
@@ -395,27 +399,30 @@ class Pipeline:
             clock = time.perf_counter()
         sixd = self.model.fusion.run(None, inputs)[0][0]  # (J, 6)
         lap("fusion")
-        local = sixd_to_matrix(sixd.astype(np.float64))
+        local = kernels.sixd_to_matrices(sixd.astype(np.float64))
         local[0] = rot @ local[0]  # pelvis: heading frame -> world
-        joints, glob_pred = forward_kinematics(local, np.zeros(3), self.offsets)
+        joints, glob_pred = kernels.forward_kinematics_one(local, _ORIGIN, self.offsets, _PARENTS)
         joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
         lap("fk_filter")
         if self.model.info.kpo:
             targets = np.zeros((NUM_JOINTS, 3))
             observed = np.zeros(NUM_JOINTS, dtype=bool)
-            targets[list(TRACKED_JOINTS)] = tracked_pos
-            observed[list(TRACKED_JOINTS)] = valid
+            targets[_TRACKED] = tracked_pos
+            observed[_TRACKED] = valid
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)
-        joints, _ = forward_kinematics(local, joints[0], self.offsets)  # rotations and joints agree exactly
-        global_orient, body_pose = local_rot_to_smpl(local)
+        joints, _ = kernels.forward_kinematics_one(
+            local, joints[0].copy(), self.offsets, _PARENTS
+        )  # exact agreement
+        axis_angle = kernels.matrices_to_rotvecs(local)
+        global_orient, body_pose = axis_angle[0], axis_angle[1:].reshape(-1)
         lap("rotations")
         return PoseResult(
             t_us=t_us,
             model=self.model.info.name,
             global_orient=global_orient,
-            body_pose=body_pose.reshape(-1),
+            body_pose=body_pose,
             transl=joints[0].copy(),
             joints=joints,
             local_rot=local,

@@ -1,0 +1,102 @@
+"""The compiled serving kernels agree with the numpy/scipy reference, and serving never waits for the compiler."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from egoposevr.model import kernels, kpo
+from egoposevr.model import rotations as r
+from egoposevr.model import skeleton as sk
+from egoposevr.model.runtime import LoadedModel, Pipeline
+from egoposevr.model.weights import WEIGHTS_DIR
+
+RNG = np.random.default_rng(11)
+PARENTS = sk.PARENTS.astype(np.int64)
+
+
+def random_rotations(n: int) -> np.ndarray:
+    return Rotation.random(n, random_state=int(RNG.integers(1 << 30))).as_matrix()
+
+
+def test_fk_of_one_pose_matches_the_batched_reference():
+    local, root, offsets = (
+        random_rotations(22),
+        RNG.normal(size=3),
+        sk.rest_offsets(RNG.uniform(0.8, 1.2, 22)),
+    )
+    pos, glob = kernels.forward_kinematics_one(local, root, offsets, PARENTS)
+    ref_pos, ref_glob = sk.forward_kinematics(local, root, offsets)
+    np.testing.assert_allclose(pos, ref_pos, atol=1e-12)
+    np.testing.assert_allclose(glob, ref_glob, atol=1e-12)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 1.0, np.pi - 1e-6, np.pi])
+def test_rotation_vectors_match_scipy_near_zero_and_half_turn(angle):
+    axes = RNG.normal(size=(50, 3))
+    rotvec = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angle
+    matrices = Rotation.from_rotvec(rotvec).as_matrix()
+    np.testing.assert_allclose(kernels.rotvecs_to_matrices(rotvec), matrices, atol=1e-12)
+    back = kernels.matrices_to_rotvecs(matrices)
+    # at exactly π, v and -v are the same rotation: compare as rotations
+    np.testing.assert_allclose(Rotation.from_rotvec(back).as_matrix(), matrices, atol=1e-9)
+    if angle < np.pi - 1e-3:
+        np.testing.assert_allclose(back, Rotation.from_matrix(matrices).as_rotvec(), atol=1e-9)
+
+
+def test_quaternion_conversions_match_scipy_for_unnormalised_and_negative_w():
+    quat = RNG.normal(size=(200, 4)) * RNG.uniform(0.1, 10, size=(200, 1))
+    np.testing.assert_allclose(
+        kernels.quats_to_matrices(quat), Rotation.from_quat(quat).as_matrix(), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        kernels.quats_to_rotvecs(quat), Rotation.from_quat(quat).as_rotvec(), atol=1e-12
+    )
+
+
+def test_rotation_wrappers_refuse_zero_quaternions_and_keep_batch_shapes():
+    with pytest.raises(ValueError, match="non-zero"):
+        r.quat_xyzw_to_matrix(np.zeros((2, 4)))
+    assert r.axis_angle_to_matrix(np.zeros((4, 5, 3))).shape == (4, 5, 3, 3)
+    assert r.matrix_to_axis_angle(np.broadcast_to(np.eye(3), (2, 22, 3, 3))).shape == (2, 22, 3)
+
+
+def test_sixd_matches_gram_schmidt():
+    sixd = RNG.normal(size=(22, 6)) * 3
+    m = kernels.sixd_to_matrices(sixd)
+    b1 = sixd[:, :3] / np.linalg.norm(sixd[:, :3], axis=1, keepdims=True)
+    np.testing.assert_allclose(m[:, :, 0], b1, atol=1e-12)
+    np.testing.assert_allclose(m @ np.swapaxes(m, 1, 2), np.broadcast_to(np.eye(3), m.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(m), 1.0, atol=1e-12)
+
+
+def test_kpo_kernel_reaches_no_higher_energy_than_any_small_perturbation():
+    local = random_rotations(22)
+    pred, _ = sk.forward_kinematics(local, np.zeros(3))
+    targets = pred + RNG.normal(scale=0.05, size=pred.shape)
+    observed = np.zeros(22, dtype=bool)
+    observed[[15, 20, 21]] = True
+    w = kpo.KpoWeights(iterations=30)
+    refined = kpo.solve_kpo(pred, targets, observed, w)
+    best = kpo.kpo_energy(refined, pred, targets, observed, w)
+    for _ in range(20):  # a local minimum of the numpy statement of the energy
+        nudged = refined + RNG.normal(scale=1e-4, size=refined.shape)
+        assert kpo.kpo_energy(nudged, pred, targets, observed, w) > best
+
+
+def test_serving_never_compiles_after_warm_up():
+    """A pose after warm-up must not wait seconds for numba: every call's argument types were compiled then."""
+    kernels.warm_up()
+    compiled = {name: len(f.signatures) for name, f in _kernel_functions()}
+    pipeline = Pipeline(LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx"))
+    rgb, depth = np.zeros((96, 128, 3), np.uint8), np.full((96, 128), 1200, np.uint16)
+    pipeline.push_rgbd(0, rgb, depth, np.array([100.0, 100.0, 64.0, 48.0]))
+    head = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
+    hands = np.array([[0.2, -0.5, 0, 0, 0, 0, 0], [-0.2, -0.5, 0, 0, 0, 0, 0]])
+    for i in range(5):
+        poses = np.vstack([head, head + hands])
+        pipeline.push_hmd(i * 11_111, poses, np.array([True, i % 2 == 0, True]))
+    assert {name: len(f.signatures) for name, f in _kernel_functions()} == compiled
+
+
+def _kernel_functions():
+    return [(n, f) for n, f in vars(kernels).items() if hasattr(f, "signatures") and not n.startswith("_")]
