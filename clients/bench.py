@@ -138,7 +138,11 @@ def sweep(url: str, pid: int | None, load: Load, model: str, max_sessions: int =
     steps, best = [], 0
     for n in range(1, max_sessions + 1):
         result = measure(url, pid, dataclasses.replace(load, sessions=n), model, tag=f"sweep{n}")
-        steps.append({"sessions": n, "p99_ms": result["latency_ms"]["p99"], "skipped": result["skipped"]})
+        server_p99 = (result["stages_ms"].get("total") or {}).get("p99")
+        steps.append(
+            {"sessions": n, "p99_ms": result["latency_ms"]["p99"], "server_p99_ms": server_p99,
+             "skipped": result["skipped"]}
+        )  # fmt: skip
         if result["latency_ms"]["p99"] is None or result["latency_ms"]["p99"] > FRAME_BUDGET_MS:
             break
         best = n

@@ -18,8 +18,10 @@ import contextlib
 import importlib.resources
 import json
 import logging
+import os
 import signal
 import socket
+import threading
 import time
 import urllib.parse
 from collections.abc import AsyncIterator
@@ -34,16 +36,18 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from ..model.runtime import LoadedModel
 from ..protocol import Error, ErrorCode
 from .config import ConfigError, ServerConfig
 from .hub import CLOSE_NORMAL, Client, Hub
 from .metrics import CONTENT_TYPE, Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
-from .session import RunResult, Session
+from .session import FrameResult, RunResult, Session, encode_received_frame
 
 log = logging.getLogger("egoposevr.server")
 WS_PATH = "/ws"
+FRAME_LANE_NICE = 10  # CFS gives a nice-10 thread ~1/10 of a core against a busy nice-0 one
 # The web viewer's static files ship inside the clients package (data only: the server imports no client code).
 VIEWER_DIR = Path(str(importlib.resources.files("egoposevr.clients") / "viewer"))
 STATIC_TYPES = {
@@ -75,6 +79,11 @@ class Server:
             on_work=self._wake_session, on_session_end=self._end_session, server_name=server_name(),
         )  # fmt: skip
         self._pool = ThreadPoolExecutor(config.workers, thread_name_prefix="egoposevr-infer")
+        # Camera-only jobs (decode + visual encoder) run on their own thread at a lower OS priority, so
+        # that on a busy machine the headset jobs of every session get the cores first.
+        self._frame_lane = ThreadPoolExecutor(
+            1, thread_name_prefix="egoposevr-frames", initializer=_lower_priority
+        )
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="egoposevr-models")
         self._workers: dict[Session, tuple[asyncio.Event, asyncio.Task[None]]] = {}
         self._connections: set[ServerConnection] = set()
@@ -165,6 +174,7 @@ class Server:
         if self.recorder is not None:
             self.recorder.close_all()
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self._frame_lane.shutdown(wait=False, cancel_futures=True)
         self._loader.shutdown(wait=False, cancel_futures=True)
         log.info("stopped")
 
@@ -289,7 +299,8 @@ class Server:
             worker[1].cancel()
 
     async def _infer(self, session: Session, event: asyncio.Event) -> None:
-        """The session's worker: take everything pending, run it in the pool, publish; again while work."""
+        """The session's worker: take everything pending, run it in the pool, publish; again while work.
+        Camera frames go to the lane after the headset's pose, into the gap before its next sample."""
         loop = asyncio.get_running_loop()
         failed = False
         while True:
@@ -309,6 +320,39 @@ class Server:
                     )
                     result = RunResult(errors=[error])
                 self.hub.publish(session, result)
+                if result.pose is not None:
+                    # Let the senders write this pose before the next job or lane frame takes the GIL.
+                    await asyncio.sleep(0)
+            self._dispatch_frame(session)
+
+    def _dispatch_frame(self, session: Session) -> None:
+        """Start the session's newest camera frame on the frame lane, unless one is there already."""
+        taken = session.take_frame()
+        if taken is None:
+            return
+        future = asyncio.get_running_loop().run_in_executor(self._frame_lane, encode_received_frame, *taken)
+        future.add_done_callback(lambda done: self._frame_encoded(session, taken[1], done))
+
+    def _frame_encoded(self, session: Session, model: LoadedModel, done: asyncio.Future[FrameResult]) -> None:
+        """Back on the loop: errors go to the input client now; the frame waits for the next headset job."""
+        if done.cancelled():
+            return
+        if (exc := done.exception()) is not None:
+            log.error("frame encoding failed in session %s", session.id, exc_info=exc)
+            result = FrameResult(
+                errors=[Error(code=ErrorCode.INTERNAL.value, message="server error encoding a frame")]
+            )
+        else:
+            result = done.result()
+        session.offer_encoded(result, model)
+        self.hub.publish(session, RunResult(errors=result.errors))
+        if session in self._workers:  # a newer frame may be waiting for the lane
+            self._workers[session][0].set()
+
+
+def _lower_priority() -> None:
+    with contextlib.suppress(OSError, AttributeError):  # Linux: a thread is a task with its own nice value
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), FRAME_LANE_NICE)
 
 
 def _response(

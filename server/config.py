@@ -72,6 +72,11 @@ class ServerConfig(BaseSettings):
     naive: bool = Field(
         False, description="re-encode every frame of the visual window per request (benchmark baseline)"
     )
+    frame_lane: bool = Field(
+        True,
+        description="decode + encode camera frames on a low-priority thread beside the headset jobs "
+        "(off: each frame rides on the next headset job, adding its cost to that pose's latency)",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("origins", mode="before")

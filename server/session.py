@@ -8,6 +8,14 @@ touches the pipeline, so model switches and resets travel inside the job.
 Newest wins: headset samples that arrive while inference is busy wait in ``pending``; the next job answers
 only the newest of them and feeds the older ones to the pipeline as history (``observe_hmd``), counting them
 as skipped. Only the newest RGB-D frame is kept; a frame replaced before use is counted.
+
+Frame lane (``frame_lane=True``, what the server runs): camera frames never ride on a headset job. The loop
+takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frame` (image decode +
+visual encoder, stateless) on the app's low-priority lane thread, beside the session's headset jobs; the
+result comes back through :meth:`Session.offer_encoded`, and the next headset job adds it to the pipeline's
+cache (:meth:`Pipeline.add_frame`, in capture order) before answering. One frame is in the lane per session
+at a time; frames arriving meanwhile replace each other (counted). Without the lane (the naive baseline,
+whose re-encoding is the point of its measurement), a job decodes and encodes its frame before its samples.
 """
 
 from __future__ import annotations
@@ -20,11 +28,12 @@ from typing import Any
 import numpy as np
 
 from ..model.inputs import decode_rgbd
-from ..model.runtime import LoadedModel, Pipeline, PoseResult
+from ..model.runtime import EncodedFrame, LoadedModel, Pipeline, PoseResult, encode_frame
 from ..protocol import Error, ErrorCode, Hmd, Pose, Rgbd, encode
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
+MAX_ENCODED_FRAMES = 8  # lane results waiting for a headset sample (a camera streaming without a headset)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +54,17 @@ class Job:
     model: tuple[str, LoadedModel] | None
     reset: bool
     skipped: int  # samples not answered since the previous pose, these jobs' history ones included
+    encoded: tuple[EncodedFrame, ...] = ()  # frames from the lane, added to the cache before the samples
+    image_us: int | None = None  # the lane's image decoding time of those frames
+
+
+@dataclasses.dataclass
+class FrameResult:
+    """What the frame lane produced from one ``rgbd`` message."""
+
+    encoded: EncodedFrame | None = None
+    errors: list[Error] = dataclasses.field(default_factory=list)
+    image_us: int = 0
 
 
 @dataclasses.dataclass
@@ -79,7 +99,13 @@ class Session:
     """State of one session id; ``input`` and ``renders`` hold the app's client handles."""
 
     def __init__(
-        self, session_id: str, model_name: str, model: LoadedModel, rate: TokenBucket, naive: bool = False
+        self,
+        session_id: str,
+        model_name: str,
+        model: LoadedModel,
+        rate: TokenBucket,
+        naive: bool = False,
+        frame_lane: bool = False,
     ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it
@@ -88,6 +114,10 @@ class Session:
         self.renders: list[Any] = []
         self.pending: deque[Received] = deque()
         self.frame: Received | None = None
+        self.frame_lane = frame_lane and not naive
+        self._model = model  # the model the next job runs (a pending switch's), for the lane's encoder
+        self._encoding = False  # a frame is in the lane
+        self._encoded: deque[FrameResult] = deque(maxlen=MAX_ENCODED_FRAMES)
         self.skipped = 0  # since the last pose
         self.dropped_history = 0
         self.replaced_frames = 0
@@ -124,29 +154,63 @@ class Session:
         """Switch model at the next job; the pipeline starts fresh (its caches belong to the old model)."""
         self.model_name = name
         self._next_model = (name, model)
+        self._model = model
+        self._encoded.clear()  # encoded by the previous model's encoder
         self._reset = False  # a new pipeline is a reset
 
     def restart_stream(self) -> None:
         """A new input client: forget the previous headset's history at the next job; drop its leftovers."""
         self.pending.clear()
         self.frame = None
+        self._encoded.clear()
         self._reset = self._next_model is None
 
     @property
     def has_work(self) -> bool:
-        return bool(self.pending) or self.frame is not None
+        return bool(self.pending) or (self.frame is not None and not self.frame_lane)
 
     def take_job(self) -> Job | None:
         if not self.has_work:
             return None
         samples = tuple(self.pending)
         self.skipped += max(len(samples) - 1, 0)
-        job = Job(samples, self.frame, self._next_model, self._reset, self.skipped)
+        lane = list(self._encoded) if samples else []  # frames wait for a sample to be answered with
+        job = Job(
+            samples,
+            None if self.frame_lane else self.frame,
+            self._next_model,
+            self._reset,
+            self.skipped,
+            encoded=tuple(r.encoded for r in lane if r.encoded is not None),
+            image_us=sum(r.image_us for r in lane) if lane else None,
+        )
         self.pending.clear()
-        self.frame, self._next_model, self._reset = None, None, False
+        if samples:
+            self._encoded.clear()
+        if not self.frame_lane:
+            self.frame = None
+        self._next_model, self._reset = None, False
         if samples:
             self.skipped = 0
         return job
+
+    def take_frame(self) -> tuple[Received, LoadedModel] | None:
+        """The newest frame and the encoder to run it with, for the lane; None if none, or one is in the lane
+        already, or the model reads no camera (the frame is then dropped: decoding it would only cost)."""
+        if not self.frame_lane or self.frame is None or self._encoding:
+            return None
+        frame, self.frame = self.frame, None
+        if self._model.visual is None:
+            return None
+        self._encoding = True
+        return frame, self._model
+
+    def offer_encoded(self, result: FrameResult, model: LoadedModel) -> None:
+        """The lane's result for the frame :meth:`take_frame` gave out; kept for the next headset job unless
+        the model changed meanwhile."""
+        self._encoding = False
+        if model is self._model:
+            self._encoded.append(result)
 
     # ------------------------------------------------------------------------------ worker thread side
     def run(self, job: Job) -> RunResult:
@@ -158,7 +222,11 @@ class Session:
             self._pipeline = Pipeline(model, naive=self.naive)
         elif job.reset:
             self._pipeline.reset()
-        image_us = self._push_frame(job.frame, result) if job.frame is not None else None  # µs or None
+        image_us = (
+            self._push_frame(job.frame, result) if job.frame is not None else job.image_us
+        )  # µs or None
+        for encoded in job.encoded:
+            result.stale_frame |= not self._pipeline.add_frame(encoded)
         for received in job.samples[:-1]:
             self._observe(received.msg, result)
         if not job.samples:
@@ -219,6 +287,26 @@ class Session:
             )
             return None
         return pose
+
+
+def encode_received_frame(received: Received, model: LoadedModel) -> FrameResult:
+    """The frame lane's work on one ``rgbd`` message: decode the images, run the visual encoder. Stateless
+    (any thread); malformed frames come back as errors with the message's seq."""
+    msg: Rgbd = received.msg
+    started = time.perf_counter_ns()
+    result = FrameResult()
+    try:
+        rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
+    except ValueError as exc:
+        result.errors.append(_error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg.seq))
+        return result
+    result.image_us = (time.perf_counter_ns() - started) // 1000
+    cam_from_head = None if msg.cam_from_head is None else np.reshape(msg.cam_from_head, (4, 4))
+    try:
+        result.encoded = encode_frame(model, msg.t_us, rgb, depth, np.asarray(msg.intrinsics), cam_from_head)
+    except ValueError as exc:
+        result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg.seq))
+    return result
 
 
 def _error(code: ErrorCode, message: str, seq: int | None = None) -> Error:

@@ -15,7 +15,13 @@ from egoposevr.protocol.examples import example_messages
 from egoposevr.server.hub import Hub
 from egoposevr.server.metrics import Metrics
 from egoposevr.server.registry import ModelRegistry
-from egoposevr.server.session import MAX_PENDING_SAMPLES, Received, Session, TokenBucket
+from egoposevr.server.session import (
+    MAX_PENDING_SAMPLES,
+    Received,
+    Session,
+    TokenBucket,
+    encode_received_frame,
+)
 
 
 @pytest.fixture(scope="module")
@@ -34,8 +40,13 @@ def received(msg) -> Received:
     return Received(msg, time.perf_counter_ns(), 1000)
 
 
-def new_session(registry, model="hmd") -> Session:
-    return Session("s", model, registry.get(model), TokenBucket(1000, 100))
+def new_session(registry, model="hmd", frame_lane=False) -> Session:
+    return Session("s", model, registry.get(model), TokenBucket(1000, 100), frame_lane=frame_lane)
+
+
+def camera_frame(sample, seq: int):
+    """The example rgbd message, captured with ``sample``."""
+    return example_messages()["rgbd"].model_copy(update={"seq": seq, "t_us": sample.t_us})
 
 
 def test_the_newest_sample_wins_and_older_ones_feed_the_history(registry, samples):
@@ -88,6 +99,48 @@ def test_a_model_switch_starts_a_fresh_pipeline(registry, samples):
     result = session.run(job)
     assert decode(result.pose).model == result.model == "hmd-rgbd"
     assert session._pipeline.model is registry.get("hmd-rgbd")
+
+
+def test_frame_lane_keeps_frames_off_the_headset_job_and_feeds_the_next_one(registry, samples):
+    session = new_session(registry, "hmd-rgbd", frame_lane=True)
+    session.offer_hmd(received(samples[0]))
+    session.offer_rgbd(received(camera_frame(samples[0], 1)))
+    job = session.take_job()
+    assert job.frame is None and job.encoded == ()  # the headset is answered first, from the cache
+    assert decode(session.run(job).pose).camera is False
+    frame, model = session.take_frame()
+    assert session.take_frame() is None  # one frame per session in the lane
+    result = encode_received_frame(frame, model)
+    assert result.errors == [] and result.encoded is not None
+    session.offer_encoded(result, model)
+    assert session.take_job() is None  # an encoded frame waits for a sample
+    session.offer_hmd(received(samples[1]))
+    job = session.take_job()
+    assert len(job.encoded) == 1 and job.image_us == result.image_us
+    run = session.run(job)
+    pose = decode(run.pose)
+    assert pose.camera is True and "image" in pose.timing_us
+
+
+def test_frame_lane_reports_bad_frames_and_drops_results_of_a_replaced_model(registry, samples):
+    session = new_session(registry, "hmd-rgbd", frame_lane=True)
+    session.offer_rgbd(received(camera_frame(samples[0], 9).model_copy(update={"width": 8})))
+    frame, model = session.take_frame()
+    result = encode_received_frame(frame, model)
+    assert [(e.code, e.seq) for e in result.errors] == [("image_decode", 9)]
+    session.offer_encoded(result, model)
+    session.offer_rgbd(received(camera_frame(samples[0], 10)))
+    frame, model = session.take_frame()
+    session.select("egoposevr", registry.get("egoposevr"))  # switched while the frame was in the lane
+    session.offer_encoded(encode_received_frame(frame, model), model)
+    session.offer_hmd(received(samples[1]))
+    assert session.take_job().encoded == ()
+
+
+def test_frame_lane_drops_frames_for_a_model_without_a_camera(registry, samples):
+    session = new_session(registry, "hmd", frame_lane=True)
+    session.offer_rgbd(received(camera_frame(samples[0], 1)))
+    assert session.take_frame() is None and session.frame is None
 
 
 def hub_with(registry, **config) -> tuple[Hub, list, list]:
