@@ -1,11 +1,13 @@
-"""Body size from the headset: the highest head sets the scale, within its range."""
+"""Body size: the highest head sets the scale, within its range; legs the camera sees take their length."""
 
 import numpy as np
 import pytest
 
-from egoposevr.model.body import SCALE_RANGE, STANDING_HEAD_HEIGHT_M, BodyCalibrator
+from egoposevr.model.body import MIN_VISUAL_SAMPLES, SCALE_RANGE, STANDING_HEAD_HEIGHT_M, BodyCalibrator
+from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 
 ALL = np.ones(3, dtype=bool)
+RNG = np.random.default_rng(4)
 
 
 def head_at(y: float) -> np.ndarray:
@@ -33,3 +35,30 @@ def test_an_untracked_headset_does_not_count():
     body = BodyCalibrator()
     assert not body.push(head_at(1.9), np.array([False, True, True]))
     assert body.highest_head_m == 0.0
+
+
+def test_legs_seen_by_the_camera_take_their_measured_length_and_the_rest_keeps_the_height_scale():
+    body = BodyCalibrator()
+    body.push(head_at(1.1 * STANDING_HEAD_HEIGHT_M), ALL)
+    legs = rest_offsets(np.where(np.isin(np.arange(22), [4, 5, 7, 8]), 1.2, 1.0))  # long thighs and shins
+    keypoints, _ = forward_kinematics(np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), legs)
+    visible = np.ones(22, dtype=bool)
+    visible[[4, 7, 10]] = False  # only the right leg in view: the left one follows it
+    changed = [
+        body.push_visual(keypoints + RNG.normal(scale=0.005, size=keypoints.shape), visible)
+        for _ in range(60)
+    ]
+    assert any(changed) and not any(changed[: MIN_VISUAL_SAMPLES - 1])  # nothing before enough sightings
+    np.testing.assert_allclose(body.bone_scale[[4, 5, 7, 8]], 1.2, atol=0.02)
+    np.testing.assert_allclose(body.bone_scale[[10, 11]], 1.0, atol=0.02)  # the feet as measured
+    np.testing.assert_allclose(body.bone_scale[[3, 16, 18, 20]], 1.1)  # spine and arms: the height scale
+
+
+def test_a_later_height_keeps_the_measured_legs():
+    body = BodyCalibrator()
+    keypoints, _ = forward_kinematics(np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets())
+    for _ in range(MIN_VISUAL_SAMPLES):
+        body.push_visual(keypoints, np.ones(22, dtype=bool))
+    body.push(head_at(1.2 * STANDING_HEAD_HEIGHT_M), ALL)
+    np.testing.assert_allclose(body.bone_scale[[4, 7]], 1.0)
+    np.testing.assert_allclose(body.bone_scale[0:4], 1.2)
