@@ -159,14 +159,16 @@ def solve_kpo_one(
     observed: np.ndarray,
     links: np.ndarray,
     weights: np.ndarray,
+    direction: np.ndarray,
     iterations: int,
 ) -> np.ndarray:
     """Paper Eqs. 9-10 (kpo.solve_kpo documents the energy): p_pred, targets (J, 3); observed (J,) bool;
-    links (L, 2) (child, parent); weights (align, stay, length, direction) -> refined positions (J, 3).
+    links (L, 2) (child, parent); weights (align, stay, length); direction (L,) each link's direction weight
+    -> refined positions (J, 3).
 
     Newton with Levenberg-Marquardt damping on the exact PSD Hessian; a step is kept only if it lowers the
     energy; stops when no step does, or when the last one moved no joint by 0.5 mm."""
-    align, stay, length_w, direction = weights[0], weights[1], weights[2], weights[3]
+    align, stay, length_w = weights[0], weights[1], weights[2]
     n = p_pred.shape[0]
     anchor, weight = p_pred.copy(), np.full(n, stay)
     for j in range(n):
@@ -219,7 +221,7 @@ def _kpo_energy(
     links_pred: np.ndarray,
     lengths_pred: np.ndarray,
     length_w: float,
-    direction: float,
+    direction: np.ndarray,
 ) -> float:
     d = p - anchor
     energy = (weight * (d * d).sum(axis=1)).sum()
@@ -227,12 +229,12 @@ def _kpo_energy(
         v = p[links[k, 0]] - p[links[k, 1]]
         stretch = math.sqrt(v @ v) - lengths_pred[k]
         turn = v - links_pred[k]
-        energy += length_w * stretch * stretch + direction * (turn @ turn)
+        energy += length_w * stretch * stretch + direction[k] * (turn @ turn)
     return energy
 
 
 @numba.njit(**_JIT)
-def _kpo_linear_hessian(weight: np.ndarray, links: np.ndarray, direction: float) -> np.ndarray:
+def _kpo_linear_hessian(weight: np.ndarray, links: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """The quadratic terms' Hessian (3J, 3J): align/stay on the diagonal, direction on each link's pattern."""
     n = weight.shape[0]
     h = np.zeros((3 * n, 3 * n))
@@ -242,10 +244,10 @@ def _kpo_linear_hessian(weight: np.ndarray, links: np.ndarray, direction: float)
     for k in range(links.shape[0]):
         a, b = 3 * links[k, 0], 3 * links[k, 1]
         for c in range(3):
-            h[a + c, a + c] += direction
-            h[b + c, b + c] += direction
-            h[a + c, b + c] -= direction
-            h[b + c, a + c] -= direction
+            h[a + c, a + c] += direction[k]
+            h[b + c, b + c] += direction[k]
+            h[a + c, b + c] -= direction[k]
+            h[b + c, a + c] -= direction[k]
     return h
 
 
@@ -258,7 +260,7 @@ def _kpo_newton_system(
     links_pred: np.ndarray,
     lengths_pred: np.ndarray,
     length_w: float,
-    direction: float,
+    direction: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gradient (3J,) and the links' nonlinear Hessian part (3J, 3J) at p.
 
@@ -275,7 +277,7 @@ def _kpo_newton_system(
         length = max(raw_length, 1e-9)
         unit = v / length
         residual = raw_length - lengths_pred[k]
-        g = direction * (v - links_pred[k]) + length_w * residual * unit
+        g = direction[k] * (v - links_pred[k]) + length_w * residual * unit
         curvature = max(residual, 0.0) / length
         for r in range(3):
             grad[3 * a + r] += g[r]
@@ -518,7 +520,7 @@ def warm_up() -> None:
     rotvecs_to_matrices(np.zeros((1, 3)))
     links = np.array([[1, 0], [2, 1]], dtype=np.int64)
     observed = np.array([False, False, True])
-    solve_kpo_one(pos, pos + 0.01, observed, links, np.array([100.0, 1.0, 1e4, 10.0]), 2)
+    solve_kpo_one(pos, pos + 0.01, observed, links, np.array([100.0, 1.0, 1e4]), np.full(2, 10.0), 2)
     none = np.zeros(0, dtype=np.int64)
     hmd_feature_step(
         0, np.tile([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0], (3, 1)), np.ones(3, dtype=np.bool_),
