@@ -45,6 +45,9 @@ async def _demo(args: argparse.Namespace) -> int:
     from ..server.config import ServerConfig
 
     recording = Recording.load(_recording_path(args.recording))
+    print(
+        "starting the server (its first start on a machine compiles the pose kernels: about 30 s)", flush=True
+    )
     async with running(ServerConfig(host=args.host, port=args.port)) as server:
         http = f"http://{'127.0.0.1' if args.host in ('0.0.0.0', '') else args.host}:{server.port}"
         print(f"EgoPoseVR demo: server {server.url}  (health {http}/healthz, metrics {http}/metrics)")

@@ -16,10 +16,14 @@ Shape legend: ``n`` any count, ``J`` joints (22 for SMPL-22), ``L`` KPO links, `
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 
 import numba
 import numpy as np
+
+log = logging.getLogger("egoposevr.model")
 
 _JIT = {"nogil": True, "cache": True}
 _EPS = 1e-8  # as rotations.sixd_to_matrix
@@ -509,7 +513,16 @@ def _sixd(m: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel on a tiny valid input, so the first pose does not wait."""
+    """Compile (or load from the cache) every kernel on a tiny valid input, so the first pose does not wait.
+    Logs when that took long: the first start on a machine compiles (~25 s on 2 cores), later ones load."""
+    started = time.perf_counter()
+    _call_every_kernel()
+    elapsed_s = time.perf_counter() - started
+    if elapsed_s > 2.0:
+        log.info("compiled the serving kernels in %.0f s (numba caches them for later starts)", elapsed_s)
+
+
+def _call_every_kernel() -> None:
     eye = np.broadcast_to(np.eye(3), (3, 3, 3)).copy()
     offsets = np.array([[0.0, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.1, 0.0]])
     parents = np.array([-1, 0, 1], dtype=np.int64)
