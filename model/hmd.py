@@ -64,9 +64,8 @@ class HmdFeatureExtractor:
         self._history_len = np.zeros(3, dtype=np.int64)
         self._velocity = np.zeros((3, 6))  # [linear m/s, body angular rad/s]
         self._last_t_us = np.zeros(2, dtype=np.int64)  # [time, set?]
-        self._held = np.zeros(
-            (3, 4, 3)
-        )  # head [pos, rot rows]; controllers [pos, rot rows] in the head frame
+        # Held poses: the head's [pos, rotation rows]; each controller's [pos, rotation rows] in the head frame.
+        self._held = np.zeros((3, 4, 3))
         self._held[:, 1:] = np.eye(3)
         self._held[0, 0] = DEFAULT_HEAD_POS_M
         self._held[1:, 0] = DEFAULT_CONTROLLER_IN_HEAD_POS_M

@@ -81,39 +81,6 @@ def axis_angle_to_quat_xyzw(axis_angle: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(a.reshape(-1, 3)).as_quat(canonical=True).reshape(*a.shape[:-1], 4)
 
 
-def quat_xyzw_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a·b of (..., 4) quaternions (the rotation b, then a).
-
-    Hand-written because scipy's Rotation composition costs ~30 µs per call on tiny batches, and the HMD
-    feature extractor needs one per headset sample; tests check it against scipy.
-    """
-    ax, ay, az, aw = np.moveaxis(_check_last(a, (4,), "a"), -1, 0)
-    bx, by, bz, bw = np.moveaxis(_check_last(b, (4,), "b"), -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
-
-
-def quat_xyzw_conjugate(quat_xyzw: np.ndarray) -> np.ndarray:
-    """(..., 4) -> (..., 4): the inverse rotation of a unit quaternion."""
-    return _check_last(quat_xyzw, (4,), "quat_xyzw") * np.array([-1.0, -1.0, -1.0, 1.0])
-
-
-def normalize_quat(quat_xyzw: np.ndarray) -> np.ndarray:
-    """(..., 4) -> (..., 4) unit quaternions; raise on (near-)zero ones."""
-    q = _check_last(quat_xyzw, (4,), "quat_xyzw")
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if (norm < 1e-6).any():
-        raise ValueError("quaternion of zero length")
-    return q / norm
-
-
 def matrix_to_sixd(matrix: np.ndarray) -> np.ndarray:
     """(..., 3, 3) -> (..., 6): the first two columns, [R[:,0], R[:,1]]."""
     m = _check_last(matrix, (3, 3), "matrix")

@@ -344,7 +344,8 @@ class Server:
             )
         else:
             result = done.result()
-        session.offer_encoded(result, model)
+        if not session.offer_encoded(result, model):
+            self.metrics.replaced_frames.inc()
         self.hub.publish(session, RunResult(errors=result.errors))
         if session in self._workers:  # a newer frame may be waiting for the lane
             self._workers[session][0].set()

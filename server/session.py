@@ -205,12 +205,17 @@ class Session:
         self._encoding = True
         return frame, self._model
 
-    def offer_encoded(self, result: FrameResult, model: LoadedModel) -> None:
+    def offer_encoded(self, result: FrameResult, model: LoadedModel) -> bool:
         """The lane's result for the frame :meth:`take_frame` gave out; kept for the next headset job unless
-        the model changed meanwhile."""
+        the model changed meanwhile. Returns False when a frame was thrown away: this one (stale model) or,
+        with no headset sample for a while, the oldest waiting one (the caller counts it as replaced)."""
         self._encoding = False
-        if model is self._model:
-            self._encoded.append(result)
+        if model is not self._model:
+            return False
+        overflow = len(self._encoded) == MAX_ENCODED_FRAMES
+        self.replaced_frames += overflow
+        self._encoded.append(result)
+        return not overflow
 
     # ------------------------------------------------------------------------------ worker thread side
     def run(self, job: Job) -> RunResult:

@@ -16,6 +16,7 @@ from egoposevr.server.hub import Hub
 from egoposevr.server.metrics import Metrics
 from egoposevr.server.registry import ModelRegistry
 from egoposevr.server.session import (
+    MAX_ENCODED_FRAMES,
     MAX_PENDING_SAMPLES,
     Received,
     Session,
@@ -135,6 +136,20 @@ def test_frame_lane_reports_bad_frames_and_drops_results_of_a_replaced_model(reg
     session.offer_encoded(encode_received_frame(frame, model), model)
     session.offer_hmd(received(samples[1]))
     assert session.take_job().encoded == ()
+
+
+def test_frame_lane_results_without_a_headset_are_bounded_and_counted(registry, samples):
+    session = new_session(registry, "hmd-rgbd", frame_lane=True)
+    kept = []
+    for k in range(MAX_ENCODED_FRAMES + 2):  # a camera streaming while the headset is silent
+        session.offer_rgbd(
+            received(camera_frame(samples[0], k).model_copy(update={"t_us": samples[0].t_us + k}))
+        )
+        frame, model = session.take_frame()
+        kept.append(session.offer_encoded(encode_received_frame(frame, model), model))
+    assert kept.count(False) == 2 and session.replaced_frames == 2
+    session.offer_hmd(received(samples[1]))
+    assert len(session.take_job().encoded) == MAX_ENCODED_FRAMES
 
 
 def test_frame_lane_drops_frames_for_a_model_without_a_camera(registry, samples):
