@@ -242,7 +242,8 @@ class Pipeline:
     """Per-session state machine around one :class:`LoadedModel`. Not thread-safe: one caller at a time.
 
     Body size: with ``bone_scale`` (J,) given, the skeleton is that body's. Otherwise a
-    :class:`~egoposevr.model.body.BodyCalibrator` estimates it from the session's headset statistics,
+    :class:`~egoposevr.model.body.BodyCalibrator` estimates it from the session's headset (height) and, for
+    RGB-D models, the camera (leg lengths),
     assuming a stage reference space (floor at y = 0).
     """
 
@@ -424,9 +425,8 @@ class Pipeline:
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)
-        joints, _ = kernels.forward_kinematics_one(
-            local, joints[0].copy(), self.offsets, _PARENTS
-        )  # exact agreement
+        # The served joints are FK of the served rotations, so the two always agree exactly.
+        joints, _ = kernels.forward_kinematics_one(local, joints[0].copy(), self.offsets, _PARENTS)
         axis_angle = kernels.matrices_to_rotvecs(local)
         global_orient, body_pose = axis_angle[0], axis_angle[1:].reshape(-1)
         lap("rotations")
