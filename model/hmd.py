@@ -87,7 +87,7 @@ class HmdFeatureExtractor:
         )  # fmt: skip
 
 
-_TIMING: Final = np.array([MIN_DT_S, MAX_GAP_S, DT_REF_S, 0.0])
+_TIMING: Final = np.array([MIN_DT_S, MAX_GAP_S, DT_REF_S])
 
 
 def hmd_features(t_us: np.ndarray, poses: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:

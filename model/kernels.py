@@ -393,7 +393,7 @@ def hmd_feature_step(
     poses (3, 7) [p xyz, q xyzw]; valid (3,) bool. State: history_t_us (3, H) and history_pose (3, H, 7)
     oldest first, history_len (3,); velocity (3, 6) [linear m/s, body angular rad/s]; last_t_us (2,)
     [time, set?]; held (3, 4, 3) [head pos + rotation rows; each controller's pos + rotation rows in the head
-    frame]. timing (4,) = (MIN_DT_S, MAX_GAP_S, DT_REF_S, -)."""
+    frame]. timing (3,) = (MIN_DT_S, MAX_GAP_S, DT_REF_S)."""
     min_dt_s, max_gap_s, dt_ref_s = timing[0], timing[1], timing[2]
     advancing = last_t_us[1] == 0 or t_us > last_t_us[0]
     quat = np.empty((3, 4))
@@ -538,7 +538,7 @@ def _call_every_kernel() -> None:
     hmd_feature_step(
         0, np.tile([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0], (3, 1)), np.ones(3, dtype=np.bool_),
         np.zeros((3, 2), dtype=np.int64), np.zeros((3, 2, 7)), np.zeros(3, dtype=np.int64), np.zeros((3, 6)),
-        np.zeros(2, dtype=np.int64), np.zeros((3, 4, 3)), np.array([0.004, 0.25, 1 / 60, 0.0]),
+        np.zeros(2, dtype=np.int64), np.zeros((3, 4, 3)), np.array([0.004, 0.25, 1 / 60]),
     )  # fmt: skip
     rederive_rotations_one(
         eye, pos, offsets, glob, parents, np.array([0, 1]), np.array([1, 2]), none,

@@ -258,16 +258,12 @@ class Session:
         msg: Rgbd = received.msg
         if self._pipeline.model.visual is None:
             return None  # this model reads no camera: decoding the images would only cost time
-        started = time.perf_counter_ns()
+        frame, error, image_us = _decode_frame(msg)
+        if frame is None:
+            result.errors.append(error)
+            return image_us
         try:
-            rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
-        except ValueError as exc:
-            result.errors.append(_error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg.seq))
-            return (time.perf_counter_ns() - started) // 1000
-        image_us = (time.perf_counter_ns() - started) // 1000
-        cam_from_head = None if msg.cam_from_head is None else np.reshape(msg.cam_from_head, (4, 4))
-        try:
-            pushed = self._pipeline.push_rgbd(msg.t_us, rgb, depth, np.asarray(msg.intrinsics), cam_from_head)
+            pushed = self._pipeline.push_rgbd(msg.t_us, *frame)
         except ValueError as exc:
             result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg.seq))
             return image_us
@@ -298,20 +294,31 @@ def encode_received_frame(received: Received, model: LoadedModel) -> FrameResult
     """The frame lane's work on one ``rgbd`` message: decode the images, run the visual encoder. Stateless
     (any thread); malformed frames come back as errors with the message's seq."""
     msg: Rgbd = received.msg
-    started = time.perf_counter_ns()
     result = FrameResult()
-    try:
-        rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
-    except ValueError as exc:
-        result.errors.append(_error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg.seq))
+    frame, error, image_us = _decode_frame(msg)
+    if frame is None:
+        result.errors.append(error)
         return result
-    result.image_us = (time.perf_counter_ns() - started) // 1000
-    cam_from_head = None if msg.cam_from_head is None else np.reshape(msg.cam_from_head, (4, 4))
+    result.image_us = image_us
     try:
-        result.encoded = encode_frame(model, msg.t_us, rgb, depth, np.asarray(msg.intrinsics), cam_from_head)
+        result.encoded = encode_frame(model, msg.t_us, *frame)
     except ValueError as exc:
         result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg.seq))
     return result
+
+
+def _decode_frame(msg: Rgbd) -> tuple[tuple[Any, ...] | None, Error | None, int]:
+    """An rgbd message's images and geometry, as push_rgbd / encode_frame take them after t_us:
+    ((rgb, depth, intrinsics, cam_from_head), None, decode µs), or (None, its image_decode error, µs)."""
+    started = time.perf_counter_ns()
+    try:
+        rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
+    except ValueError as exc:
+        error = _error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg.seq)
+        return None, error, (time.perf_counter_ns() - started) // 1000
+    image_us = (time.perf_counter_ns() - started) // 1000
+    cam_from_head = None if msg.cam_from_head is None else np.reshape(msg.cam_from_head, (4, 4))
+    return (rgb, depth, np.asarray(msg.intrinsics), cam_from_head), None, image_us
 
 
 def _error(code: ErrorCode, message: str, seq: int | None = None) -> Error:
