@@ -17,6 +17,7 @@ from . import (
     demo_cmd,
     eval_cmd,
     export_cmd,
+    fitbody_cmd,
     models_cmd,
     render_cmd,
     replay_cmd,
@@ -38,6 +39,7 @@ SUBCOMMANDS = (
     ("synth", synth_cmd),
     ("train", train_cmd),
     ("export", export_cmd),
+    ("fit-body", fitbody_cmd),
     ("eval", eval_cmd),
 )
 

@@ -1,33 +1,44 @@
 """Body size from the headset and the camera: a per-session running estimate of the skeleton's bone lengths.
 
-FK, KPO and the rotation re-derivation need the wearer's bone lengths. The runtime scales the mean SMPL body
-by the highest head-joint height the headset has shown (people stand up at some point), within
-``SCALE_RANGE``, assuming a stage reference space (floor at y = 0). With the true bone lengths the bundled
-``egoposevr`` would score about a third lower MPJPE (MODEL_CARD.md), so this is where accuracy is left.
+FK, KPO and the rotation re-derivation need the wearer's bone lengths. Three sources, in order of evidence:
 
-Legs from the camera: the visor camera sees thighs, shins and feet most of the time. Each frame whose
-keypoints at both ends of a leg bone pass Alg. 1's visibility mask gives one length; once a bone has
-``MIN_VISUAL_SAMPLES`` of them, its median replaces the height-scaled length. On the 35 validation sequences
-the median lengths correlate 0.8-0.9 with the true ones and halve their error against the mean body (thigh
-1.0 cm, shin 1.5 cm mean error). `egoposevr eval` on the validation split: lower-body MPJPE 7.21 -> 6.72 cm
-for `egoposevr`, upper body unchanged. Tried and dropped: giving the spine what is left of the standing head
-height (so the body stays as tall as the headset says) made both worse (7.78 cm lower, 3.17 upper); measuring
-the forearms too (seen in 22 of 35 sequences) moved upper-body MPJPE 2.84 -> 2.87 cm. Arms and spine keep
-the height scale.
+1. **Height.** The highest head-joint height the headset has shown (people stand up at some point) scales
+   the mean SMPL body, within ``SCALE_RANGE``, assuming a stage reference space (floor at y = 0).
+2. **Camera sightings.** The visor camera sees the hips, the lower spine and the legs most of the time. Each
+   frame whose keypoints at both ends of one of ``SIGHTED_BONES`` pass Alg. 1's visibility mask gives one
+   length; once a bone has ``MIN_VISUAL_SAMPLES`` of them, their median is its measurement.
+3. **A fitted body regressor** (:class:`BodyRegressor`, one per RGB-D visual encoder, made by ``egoposevr
+   fit-body`` from the training split): ridge regression from the height and the measured lengths to every
+   bone's length, including the arms, collars, neck and head the camera never sees. Proportions come in
+   families (the retargeted CMU bodies all have wide hips, a short mid-spine and neck and a long head bone
+   against SMPL's; the procedural ones are scaled SMPL bodies), and the hips and lower spine the camera
+   sees tell them apart. On the validation split the summed bone-length error at a sequence's end falls
+   from 41 cm (height only; 36 cm with the measured legs) to 18 cm, and `egoposevr`'s MPJPE from 2.74 to
+   2.49 cm (upper body) and 6.64 to 6.17 cm (lower body). With the true bones it would be 1.81 cm upper:
+   the short CMU clips there (2-4 s) spend much of their time before the camera has measured anything.
+
+Without a regressor, RGB-D models keep the height scale and put the measured thigh, shin and foot medians
+(30 sightings or more) in place. RGB-only models measure nothing: their keypoints guess depth, and both
+their raw lengths and a regressor fitted on them made hmd-rgb worse (bodyfit.measures_lengths).
 
 Tried and dropped: a per-bone ridge regression from five headset statistics (height, reach, raised and
-hanging wrists, sideways reach) fitted on the training split. It learned the retargeted CMU proportions
-(long hips and head bones, short spine) from statistics that procedural bodies share, and made validation
-MPJPE worse overall (hmd upper body 3.71 -> 5.29 cm): per-bone proportions need evidence the headset does
-not give, which is why the legs come from the camera.
+hanging wrists, sideways reach). It learned the CMU proportions from statistics the procedural bodies share
+and made validation MPJPE worse (hmd upper body 3.71 -> 5.29 cm): the headset alone cannot tell the
+families apart, the camera can. Adding the camera's arm bones, the controllers' reach or span, or squared
+features to the regressor moved the summed bone error by less than 1 cm.
 
-Shape legend: ``J`` = 22 joints; tracked rows (head, left wrist, right wrist).
+Shape legend: ``J`` = 22 joints (bone j joins joint j to its parent; bone 0 is unused); ``B`` sighted bones;
+``F = 2 + 2B`` regressor features; tracked rows (head, left wrist, right wrist).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections import deque
-from typing import Final
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
 
 import numpy as np
 
@@ -37,23 +48,150 @@ from .skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOINT
 STANDING_HEAD_HEIGHT_M: Final = float(REST_JOINTS_M[HEAD, 1] - REST_JOINTS_M[10, 1] + FOOT_JOINT_HEIGHT_M)
 SCALE_RANGE: Final = (0.8, 1.25)
 UPDATE_STEP_M: Final = 0.005  # rescale when the head is 5 mm higher than ever (rebuilding offsets is cheap)
-# Leg bones measured by the camera (each joint's bone from its parent): knees (thighs), ankles (shins), feet.
-VISUAL_BONES: Final = (4, 5, 7, 8, 10, 11)
-MIN_VISUAL_SAMPLES: Final = 30  # one second of frames at 30 Hz with the bone in view
+# Bones the downward camera sees (each joint's bone from its parent): hips, lower spine, thighs, shins, feet.
+SIGHTED_BONES: Final = tuple(range(1, 12))
+LEG_BONES: Final = (4, 5, 7, 8, 10, 11)  # what the fallback without a regressor takes from the camera
+# A median of 5 sightings is a measurement for the regressor, which was fitted on such early medians too
+# (validation upper-body MPJPE 2.59 cm with 30, 2.49 cm with 5: the CMU clips there last 2-4 s). The fallback
+# trusts a leg bone from STEADY_SAMPLES on; medians are refreshed every frame until then, every 10th after.
+MIN_VISUAL_SAMPLES: Final = 5
+STEADY_SAMPLES: Final = 30  # one second of frames at 30 Hz with the bone in view
 VISUAL_WINDOW: Final = 600  # the median over the last 20 s of sightings
-VISUAL_SCALE_RANGE: Final = (0.7, 1.4)  # per bone, relative to the mean body
+VISUAL_SCALE_RANGE: Final = (0.7, 1.4)  # per leg bone in the fallback, relative to the mean body
+MEASURED_SCALE_RANGE: Final = (0.25, 4.0)  # a measurement outside this is a broken keypoint, not a body
+PREDICTED_SCALE_RANGE: Final = (0.3, 2.5)  # the regressor's output, per bone (CMU spine2 is 0.4, head 1.9)
+REGRESSOR_KIND: Final = "egoposevr.body_regressor"
+REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -> visual-rgbd.body.json
 _REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
 
 
-class BodyCalibrator:
-    """Running body-scale estimate: ``push`` per headset sample; ``bone_scale`` (J,) changes only when push
-    returns True."""
+def height_scale(highest_head_m: float) -> float:
+    """The mean body's scale for a head joint seen at most this high (1.0 before any sample)."""
+    if highest_head_m <= 0:
+        return 1.0
+    return float(np.clip(highest_head_m / STANDING_HEAD_HEIGHT_M, *SCALE_RANGE))
 
-    def __init__(self) -> None:
+
+@dataclass(frozen=True)
+class BodyRegressor:
+    """Height + camera-measured bone scales -> all bone scales, fitted on one visual encoder's keypoints.
+
+    Features (F,): ``[1, log h, (seen_b, seen_b·(log m_b − log h)) for b in feature_bones]`` with ``h`` the
+    height scale and ``m_b`` bone b's measured scale; an unmeasured bone contributes zeros. Targets: the log
+    of each bone's scale relative to ``h``, so a body the camera did not inform stays near the height scale.
+    """
+
+    feature_bones: tuple[int, ...]
+    weights: np.ndarray  # (F, J - 1): bones 1..J-1
+    encoder_sha256: str
+    record: dict[str, Any] = field(default_factory=dict)  # what it was fitted on and how well it did
+
+    def features(self, scale_h: float, measured: dict[int, float]) -> np.ndarray:
+        """scale_h the height scale, measured {bone: scale} -> (F,)."""
+        log_h = np.log(scale_h)
+        out = [1.0, log_h]
+        for b in self.feature_bones:
+            out += [1.0, float(np.log(measured[b])) - log_h] if b in measured else [0.0, 0.0]
+        return np.array(out)
+
+    def predict(self, scale_h: float, measured: dict[int, float]) -> np.ndarray:
+        """-> bone_scale (J,), bone 0 (the root) at the height scale."""
+        relative = np.exp(self.features(scale_h, measured) @ self.weights)
+        return np.concatenate([[scale_h], np.clip(scale_h * relative, *PREDICTED_SCALE_RANGE)])
+
+    @classmethod
+    def fit(
+        cls,
+        scales_h: np.ndarray,
+        measured: list[dict[int, float]],
+        true_scale: np.ndarray,
+        encoder_sha256: str,
+        ridge: float = 1.0,
+        row_weight: np.ndarray | None = None,
+        feature_bones: tuple[int, ...] = SIGHTED_BONES,
+    ) -> BodyRegressor:
+        """Weighted ridge fit over N rows: scales_h (N,), measured N dicts, true_scale (N, J), row_weight (N,)
+        (default 1). The intercept is not penalised."""
+        if len(scales_h) == 0:
+            raise ValueError("no rows to fit a body regressor on: the camera measured no bone")
+        empty = cls(feature_bones, np.zeros((2 + 2 * len(feature_bones), NUM_JOINTS - 1)), encoder_sha256)
+        x = np.array([empty.features(h, m) for h, m in zip(scales_h, measured, strict=True)])
+        y = np.log(np.asarray(true_scale)[:, 1:]) - np.log(np.asarray(scales_h))[:, None]
+        w = np.ones(len(x)) if row_weight is None else np.asarray(row_weight, dtype=np.float64)
+        penalty = ridge * np.eye(x.shape[1])
+        penalty[0, 0] = 0.0
+        weights = np.linalg.solve(x.T @ (w[:, None] * x) + penalty, x.T @ (w[:, None] * y))
+        return cls(tuple(feature_bones), weights, encoder_sha256, {"ridge": ridge, "rows": len(x)})
+
+    def save(self, path: Path) -> None:
+        doc = {
+            "kind": REGRESSOR_KIND,
+            "version": 1,
+            "encoder_sha256": self.encoder_sha256,
+            "feature_bones": list(self.feature_bones),
+            "weights": self.weights.round(6).tolist(),
+            "record": self.record,
+        }
+        path.write_text(json.dumps(doc, indent=1) + "\n")
+
+    @classmethod
+    def load(cls, path: Path) -> BodyRegressor:
+        """Raises ValueError for a file that is not a well-formed regressor."""
+        try:
+            doc = json.loads(path.read_text())
+            bones = tuple(int(b) for b in doc["feature_bones"])
+            weights = np.asarray(doc["weights"], dtype=np.float64)
+            if doc.get("kind") != REGRESSOR_KIND or doc.get("version") != 1:
+                raise ValueError(f"kind/version {doc.get('kind')!r}/{doc.get('version')!r}")
+            if not all(0 < b < NUM_JOINTS for b in bones) or weights.shape != (
+                2 + 2 * len(bones),
+                NUM_JOINTS - 1,
+            ):
+                raise ValueError(f"{len(bones)} feature bones with weights {weights.shape}")
+            if not np.isfinite(weights).all():
+                raise ValueError("weights are not finite")
+            return cls(bones, weights, str(doc["encoder_sha256"]), dict(doc.get("record", {})))
+        except (OSError, KeyError, TypeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
+            raise ValueError(f"{path}: not a body regressor ({exc})") from exc
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def regressor_path(encoder_path: Path) -> Path:
+    """Where the regressor of an encoder lives: visual-rgbd.onnx -> visual-rgbd.body.json."""
+    return encoder_path.with_name(encoder_path.stem + REGRESSOR_SUFFIX)
+
+
+def load_regressor_for(encoder_path: Path) -> BodyRegressor | None:
+    """The encoder's regressor, or None when it has none. Raises ValueError for a corrupt file or one fitted
+    on another encoder (its features would be another network's keypoints)."""
+    path = regressor_path(encoder_path)
+    if not path.exists():
+        return None
+    regressor = BodyRegressor.load(path)
+    if regressor.encoder_sha256 != file_sha256(encoder_path):
+        raise ValueError(
+            f"{path.name} was fitted on another {encoder_path.name}; run egoposevr fit-body again"
+        )
+    return regressor
+
+
+class BodyCalibrator:
+    """Running body-scale estimate: ``push`` per headset sample, ``push_visual`` per camera frame;
+    ``bone_scale`` (J,) changes only when one of them returns True."""
+
+    def __init__(self, regressor: BodyRegressor | None = None) -> None:
+        self.regressor = regressor
         self.highest_head_m = 0.0
         self.bone_scale = np.ones(NUM_JOINTS)
-        self._sightings = {j: deque(maxlen=VISUAL_WINDOW) for j in VISUAL_BONES}
-        self._leg_scale: dict[int, float] = {}  # bone -> scale, once measured
+        self._sightings = {j: deque(maxlen=VISUAL_WINDOW) for j in SIGHTED_BONES}
+        self.measured: dict[int, float] = {}  # bone -> median length / mean-body length, once measured
+
+    @property
+    def height_scale(self) -> float:
+        return height_scale(self.highest_head_m)
 
     def push(self, joints_m: np.ndarray, valid: np.ndarray) -> bool:
         """joints_m (3, 3) tracked head / wrist joint positions, valid (3,) -> whether the scale changed."""
@@ -68,26 +206,33 @@ class BodyCalibrator:
         """keypoints_m (J, 3) one frame's keypoints (any rigid frame), visible (J,) Alg. 1's mask -> whether
         the scale changed. Cheap per frame; the medians are refreshed every 10 sightings of a bone."""
         changed = False
-        for j in VISUAL_BONES:
+        for j in SIGHTED_BONES:
             if not (visible[j] and visible[PARENTS[j]]):
                 continue
             seen = self._sightings[j]
             seen.append(float(np.linalg.norm(keypoints_m[j] - keypoints_m[PARENTS[j]])))
-            if len(seen) >= MIN_VISUAL_SAMPLES and len(seen) % 10 == 0:
-                scale = np.clip(np.median(seen) / _REST_BONE_M[j], *VISUAL_SCALE_RANGE)
-                self._leg_scale[j] = float(scale)
+            if len(seen) >= MIN_VISUAL_SAMPLES and (len(seen) < STEADY_SAMPLES or len(seen) % 10 == 0):
+                self.measured[j] = float(np.clip(np.median(seen) / _REST_BONE_M[j], *MEASURED_SCALE_RANGE))
                 changed = True
         if changed:
             self._rebuild()
         return changed
 
     def _rebuild(self) -> None:
-        """bone_scale: the height scale, with the measured leg bones in place (left and right averaged, so
-        the body stays symmetric where only one side was seen)."""
-        height_scale = float(np.clip(self.highest_head_m / STANDING_HEAD_HEIGHT_M, *SCALE_RANGE))
-        scale = np.full(NUM_JOINTS, height_scale if self.highest_head_m > 0 else 1.0)
+        """bone_scale from what is known: the regressor once the camera measured anything (it was fitted on
+        measured bodies only), else the height scale with the measured leg bones in place (left and right
+        averaged, so the body stays symmetric where only one side was seen)."""
+        scale_h = self.height_scale
+        if self.regressor is not None and self.measured:
+            self.bone_scale = self.regressor.predict(scale_h, self.measured)
+            return
+        scale = np.full(NUM_JOINTS, scale_h)
         for left, right in ((4, 5), (7, 8), (10, 11)):
-            measured = [self._leg_scale[j] for j in (left, right) if j in self._leg_scale]
+            measured = [
+                self.measured[j]
+                for j in (left, right)
+                if j in self.measured and len(self._sightings[j]) >= STEADY_SAMPLES
+            ]
             if measured:
-                scale[left] = scale[right] = float(np.mean(measured))
+                scale[left] = scale[right] = float(np.clip(np.mean(measured), *VISUAL_SCALE_RANGE))
         self.bone_scale = scale

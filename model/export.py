@@ -19,6 +19,7 @@ import onnx
 import onnxruntime as ort
 import torch
 
+from .body import regressor_path
 from .hmd import FEATURE_DIM
 from .inputs import VISUAL_TOKEN_DIM
 from .rig import DEFAULT_OFFSETS_M
@@ -99,6 +100,8 @@ def export_visual(ckpt_path: Path, out_path: Path) -> float:
         "units": "image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
                  "depth_m metres along the optical axis; zeta probability in view",
     })  # fmt: skip
+    # A body regressor fitted on the encoder this replaces would describe another network's keypoints.
+    regressor_path(out_path).unlink(missing_ok=True)
     rng = np.random.default_rng(0)
     image = rng.uniform(-0.5, 0.5, (3, cfg.channels, cfg.height, cfg.width)).astype(np.float32)
     return _parity(module, out_path, {"image": image})

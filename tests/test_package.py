@@ -111,6 +111,13 @@ def test_a_regular_install_carries_every_subpackage(tmp_path):
     expected = {f"egoposevr/{p.relative_to(ROOT).as_posix()}" for f in ("protocol", "model", "cli")
                 for p in (ROOT / f).rglob("*.py")}  # fmt: skip
     assert expected <= installed
+    weights = ROOT / "model" / "weights"
+    bundled = {
+        p.name for p in weights.iterdir() if p.suffix in (".onnx", ".json") or p.name == "MODEL_CARD.md"
+    }
+    assert bundled <= {
+        p.name for p in (target / "egoposevr" / "model" / "weights").iterdir()
+    }  # models, regressors
     code = "import egoposevr.protocol as p, egoposevr.model.hmd; print(p.__file__)"
     out = subprocess.run(
         [sys.executable, "-c", code], env={"PYTHONPATH": str(target)}, capture_output=True, text=True

@@ -1,9 +1,20 @@
-"""Body size: the highest head sets the scale, within its range; legs the camera sees take their length."""
+"""Body size: the highest head sets the scale, within its range; legs the camera sees take their length;
+a fitted regressor carries what the camera sees to the bones it never sees."""
+
+import json
 
 import numpy as np
 import pytest
 
-from egoposevr.model.body import MIN_VISUAL_SAMPLES, SCALE_RANGE, STANDING_HEAD_HEIGHT_M, BodyCalibrator
+from egoposevr.model.body import (
+    MIN_VISUAL_SAMPLES,
+    SCALE_RANGE,
+    STANDING_HEAD_HEIGHT_M,
+    STEADY_SAMPLES,
+    BodyCalibrator,
+    BodyRegressor,
+    height_scale,
+)
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 
 ALL = np.ones(3, dtype=bool)
@@ -49,6 +60,7 @@ def test_legs_seen_by_the_camera_take_their_measured_length_and_the_rest_keeps_t
         for _ in range(60)
     ]
     assert any(changed) and not any(changed[: MIN_VISUAL_SAMPLES - 1])  # nothing before enough sightings
+    assert body.measured[5] == pytest.approx(1.2, abs=0.02)
     np.testing.assert_allclose(body.bone_scale[[4, 5, 7, 8]], 1.2, atol=0.02)
     np.testing.assert_allclose(body.bone_scale[[10, 11]], 1.0, atol=0.02)  # the feet as measured
     np.testing.assert_allclose(body.bone_scale[[3, 16, 18, 20]], 1.1)  # spine and arms: the height scale
@@ -57,8 +69,80 @@ def test_legs_seen_by_the_camera_take_their_measured_length_and_the_rest_keeps_t
 def test_a_later_height_keeps_the_measured_legs():
     body = BodyCalibrator()
     keypoints, _ = forward_kinematics(np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets())
-    for _ in range(MIN_VISUAL_SAMPLES):
+    for _ in range(STEADY_SAMPLES):
         body.push_visual(keypoints, np.ones(22, dtype=bool))
     body.push(head_at(1.2 * STANDING_HEAD_HEIGHT_M), ALL)
     np.testing.assert_allclose(body.bone_scale[[4, 7]], 1.0)
     np.testing.assert_allclose(body.bone_scale[0:4], 1.2)
+
+
+def test_without_a_regressor_a_few_sightings_do_not_yet_move_the_legs():
+    body = BodyCalibrator()
+    keypoints, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(np.full(22, 1.2))
+    )
+    for _ in range(STEADY_SAMPLES - 1):
+        body.push_visual(keypoints, np.ones(22, dtype=bool))
+    assert 4 in body.measured and np.allclose(body.bone_scale, 1.0)  # measured, but not trusted alone yet
+    body.push_visual(keypoints, np.ones(22, dtype=bool))
+    np.testing.assert_allclose(body.bone_scale[4], 1.2)
+
+
+# Two body families, as in the training data: scaled mean bodies, and bodies whose hips (1, 2) are wide and
+# whose neck (12) and head (15) bones are long. The camera sees the hips; it never sees the neck or head.
+WIDE_HIPS = np.where(np.isin(np.arange(22), [1, 2]), 1.5, 1.0) * np.where(
+    np.isin(np.arange(22), [12, 15]), 1.6, 1.0
+)
+
+
+def family_rows(n: int) -> tuple[np.ndarray, list[dict[int, float]], np.ndarray]:
+    """n bodies of random height, alternating families -> height scales, measured bones, true scales."""
+    scales_h = RNG.uniform(0.9, 1.1, n)
+    truth = np.array([h * (WIDE_HIPS if i % 2 else np.ones(22)) for i, h in enumerate(scales_h)])
+    measured = [{b: float(t[b] * RNG.normal(1.0, 0.02)) for b in (1, 2, 4, 5)} for t in truth]
+    return scales_h, measured, truth
+
+
+def test_the_regressor_tells_the_families_apart_by_the_bones_the_camera_sees():
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", ridge=0.1)
+    wide = {1: 1.05 * 1.5, 2: 1.05 * 1.5, 4: 1.05, 5: 1.05}
+    np.testing.assert_allclose(regressor.predict(1.05, wide)[[12, 15]], 1.05 * 1.6, rtol=0.03)
+    narrow = {1: 0.95, 2: 0.95, 4: 0.95, 5: 0.95}
+    np.testing.assert_allclose(regressor.predict(0.95, narrow)[[12, 15, 18]], 0.95, rtol=0.03)
+    assert regressor.predict(0.95, narrow)[0] == 0.95  # the root follows the height
+
+
+def test_a_calibrator_with_a_regressor_keeps_the_height_scale_until_the_camera_measures():
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", ridge=0.1)
+    body = BodyCalibrator(regressor)
+    body.push(head_at(1.05 * STANDING_HEAD_HEIGHT_M), ALL)
+    np.testing.assert_allclose(body.bone_scale, 1.05)
+    keypoints, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(1.05 * WIDE_HIPS)
+    )
+    changed = [body.push_visual(keypoints, np.ones(22, dtype=bool)) for _ in range(MIN_VISUAL_SAMPLES)]
+    assert changed[-1] and not any(changed[:-1])
+    np.testing.assert_allclose(body.bone_scale[[1, 12, 15]], 1.05 * WIDE_HIPS[[1, 12, 15]], rtol=0.03)
+
+
+def test_a_regressor_survives_a_round_trip_and_a_corrupt_file_is_refused(tmp_path):
+    regressor = BodyRegressor.fit(*family_rows(20), encoder_sha256="abc")
+    path = tmp_path / "visual-rgbd.body.json"
+    regressor.save(path)
+    loaded = BodyRegressor.load(path)
+    assert loaded.encoder_sha256 == "abc" and loaded.feature_bones == regressor.feature_bones
+    np.testing.assert_allclose(loaded.weights, regressor.weights, atol=1e-6)
+    doc = json.loads(path.read_text())
+    for broken in (
+        "{not json",
+        json.dumps({**doc, "weights": [[1.0]]}),
+        json.dumps({**doc, "kind": "other"}),
+    ):
+        path.write_text(broken)
+        with pytest.raises(ValueError, match="not a body regressor"):
+            BodyRegressor.load(path)
+
+
+def test_height_scale_is_one_before_any_sample_and_clipped_after():
+    assert height_scale(0.0) == 1.0
+    assert height_scale(10.0) == SCALE_RANGE[1]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from egoposevr.cli.main import main
+from egoposevr.model import runtime
 from egoposevr.model.dataset import load_split, split_camera
 from egoposevr.model.evaluate import METRIC_KEYS, replay_sequence
 from egoposevr.model.runtime import LoadedModel, ModelError, Pipeline
@@ -177,3 +178,55 @@ def test_malformed_frames_are_refused_clearly(tiny_weights, rgb, depth, intrinsi
     with pytest.raises(ValueError, match=match):
         pipeline.push_rgbd(0, rgb, depth, intrinsics)
     assert not pipeline.frames
+
+
+def test_fit_body_writes_a_regressor_its_models_load_and_a_new_encoder_retires_it(
+    tiny_runs, tiny_data, tmp_path, capsys
+):
+    out = tmp_path / "weights"
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(out), "--model", "egoposevr"]) == 0
+    assert main(["fit-body", "--data", str(tiny_data), "--weights", str(out), "--no-progress"]) == 0
+    assert "visual-rgbd.body.json" in capsys.readouterr().out
+    regressor = LoadedModel.load(out / "egoposevr.onnx").info.body_regressor
+    assert regressor is not None and regressor.record["split"] == "train"
+    # A regressor describes one encoder's keypoints: beside another encoder it is refused, clearly...
+    sidecar = json.loads((out / "visual-rgbd.body.json").read_text())
+    stale = {**sidecar, "encoder_sha256": "0" * 64}
+    (out / "visual-rgbd.body.json").write_text(json.dumps(stale))
+    with pytest.raises(ModelError, match=r"fitted on another visual-rgbd\.onnx"):
+        LoadedModel.load(out / "egoposevr.onnx")
+    # ... and exporting a new encoder removes it, so the models load with the height-and-legs body.
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(out), "--model", "egoposevr"]) == 0
+    assert not (out / "visual-rgbd.body.json").exists()
+    assert LoadedModel.load(out / "egoposevr.onnx").info.body_regressor is None
+
+
+def test_fit_body_without_depth_camera_models_says_so(tiny_runs, tiny_data, tmp_path, capsys):
+    out = tmp_path / "weights"
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(out), "--model", "hmd,hmd-rgb"]) == 0
+    assert main(["fit-body", "--data", str(tiny_data), "--weights", str(out), "--no-progress"]) == 2
+    assert "reads a depth camera" in capsys.readouterr().err
+
+
+def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(tiny_weights, val, monkeypatch):
+    """A controller that loses tracking repeats its last pose with valid = False. The served wrist must start
+    where tracking left it, not jump to wherever the (here untrained) network puts it."""
+    seq, _ = val
+    model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+
+    def wrist_track(hold_s: float) -> np.ndarray:
+        monkeypatch.setattr(runtime, "LOST_HAND_HOLD_S", hold_s)
+        monkeypatch.setattr(runtime, "LOST_HAND_FADE_S", 1e6)  # this network is far off: no fading here
+        pipeline, wrists = Pipeline(model), []
+        for i in range(90):
+            poses, valid = seq["hmd_poses"][min(i, 59)].copy(), np.ones(3, bool)
+            if i >= 60:  # the left controller is lost: it repeats its last pose
+                valid[1] = False
+            pose = pipeline.push_hmd(int(seq["hmd_t_us"][0]) + i * 16_667, poses, valid)
+            wrists.append(pose.joints[20])
+        return np.array(wrists)
+
+    handed_over, dropped = wrist_track(runtime.LOST_HAND_HOLD_S), wrist_track(0.0)
+    jump_cm = 100 * np.linalg.norm(handed_over[60] - handed_over[59])
+    assert jump_cm < 1.0
+    assert 100 * np.linalg.norm(dropped[60] - dropped[59]) > 3 * jump_cm  # what the hold prevents
