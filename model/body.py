@@ -63,6 +63,8 @@ PREDICTED_SCALE_RANGE: Final = (0.3, 2.5)  # the regressor's output, per bone (C
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
 REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -> visual-rgbd.body.json
 _REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
+_SIGHTED: Final = np.array(SIGHTED_BONES)
+_SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
 
 
 def height_scale(highest_head_m: float) -> float:
@@ -187,6 +189,7 @@ class BodyCalibrator:
         self.highest_head_m = 0.0
         self.bone_scale = np.ones(NUM_JOINTS)
         self._sightings = {j: deque(maxlen=VISUAL_WINDOW) for j in SIGHTED_BONES}
+        self._count = dict.fromkeys(SIGHTED_BONES, 0)
         self.measured: dict[int, float] = {}  # bone -> median length / mean-body length, once measured
 
     @property
@@ -206,12 +209,17 @@ class BodyCalibrator:
         """keypoints_m (J, 3) one frame's keypoints (any rigid frame), visible (J,) Alg. 1's mask -> whether
         the scale changed. Cheap per frame; the medians are refreshed every 10 sightings of a bone."""
         changed = False
-        for j in SIGHTED_BONES:
-            if not (visible[j] and visible[PARENTS[j]]):
-                continue
+        in_view = np.asarray(visible[_SIGHTED], dtype=bool) & np.asarray(
+            visible[_SIGHTED_PARENTS], dtype=bool
+        )
+        lengths = np.linalg.norm(keypoints_m[_SIGHTED] - keypoints_m[_SIGHTED_PARENTS], axis=-1)
+        for k in np.flatnonzero(in_view):
+            j = SIGHTED_BONES[k]
             seen = self._sightings[j]
-            seen.append(float(np.linalg.norm(keypoints_m[j] - keypoints_m[PARENTS[j]])))
-            if len(seen) >= MIN_VISUAL_SAMPLES and (len(seen) < STEADY_SAMPLES or len(seen) % 10 == 0):
+            seen.append(float(lengths[k]))
+            self._count[j] += 1  # the window stops growing at VISUAL_WINDOW; the count does not
+            count = self._count[j]
+            if count >= MIN_VISUAL_SAMPLES and (count < STEADY_SAMPLES or count % 10 == 0):
                 self.measured[j] = float(np.clip(np.median(seen) / _REST_BONE_M[j], *MEASURED_SCALE_RANGE))
                 changed = True
         if changed:
@@ -231,7 +239,7 @@ class BodyCalibrator:
             measured = [
                 self.measured[j]
                 for j in (left, right)
-                if j in self.measured and len(self._sightings[j]) >= STEADY_SAMPLES
+                if j in self.measured and self._count[j] >= STEADY_SAMPLES
             ]
             if measured:
                 scale[left] = scale[right] = float(np.clip(np.mean(measured), *VISUAL_SCALE_RANGE))

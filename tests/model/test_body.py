@@ -11,6 +11,7 @@ from egoposevr.model.body import (
     SCALE_RANGE,
     STANDING_HEAD_HEIGHT_M,
     STEADY_SAMPLES,
+    VISUAL_WINDOW,
     BodyCalibrator,
     BodyRegressor,
     height_scale,
@@ -146,3 +147,10 @@ def test_a_regressor_survives_a_round_trip_and_a_corrupt_file_is_refused(tmp_pat
 def test_height_scale_is_one_before_any_sample_and_clipped_after():
     assert height_scale(0.0) == 1.0
     assert height_scale(10.0) == SCALE_RANGE[1]
+
+
+def test_a_long_session_refreshes_the_medians_every_tenth_sighting_not_every_frame():
+    body = BodyCalibrator()
+    keypoints, _ = forward_kinematics(np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets())
+    changed = [body.push_visual(keypoints, np.ones(22, dtype=bool)) for _ in range(VISUAL_WINDOW + 100)]
+    assert sum(changed[-100:]) == 10  # the window is full, the refresh rate stays the same
