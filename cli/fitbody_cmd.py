@@ -2,8 +2,9 @@
 
 Run after `egoposevr export`. For every RGB-D visual encoder the folder's models use, feeds each sequence of
 --split through the serving code's body calibrator (camera frames through the encoder and Alg. 1, head
-heights from the headset), fits a ridge regression from the height and the measured hip, spine and leg
-lengths to every bone's length, and writes it beside the encoder (visual-rgbd.onnx -> visual-rgbd.body.json).
+heights from the headset), fits a regressor from the height and the measured hip, spine and leg lengths to
+every bone's length (one ridge expert per body family the training bodies show), and writes it beside the
+encoder (visual-rgbd.onnx -> visual-rgbd.body.json).
 With --check-split it reports the summed bone-length error there. Models load it with their encoder; a
 regressor fitted on another encoder is refused. See model/body.py.
 

@@ -1,16 +1,18 @@
 """Fitting each visual encoder's body regressor (body.py) on a dataset split: ``egoposevr fit-body``.
 
 For every sequence, the serving code's own :class:`~egoposevr.model.body.BodyCalibrator` is fed what a
-session would feed it — every camera frame through the encoder and Alg. 1's visibility filter, every
-headset sample's head joint — and its height scale and measured bone medians at the end are one training
-row; the sequence's true bone scales are the target. A second split, when given, reports the summed
-bone-length error of the height scale, of the fallback without a regressor and of the regressor.
+session would feed it, in arrival order — every camera frame through the encoder and Alg. 1's visibility
+filter, every headset sample's head joint. Each moment its evidence changes (height scale, measured bone
+medians) is one training row, with the sequence's true bone scales as the target. A second split, when
+given, reports the summed bone-length error of the height scale, of the fallback without a regressor and
+of the regressor.
 
 Shape legend: ``N`` sequences, ``J`` = 22 joints.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,13 +28,11 @@ from .runtime import RGBD_CHANNELS, LoadedModel, encode_frame
 from .skeleton import NUM_JOINTS, rest_offsets
 from .weights import model_files
 
-DEFAULT_RIDGE = (
-    1.0  # chosen on the validation split's summed bone error: 0.3 -> 16.6, 1 -> 16.2, 10 -> 19.9 cm
-)
+# Chosen on the validation split's summed bone error, one ridge map for all bodies: 0.3 -> 16.6, 1 -> 16.2,
+# 10 -> 19.9 cm.
+DEFAULT_RIDGE = 1.0
 _REST_BONE_M = np.linalg.norm(rest_offsets(), axis=-1)
 Progress = Callable[[str, int, int], None]
-
-
 Snapshot = tuple[float, dict[int, float]]  # (height scale, {bone: measured scale}) at one moment
 
 
@@ -47,19 +47,19 @@ def observe_body(
     visibility = VisibilityFilter()
     cam_from_head = np.asarray(camera["cam_from_head"], dtype=np.float64).reshape(4, 4)
     snapshots: list[Snapshot] = []
-    i, n = 0, len(seq["hmd_t_us"])
-    for k, t_us in enumerate(seq["cam_t_us"]):
-        while i < n and seq["hmd_t_us"][i] < t_us + CAMERA_LATENCY_US:
-            body.push(joints_from_devices(seq["hmd_poses"][i].astype(np.float64), model.info.rig_offsets_m)[0],
-                      seq["hmd_valid"][i])  # fmt: skip
-            i += 1
+    heads = iter(zip(seq["hmd_t_us"], seq["hmd_poses"], seq["hmd_valid"], strict=True))
+    pending = next(heads, None)
+    for k, t_us in enumerate([*seq["cam_t_us"], None]):  # None: the samples after the last frame
+        while pending is not None and (t_us is None or pending[0] < t_us + CAMERA_LATENCY_US):
+            tracked_pos, _ = joints_from_devices(pending[1].astype(np.float64), model.info.rig_offsets_m)
+            body.push(tracked_pos, pending[2])
+            pending = next(heads, None)
+        if t_us is None:
+            break
         rgb, depth = decode_rgbd(seq["rgb_jpeg"][k], seq["depth_png"][k])
         frame = encode_frame(model, int(t_us), rgb, depth, camera["intrinsics"], cam_from_head)
         if body.push_visual(frame.kp_cam, visibility(frame.t_us, frame.zeta) > 0.0):
             snapshots.append((body.height_scale, dict(body.measured)))
-    for j in range(i, n):
-        body.push(joints_from_devices(seq["hmd_poses"][j].astype(np.float64), model.info.rig_offsets_m)[0],
-                  seq["hmd_valid"][j])  # fmt: skip
     return body, snapshots
 
 
@@ -112,7 +112,7 @@ def fit_encoder(
         bodies, snapshots, truth = _observe_split(model, data_dir, check_split, progress)
         record["check_split"] = check_split
         record["summed_bone_error_cm"] = _check_errors(fitted, bodies, snapshots, truth)
-    return BodyRegressor(fitted.feature_bones, fitted.weights, fitted.encoder_sha256, record)
+    return dataclasses.replace(fitted, record=record)
 
 
 def _check_errors(
@@ -151,9 +151,8 @@ def fit_body_regressors(
     progress: Progress | None = None,
 ) -> dict[Path, BodyRegressor]:
     """A regressor for every depth-seeing visual encoder the folder's models use, written beside it ->
-    {path: regressor}.
-    Earlier regressors in the folder are removed first: they are replaced, and one fitted on an older
-    encoder would stop its models from loading."""
+    {path: regressor}. Earlier regressors in the folder are removed first: they are replaced, and one fitted
+    on an older encoder would stop its models from loading."""
     for old in Path(weights_dir).glob(f"*{REGRESSOR_SUFFIX}"):
         old.unlink()
     written: dict[Path, BodyRegressor] = {}

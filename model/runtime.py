@@ -61,8 +61,9 @@ _TRACKED = np.array(TRACKED_JOINTS)
 # time constant, for LOST_HAND_HOLD_S; then the wrist is free like any untracked joint. The network alone is
 # 6-8 cm off at the moment of loss (the avatar's hand jumped that far); on the validation split, with the
 # controllers lost 16-20 % of the time, the lost wrists' error in their first 0.1 s falls 8.0 -> 5.5 cm and
-# upper-body MPJPE 2.49 -> 2.46 cm (fade 0.25 s: 2.46, 1 s: 2.47). A frozen wrist or one held in the head's
-# frame does worse than the network after 0.1-0.25 s; the camera's wrist keypoints are 11 cm off when lost.
+# upper-body MPJPE 2.49 -> 2.46 cm (with the single-map body regressor of the time; fade 0.25 s: 2.46, 1 s:
+# 2.47). A frozen wrist or one held in the head's frame does worse than the network after 0.1-0.25 s; the
+# camera's wrist keypoints are 11 cm off when lost.
 LOST_HAND_FADE_S = 0.5
 LOST_HAND_HOLD_S = 1.5
 _ORIGIN = np.zeros(3)

@@ -154,3 +154,18 @@ def test_a_long_session_refreshes_the_medians_every_tenth_sighting_not_every_fra
     keypoints, _ = forward_kinematics(np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets())
     changed = [body.push_visual(keypoints, np.ones(22, dtype=bool)) for _ in range(VISUAL_WINDOW + 100)]
     assert sum(changed[-100:]) == 10  # the window is full, the refresh rate stays the same
+
+
+def test_one_body_in_the_training_rows_makes_one_family():
+    scales_h, measured, truth = family_rows(2)
+    regressor = BodyRegressor.fit(scales_h[:1].repeat(5), measured[:1] * 5, truth[:1].repeat(5, 0), "x")
+    assert regressor.weights.shape[0] == 1
+    np.testing.assert_allclose(regressor.family_probabilities(1.0, measured[0]), [1.0])
+
+
+def test_a_measurement_somewhat_off_stays_with_its_family():
+    """A camera that measures the hips 10 % long must not get a body halfway to the wide-hipped family."""
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", ridge=0.1)
+    off = {1: 1.1, 2: 1.1, 4: 1.0, 5: 1.0}  # a mean body, hips measured 10 % long
+    assert regressor.family_probabilities(1.0, off).max() > 0.99
+    np.testing.assert_allclose(regressor.predict(1.0, off)[[12, 15]], 1.0, atol=0.05)
