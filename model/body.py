@@ -24,7 +24,7 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Three sou
 
 Without a regressor, RGB-D models keep the height scale and put the measured thigh, shin and foot medians
 (30 sightings or more) in place. RGB-only models measure nothing: their keypoints guess depth, and both
-their raw lengths and a regressor fitted on them made hmd-rgb worse (bodyfit.measures_lengths).
+their raw lengths and a regressor fitted on them made hmd-rgb worse (LoadedModel.measures_body).
 
 Tried and dropped: a per-bone ridge regression from five headset statistics (height, reach, raised and
 hanging wrists, sideways reach). It learned the CMU proportions from statistics the procedural bodies share

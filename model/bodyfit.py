@@ -24,7 +24,7 @@ from .dataset import load_split, split_camera
 from .evaluate import CAMERA_LATENCY_US
 from .inputs import VisibilityFilter, decode_rgbd
 from .rig import joints_from_devices
-from .runtime import RGBD_CHANNELS, LoadedModel, encode_frame
+from .runtime import LoadedModel, encode_frame
 from .skeleton import NUM_JOINTS, rest_offsets
 from .weights import model_files
 
@@ -135,13 +135,6 @@ def _check_errors(
     return {k: round(v, 2) for k, v in errors.items()}
 
 
-def measures_lengths(model: LoadedModel) -> bool:
-    """Whether the model's visual encoder sees depth. RGB-only keypoints guess their depth: a regressor
-    fitted on visual-rgb's lengths made validation worse (hmd-rgb upper body 3.70 -> 4.68 cm, lower 9.61 ->
-    11.74 cm) although its summed bone error was lower (34 against 41 cm), so RGB models keep the height."""
-    return model.visual is not None and model.info.visual_config.get("channels") == RGBD_CHANNELS
-
-
 def fit_body_regressors(
     weights_dir: Path,
     data_dir: Path,
@@ -159,7 +152,7 @@ def fit_body_regressors(
     for path in model_files(weights_dir).values():
         model = LoadedModel.load(path)
         encoder = model.info.visual_path
-        if encoder is None or regressor_path(encoder) in written or not measures_lengths(model):
+        if not model.measures_body or regressor_path(encoder) in written:
             continue
         regressor = fit_encoder(model, data_dir, split, check_split, ridge, progress)
         regressor.save(regressor_path(encoder))

@@ -151,6 +151,14 @@ class LoadedModel:
             raise ModelError(f"{path}: incomplete EgoPoseVR metadata ({exc})") from exc
         return cls(info, fusion, visual)
 
+    @property
+    def measures_body(self) -> bool:
+        """Whether its visual encoder sees depth, so that its keypoints measure bone lengths (body.py).
+        RGB-only keypoints guess their depth: a body regressor fitted on visual-rgb's lengths made validation
+        worse (hmd-rgb upper body 3.70 -> 4.68 cm, lower 9.61 -> 11.74 cm) although its summed bone error
+        was lower (34 against 41 cm), so RGB models keep the height-scaled body."""
+        return self.visual is not None and self.info.visual_config.get("channels") == RGBD_CHANNELS
+
     def encode_frames(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(B, C, h, w) -> uv (B, J, 2), depth_m (B, J), zeta (B, J)."""
         uv, depth_m, zeta = self.visual.run(None, {"image": images})
@@ -357,8 +365,8 @@ class Pipeline:
         """Bone lengths from a new frame's keypoints where Alg. 1 keeps both ends (body.py), through the
         encoder's body regressor when it has one. Only with a depth channel: RGB-only keypoints guess their
         depth; raw lengths from them made hmd-rgb's lower-body MPJPE worse (9.61 -> 9.81 cm), and so did a
-        regressor fitted on them (bodyfit.measures_lengths)."""
-        if self.fixed_body or self.model.info.visual_config.get("channels") != RGBD_CHANNELS:
+        regressor fitted on them (LoadedModel.measures_body)."""
+        if self.fixed_body or not self.model.measures_body:
             return
         if self.body.push_visual(kp_cam, confidence > 0.0):
             self.offsets = rest_offsets(self.body.bone_scale)
