@@ -56,7 +56,8 @@ SCALE_RANGE: Final = (0.8, 1.25)
 UPDATE_STEP_M: Final = 0.005  # rescale when the head is 5 mm higher than ever (rebuilding offsets is cheap)
 # Bones the downward camera sees (each joint's bone from its parent): hips, lower spine, thighs, shins, feet.
 SIGHTED_BONES: Final = tuple(range(1, 12))
-LEG_BONES: Final = (4, 5, 7, 8, 10, 11)  # what the fallback without a regressor takes from the camera
+# What the fallback without a regressor takes from the camera, as (left, right) pairs: thighs, shins, feet.
+LEG_BONES: Final = (4, 5, 7, 8, 10, 11)
 # A median of 5 sightings is a measurement for the regressor, which was fitted on such early medians too
 # (validation upper-body MPJPE 2.59 cm with 30, 2.49 cm with 5: the CMU clips there last 2-4 s). The fallback
 # trusts a leg bone from STEADY_SAMPLES on; medians are refreshed every frame until then, every 10th after.
@@ -111,14 +112,18 @@ class BodyRegressor:
 
     def family_probabilities(self, scale_h: float, measured: dict[int, float]) -> np.ndarray:
         """-> (K,) the probability of each family given the evidence."""
-        scores = self.discriminant[:, :-1] @ self.features(scale_h, measured) + self.discriminant[:, -1]
+        return self._probabilities(self.features(scale_h, measured))
+
+    def _probabilities(self, x: np.ndarray) -> np.ndarray:
+        """Features (F,) -> (K,) family probabilities (softmax of the discriminant's scores)."""
+        scores = self.discriminant[:, :-1] @ x + self.discriminant[:, -1]
         scores = np.exp(scores - scores.max())
         return scores / scores.sum()
 
     def predict(self, scale_h: float, measured: dict[int, float]) -> np.ndarray:
         """-> bone_scale (J,), bone 0 (the root) at the height scale."""
         x = self.features(scale_h, measured)
-        log_relative = self.family_probabilities(scale_h, measured) @ (x @ self.weights)  # (J - 1,)
+        log_relative = self._probabilities(x) @ (x @ self.weights)  # (J - 1,)
         return np.concatenate([[scale_h], np.clip(scale_h * np.exp(log_relative), *PREDICTED_SCALE_RANGE)])
 
     @classmethod
@@ -315,7 +320,7 @@ class BodyCalibrator:
             self.bone_scale = self.regressor.predict(scale_h, self.measured)
             return
         scale = np.full(NUM_JOINTS, scale_h)
-        for left, right in ((4, 5), (7, 8), (10, 11)):
+        for left, right in zip(LEG_BONES[::2], LEG_BONES[1::2], strict=True):
             measured = [
                 self.measured[j]
                 for j in (left, right)

@@ -267,7 +267,7 @@ class Pipeline:
 
     Body size: with ``bone_scale`` (J,) given, the skeleton is that body's. Otherwise a
     :class:`~egoposevr.model.body.BodyCalibrator` estimates it from the session's headset (height) and, for
-    RGB-D models, the camera (leg lengths),
+    RGB-D models, the camera (measured hip, spine and leg lengths, through the encoder's body regressor),
     assuming a stage reference space (floor at y = 0).
     """
 
@@ -302,9 +302,8 @@ class Pipeline:
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self._pending_visual_us = 0
         self.frames_encoded = 0
-        self._last_tracked: dict[
-            int, tuple[np.ndarray, int]
-        ] = {}  # controller -> (wrist m, t_us) when last valid
+        # controller -> (wrist m, t_us) when it was last valid
+        self._last_tracked: dict[int, tuple[np.ndarray, int]] = {}
         self._hand_correction: dict[int, np.ndarray] = {}  # lost controller -> last tracked - network, m
 
     # ------------------------------------------------------------------------------------------ camera
