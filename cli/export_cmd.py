@@ -5,7 +5,7 @@ Writes <name>.onnx per model and the visual encoders they share (visual-rgb.onnx
 torch (max |difference| must stay under 1e-4). The bundled weights are model/weights/.
 
 Example:
-  egoposevr export --runs runs/cpu --out model/weights
+  egoposevr export --runs runs/cpu16 --out model/weights
 """
 
 from __future__ import annotations

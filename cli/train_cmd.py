@@ -6,7 +6,7 @@ visual-rgb.pt, visual-rgbd.pt and fusion-<model>.pt. Models that share parts sha
 Then `egoposevr export` turns them into the ONNX models the runtime serves.
 
 Example (the bundled weights; MODEL_CARD.md has the full recipe):
-  egoposevr train --data data/dev --model all --out runs/cpu --preset cpu --seed 0
+  egoposevr train --data data/dev --model all --out runs/cpu16 --preset cpu --seed 0 --fusion-steps 16000
 """
 
 from __future__ import annotations

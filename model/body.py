@@ -16,8 +16,10 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Three sou
    linear discriminant and has one ridge expert per family. On the validation split the summed
    bone-length error at a sequence's end falls from 41 cm (height only; 36 cm with the measured legs) to
    14 cm (18 cm with one ridge map for all bodies), and `egoposevr`'s MPJPE from 2.74 to 2.28 cm (upper
-   body) and 6.64 to 5.91 cm (lower body). With the true bones it would be 1.81 cm upper: the short CMU
-   clips there (2-4 s) spend much of their time before the camera has measured anything. On the bundled
+   body) and 6.64 to 5.91 cm (lower body) with the 8 000-step weights of the time. With the true bones
+   the 16 000-step weights would score 1.69 cm upper instead of 2.20: the gap is as large after a
+   sequence's first 4 s (1.50 against 1.90 cm) as before, so it is the bones' remaining error (about 1 cm
+   per procedural arm and leg bone, 2 cm on the CMU hips), not the wait for measurements. On the bundled
    128×96 recordings (procedural bodies, a resolution the regressor never saw) the single ridge map made
    upper-body MPJPE worse (0.88 -> 1.13, 1.07 -> 1.48, 1.27 -> 2.33 cm against the legs-only body); the
    mixture stays within 0.05 cm of it (0.93, 1.09, 1.32 cm).

@@ -77,7 +77,8 @@ class TrainConfig:
 
 
 PRESETS: dict[str, TrainConfig] = {
-    # The whole zoo on a 2-core CPU in about 75 minutes (MODEL_CARD.md has the measured times).
+    # The whole zoo on a 2-core CPU in about 60 minutes, inside the 90-minute budget for the default. The
+    # bundled weights add --fusion-steps 16000 (about 1 h 45 min; MODEL_CARD.md has the measured times).
     "cpu": TrainConfig(),
     # For a GPU: wider nets, longer schedules.
     "gpu": TrainConfig(visual_steps=20000, fusion_steps=30000, d_model=128, joint_dim=64),
