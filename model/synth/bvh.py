@@ -36,7 +36,9 @@ class BvhError(ValueError):
 class BvhClip:
     """A parsed BVH file.
 
-    names/parents: (S,) joint names and parent indices (-1 for the root); end sites are dropped.
+    names/parents: (S,) joint names and parent indices (-1 for the root), parents before children. End
+                   sites are joints too (no channels, ``end_site`` True, named ``<parent>_EndSite``): some
+                   rigs end a limb there (a foot without a toe joint).
     offsets:       (S, 3) offsets from the parent, file units.
     channels:      per joint, the channel names in file order.
     values:        (F, C) the MOTION table, all channels of a frame in joint order.
@@ -49,6 +51,7 @@ class BvhClip:
     channels: tuple[tuple[str, ...], ...]
     values: np.ndarray
     frame_time_s: float
+    end_site: tuple[bool, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,74 +130,118 @@ CMU_MAPPING: Final = RigMapping(
 
 
 # ----------------------------------------------------------------------------------------------- parsing
-def parse_bvh(text: str, name: str = "<bvh>") -> BvhClip:
-    """Parse BVH text. Raises :class:`BvhError` naming what is wrong."""
-    tokens = text.split()
-    pos = 0
+CHANNEL_NAMES: Final = frozenset(f"{axis}{kind}" for axis in "XYZ" for kind in ("position", "rotation"))
+MAX_JOINTS: Final = 2048  # far beyond any body rig (fingers, face and props included)
+MAX_FRAMES: Final = 10_000_000
 
-    def take() -> str:
-        nonlocal pos
-        if pos >= len(tokens):
-            raise BvhError(f"{name}: unexpected end of file")
-        pos += 1
-        return tokens[pos - 1]
 
-    def expect(word: str) -> None:
-        got = take()
+class _Tokens:
+    """Whitespace tokens of a BVH file with the reads the grammar needs; errors name the file."""
+
+    def __init__(self, text: str, name: str) -> None:
+        self.words = text.split()
+        self.pos = 0
+        self.name = name
+
+    def take(self) -> str:
+        if self.pos >= len(self.words):
+            raise BvhError(f"{self.name}: unexpected end of file")
+        self.pos += 1
+        return self.words[self.pos - 1]
+
+    def expect(self, word: str) -> None:
+        got = self.take()
         if got != word:
-            raise BvhError(f"{name}: expected {word!r}, got {got!r}")
+            raise BvhError(f"{self.name}: expected {word!r}, got {got!r}")
 
-    def number() -> float:
-        word = take()
+    def number(self) -> float:
+        word = self.take()
         try:
-            return float(word)
+            value = float(word)
         except ValueError:
-            raise BvhError(f"{name}: expected a number, got {word!r}") from None
+            raise BvhError(f"{self.name}: expected a number, got {word!r}") from None
+        if not np.isfinite(value):
+            raise BvhError(f"{self.name}: expected a finite number, got {word!r}")
+        return value
 
+    def count(self, what: str, low: int, high: int) -> int:
+        value = self.number()
+        if value != int(value) or not low <= value <= high:
+            raise BvhError(f"{self.name}: {what} must be a whole number in {low}..{high}, got {value:g}")
+        return int(value)
+
+    def joint_name(self) -> str:
+        """A joint name runs to the next ``{`` (3ds Max writes names with spaces: ``Bip01 L Thigh``)."""
+        parts = []
+        while (word := self.take()) != "{":
+            parts.append(word)
+        if not parts:
+            raise BvhError(f"{self.name}: a joint without a name")
+        return " ".join(parts)
+
+
+def _read_hierarchy(tokens: _Tokens) -> tuple[list[str], list[int], list[tuple], list[tuple], list[bool]]:
+    """The HIERARCHY block, read without recursion (a hostile file cannot exhaust the stack)."""
     names: list[str] = []
     parents: list[int] = []
     offsets: list[tuple[float, float, float]] = []
     channels: list[tuple[str, ...]] = []
+    end_site: list[bool] = []
 
-    def joint(parent: int) -> None:
-        index = len(names)
-        names.append(take())
+    def open_joint(parent: int, is_end: bool) -> int:
+        if len(names) >= MAX_JOINTS:
+            raise BvhError(f"{tokens.name}: more than {MAX_JOINTS} joints")
+        if is_end:
+            tokens.expect("Site")
+            tokens.expect("{")
+            name = f"{names[parent]}_EndSite"
+        else:
+            name = tokens.joint_name()
+            if name in names:
+                raise BvhError(f"{tokens.name}: joint name {name!r} appears twice")
+        tokens.expect("OFFSET")
+        offsets.append((tokens.number(), tokens.number(), tokens.number()))
+        chans: tuple[str, ...] = ()
+        if not is_end:
+            tokens.expect("CHANNELS")
+            chans = tuple(tokens.take() for _ in range(tokens.count("CHANNELS", 0, 6)))
+            unknown = [c for c in chans if c not in CHANNEL_NAMES]
+            if unknown or len(set(chans)) != len(chans):
+                raise BvhError(f"{tokens.name}: joint {name!r} has bad channels {list(chans)}")
+        names.append(name)
         parents.append(parent)
-        expect("{")
-        expect("OFFSET")
-        offsets.append((number(), number(), number()))
-        expect("CHANNELS")
-        count = int(number())
-        channels.append(tuple(take() for _ in range(count)))
-        while True:
-            word = take()
-            if word == "}":
-                return
-            if word == "JOINT":
-                joint(index)
-            elif word == "End":
-                take()  # "Site"
-                expect("{")
-                expect("OFFSET")
-                for _ in range(3):
-                    number()
-                expect("}")
-            else:
-                raise BvhError(f"{name}: unexpected {word!r} in joint {names[index]!r}")
+        channels.append(chans)
+        end_site.append(is_end)
+        return len(names) - 1
 
-    expect("HIERARCHY")
-    expect("ROOT")
-    joint(-1)
-    expect("MOTION")
-    expect("Frames:")
-    frames = int(number())
-    expect("Frame")
-    expect("Time:")
-    frame_time_s = number()
-    if frame_time_s <= 0 or frames <= 0:
-        raise BvhError(f"{name}: needs frames > 0 and Frame Time > 0 (got {frames}, {frame_time_s})")
+    tokens.expect("HIERARCHY")
+    tokens.expect("ROOT")
+    stack = [open_joint(-1, False)]
+    while stack:
+        word = tokens.take()
+        if word == "}":
+            stack.pop()
+        elif word in ("JOINT", "End") and not end_site[stack[-1]]:
+            stack.append(open_joint(stack[-1], word == "End"))
+        else:
+            raise BvhError(f"{tokens.name}: unexpected {word!r} in joint {names[stack[-1]]!r}")
+    return names, parents, offsets, channels, end_site
+
+
+def parse_bvh(text: str, name: str = "<bvh>") -> BvhClip:
+    """Parse BVH text. Raises :class:`BvhError` naming what is wrong; nothing else escapes."""
+    tokens = _Tokens(text, name)
+    names, parents, offsets, channels, end_site = _read_hierarchy(tokens)
+    tokens.expect("MOTION")
+    tokens.expect("Frames:")
+    frames = tokens.count("Frames", 1, MAX_FRAMES)
+    tokens.expect("Frame")
+    tokens.expect("Time:")
+    frame_time_s = tokens.number()
+    if frame_time_s <= 0:
+        raise BvhError(f"{name}: needs Frame Time > 0 (got {frame_time_s})")
     width = sum(len(c) for c in channels)
-    body = tokens[pos:]
+    body = tokens.words[tokens.pos :]
     if len(body) < frames * width:
         raise BvhError(
             f"{name}: MOTION holds {len(body)} numbers, {frames} frames × {width} channels need more"
@@ -207,11 +254,12 @@ def parse_bvh(text: str, name: str = "<bvh>") -> BvhClip:
         raise BvhError(f"{name}: MOTION holds non-finite numbers")
     return BvhClip(
         names=tuple(names),
-        parents=np.array(parents),
-        offsets=np.array(offsets),
+        parents=np.array(parents, dtype=np.int64),
+        offsets=np.array(offsets, dtype=np.float64).reshape(-1, 3),
         channels=tuple(channels),
         values=values,
         frame_time_s=frame_time_s,
+        end_site=tuple(end_site),
     )
 
 
@@ -363,26 +411,137 @@ def retarget(
     return global_to_local(global_rot), pos[:, 0].copy(), bone_scale
 
 
-def bvh_to_motion(
-    clip: BvhClip, mapping: RigMapping = CMU_MAPPING, name: str = "bvh", fps: float | None = None
-) -> Motion:
-    """Retarget a parsed BVH clip to an SMPL-22 :class:`Motion`, grounded, optionally resampled to ``fps``."""
+# ---------------------------------------------------------------------------------- any rig, end to end
+TPOSE_BONES: Final = tuple(
+    (f"{side}_{a}", f"{side}_{b}")
+    for side in ("left", "right")
+    for a, b in (("hip", "knee"), ("knee", "ankle"), ("ankle", "foot"), ("shoulder", "elbow"), ("elbow", "wrist"))
+)
+MAX_BLEND_S: Final = 0.25  # the longest blend out of a reference frame that is dropped with it
+
+
+def rest_positions(clip: BvhClip) -> np.ndarray:
+    """(S, 3) joint positions of the rest pose (every channel zero, the root at its OFFSET), file units."""
+    pos = np.zeros((len(clip.names), 3))
+    for j, parent in enumerate(clip.parents):  # parents come before children in a BVH file
+        pos[j] = clip.offsets[j] + (pos[parent] if parent >= 0 else 0.0)
+    return pos
+
+
+def _subtree(parents: np.ndarray, root: int) -> np.ndarray:
+    inside = np.zeros(len(parents), dtype=bool)
+    inside[root] = True
+    for j in range(root + 1, len(parents)):  # parents come first, so one pass finds every descendant
+        inside[j] = parents[j] >= 0 and inside[parents[j]]
+    return np.flatnonzero(inside)
+
+
+def tpose_reference(
+    rest_pos_m: np.ndarray, rest_rot: np.ndarray, clip: BvhClip, mapping: RigMapping
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rig's rest pose with its limbs turned onto SMPL's T-pose directions.
+
+    rest_pos_m (S, 3), rest_rot (S, 3, 3): the rest pose in our axes. Each limb bone (thigh, shin, foot,
+    upper arm, forearm) is turned by the smallest rotation that points it along SMPL's rest bone, so an A-pose,
+    an I-pose or a T-pose rest all become SMPL's T-pose; twist about the bone stays the rig's.
+    Returns (pos_m (S, 3), global_rot (S, 3, 3)).
+    """
+    pos, rot = rest_pos_m.copy(), rest_rot.copy()
+    index = {n: i for i, n in enumerate(clip.names)}
+    rest = rest_offsets()
+    for parent, child in TPOSE_BONES:
+        mapped = mapped_positions(pos[None], clip.names, mapping)[0]
+        have = mapped[JOINT_NAMES.index(child)] - mapped[JOINT_NAMES.index(parent)]
+        if np.linalg.norm(have) < 1e-9:
+            continue
+        turn = _align(have[None], rest[JOINT_NAMES.index(child)][None])[0]
+        driver = index[mapping.joints[parent].rotation]
+        moved = _subtree(clip.parents, driver)
+        pos[moved] = pos[driver] + (pos[moved] - pos[driver]) @ turn.T
+        rot[moved] = turn @ rot[moved]
+    return pos, rot
+
+
+def leading_reference_frames(clip: BvhClip, pos_m: np.ndarray) -> int:
+    """How many leading frames are no motion: a reference pose at frame 0 and any blend out of it.
+
+    pos_m: (F, S, 3) joint positions, metres. Frame 0 is a reference pose when every rotation below the root
+    is zero while frame 1's are not (a rest-pose frame, as Daz-style exports add), or when the body jumps
+    from it to frame 1 (an added T-pose, as CMU's BVH conversion has). Converters often blend out of such a
+    frame: the frames after it that still move much faster than the clip ever does again go with it.
+    """
+    frames = len(pos_m)
+    if frames < 3:
+        return 0
+    rel = pos_m - pos_m[:, :1]
+    step = np.linalg.norm(np.diff(rel, axis=0), axis=-1).max(axis=-1)  # (F-1,) largest joint step
+    typical = float(np.percentile(step[1:], 95))
+    rot_cols = [
+        k
+        for k, c in enumerate(c for j, chans in enumerate(clip.channels) for c in chans if j > 0)
+        if c.endswith("rotation")
+    ]
+    body = clip.values[:, sum(len(c) for c in clip.channels[:1]) :][:, rot_cols]
+    zero_first = len(rot_cols) > 0 and np.abs(body[0]).max() < 1e-3 and np.abs(body[1]).max() >= 1e-3
+    jump_first = step[0] > max(0.10, 4.0 * typical)
+    if not (zero_first or jump_first):
+        return 0
+    drop = 1
+    limit = min(frames - 2, 1 + int(MAX_BLEND_S / clip.frame_time_s))
+    while drop < limit and step[drop] > 2.0 * typical:
+        drop += 1
+    return drop
+
+
+@dataclasses.dataclass(frozen=True)
+class Retargeted:
+    """One BVH clip on SMPL-22, with what it took to get there.
+
+    motion:   grounded, at the file's frame rate.
+    rig:      the detected rig (None when a :class:`RigMapping` was given).
+    dropped:  leading frames dropped as a reference pose (and the blend out of it).
+    error_m:  (F, J) distance between the result's joints and the mapped source joints, metres; NaN for the
+              hubs (pelvis, spine3), which are placed by the retargeting itself.
+    """
+
+    motion: Motion
+    rig: object | None
+    dropped: int
+    error_m: np.ndarray
+
+
+def retarget_bvh(clip: BvhClip, mapping: RigMapping | None = None, name: str = "bvh") -> Retargeted:
+    """Retarget a parsed clip to SMPL-22. ``mapping`` None: detect the rig (``rigs.detect_rig``)."""
+    rig = None
+    world = np.eye(3)
+    if mapping is None:
+        from .rigs import detect_rig  # rigs builds on this module's types
+
+        rig = detect_rig(clip)
+        mapping, world = rig.mapping, rig.world_from_file
     pos, rot = bvh_fk(clip)
+    unit = mapping.metres_per_unit
+    pos_m, rot = pos @ world.T * unit, world @ rot
+    if mapping.tpose_frame is None:
+        dropped = leading_reference_frames(clip, pos_m)
+        rest_rot = np.broadcast_to(world, rot.shape[1:])
+        tpose_pos, tpose_rot = tpose_reference(rest_positions(clip) @ world.T * unit, rest_rot, clip, mapping)
+        pos_m = np.concatenate([tpose_pos[None], pos_m[dropped:]])
+        rot = np.concatenate([tpose_rot[None], rot[dropped:]])
+        tpose = 0
+    else:
+        dropped, tpose = 1, mapping.tpose_frame
     index = {n: i for i, n in enumerate(clip.names)}
     drivers = [index.get(mapping.joints[j].rotation) for j in JOINT_NAMES]
     if None in drivers:
         missing = [mapping.joints[j].rotation for j, d in zip(JOINT_NAMES, drivers, strict=True) if d is None]
         raise BvhError(f"rig {mapping.name!r} needs source joints {missing}, not in the file")
-    target = mapped_positions(pos, clip.names, mapping) * mapping.metres_per_unit
+    target = mapped_positions(pos_m, clip.names, mapping)
     driver_rot = rot[:, drivers]
-    tpose = 0 if mapping.tpose_frame is None else mapping.tpose_frame
-    _place_hubs(target, pos[:, drivers] * mapping.metres_per_unit, driver_rot, tpose, mapping)
-    if mapping.tpose_frame is None:
-        tpose_rot = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3))
-    else:
-        tpose_rot = driver_rot[mapping.tpose_frame]
-        keep = np.arange(len(target)) != mapping.tpose_frame
-        target, driver_rot = target[keep], driver_rot[keep]
+    _place_hubs(target, pos_m[:, drivers], driver_rot, tpose, mapping)
+    tpose_rot = driver_rot[tpose]
+    keep = np.arange(len(target)) != tpose
+    target, driver_rot = target[keep], driver_rot[keep]
     if len(target) == 0:
         raise BvhError(f"{name}: no frames besides the T-pose")
     fit_weight = np.array([mapping.joints[j].fit_weight for j in JOINT_NAMES])
@@ -393,13 +552,28 @@ def bvh_to_motion(
         local_rot=local_rot,
         root_pos_m=root,
         bone_scale=scale,
-        source=f"{mapping.name}:{name}",
+        source=f"{rig.family if rig is not None and rig.family else mapping.name}:{name}",
         licence=mapping.licence,
     )
-    motion = ground(motion)
+    error_m = np.linalg.norm(motion.joints() - target, axis=-1)
+    hubs = [i for i, j in enumerate(JOINT_NAMES) if mapping.joints[j].hub]
+    error_m[:, hubs] = np.nan
+    return Retargeted(motion=ground(motion), rig=rig, dropped=dropped, error_m=error_m)
+
+
+def bvh_to_motion(
+    clip: BvhClip, mapping: RigMapping | None = None, name: str = "bvh", fps: float | None = None
+) -> Motion:
+    """Retarget a parsed BVH clip to an SMPL-22 :class:`Motion`, grounded, optionally resampled to ``fps``.
+
+    ``mapping`` None detects the rig from the file (any humanoid); a :class:`RigMapping` pins it.
+    """
+    motion = retarget_bvh(clip, mapping, name).motion
     return motion if fps is None else resample(motion, fps)
 
 
-def load_bvh_motion(path: str | Path, mapping: RigMapping = CMU_MAPPING, fps: float | None = None) -> Motion:
+def load_bvh_motion(
+    path: str | Path, mapping: RigMapping | None = None, fps: float | None = None
+) -> Motion:
     path = Path(path)
     return bvh_to_motion(load_bvh(path), mapping, name=path.stem, fps=fps)

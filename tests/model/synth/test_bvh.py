@@ -125,7 +125,8 @@ def bvh_file(tmp_path_factory):
 
 def test_parse_reads_hierarchy_and_motion(bvh_file):
     clip = parse_bvh(bvh_file.read_text())
-    assert clip.names[0] == "Hips" and len(clip.names) == 25
+    assert clip.names[0] == "Hips" and len(clip.names) == 30  # 25 joints and 5 end sites
+    assert sum(clip.end_site) == 5 and "Head_EndSite" in clip.names
     assert clip.values.shape == (240, 6 + 24 * 3)
     assert clip.frame_time_s == pytest.approx(1 / 120, rel=1e-3)
 
@@ -134,7 +135,7 @@ def test_retargeted_fk_reproduces_mapped_source_joints_within_2cm(bvh_file):
     clip = parse_bvh(bvh_file.read_text())
     pos, _ = bvh_fk(clip)
     source = mapped_positions(pos, clip.names, CMU_MAPPING)[1:] * UNIT_M  # frame 0 is the T-pose
-    motion = load_bvh_motion(bvh_file)
+    motion = load_bvh_motion(bvh_file, CMU_MAPPING)
     joints = motion.joints()
     assert joints.shape == (239, 22, 3)
     hubs = [J["pelvis"], J["spine3"]]  # placed by the retarget itself
@@ -198,6 +199,8 @@ def test_rig_without_a_mapped_joint_is_refused(tmp_path):
         "HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION Frames: 2 Frame Time: 0.01 1 2\n"
     )
     with pytest.raises(BvhError, match="needs source joints"):
+        load_bvh_motion(path, CMU_MAPPING)
+    with pytest.raises(BvhError, match="cannot find the legs and spine"):
         load_bvh_motion(path)
 
 

@@ -1,0 +1,529 @@
+"""Rig detection for any humanoid BVH: which joints are the SMPL-22 body, the units, the up axis and facing.
+
+A rig is read in three steps, each from what every humanoid file has:
+
+1. **Anchors** (head, both hands, both feet) by joint name. Names are normalised first: namespaces
+   (``mixamorig:``) go, CamelCase and ``_ . - space`` split words, a side is ``Left``/``Right``, ``L``/``R``,
+   ``l_``/``_l`` or a one-letter prefix glued to a capital (``LThigh``, ``lShldr``), digits are dropped, and the
+   rest is looked up in :data:`PART_WORDS`. Where a name is missing the **structure** finds the anchor
+   instead: the limb chains from the pelvis by topology and rest-pose geometry (the head is the highest leaf,
+   the feet are where the leg chains turn forward, the hands end the two chains that leave the chest
+   sideways), and the sides come from the facing (the toes point forward, left = up × forward).
+2. **Chains** between anchors by topology: the pelvis is the lowest common ancestor of the feet and the
+   head, the chest (SMPL's spine3) that of the hands and the head. Knees and elbows by name on their chain,
+   or by arc length where no name says; the hip and shoulder are the last joints before them that sit
+   elsewhere (a twist or roll bone in between is skipped); the clavicle is what holds the shoulder.
+3. **Frame and units** from the rest pose (the OFFSETs): up is the snapped feet→head axis, left the snapped
+   right→left hip axis; units are whichever of m, cm, mm, inches and CMU units gives an adult height; a file
+   in none of them (a rescaled rig) is scaled to a 1.70 m body, and the report says so.
+
+The result is a :class:`DetectedRig`: a :class:`RigMapping` the retargeting uses, the rotation from the
+file's world to ours (y up, +z forward, +x left) and a report for ``egoposevr motion inspect``.
+
+Shape legend: ``S`` source joints (end sites included).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from typing import Final
+
+import numpy as np
+
+from ..skeleton import JOINT_INDEX, REST_JOINTS_M
+from .bvh import CMU_LICENCE, BvhClip, BvhError, JointSource, RigMapping, rest_positions
+
+
+class RigError(BvhError):
+    """A skeleton that cannot be mapped onto SMPL-22; the message names the chains that were not found."""
+
+
+# Normalised name (side and digits removed) -> body part. "shoulder" is deliberately absent: it is the
+# clavicle in CMU/Mixamo/Rokoko and the upper arm in H-Anim or CMU's 3ds Max rig; the chain decides.
+PART_WORDS: Final = {
+    "head": ("head", "skullbase", "skull"),
+    "neck": ("neck", "lowerneck", "upperneck"),
+    "hand": ("hand", "wrist", "palm"),
+    "forearm": ("forearm", "lowerarm", "elbow", "farm", "larm", "radius"),
+    "foot": ("foot", "ankle", "talus"),
+    "shin": ("leg", "lowerleg", "shin", "calf", "knee", "lleg", "tibia", "crus"),
+    "toe": ("toe", "toes", "toebase", "ball", "metatarsal", "midtarsal", "toe0"),
+    "hips": ("hips", "hip", "pelvis", "humanoidroot", "root"),
+}
+_PART_OF: Final = {word: part for part, words in PART_WORDS.items() for word in words}
+_GLUED_PARTS: Final = {
+    "femur", "tibia", "foot", "toes", "humerus", "radius", "wrist", "hand", "clavicle", "hipjoint", "fingers",
+    "thumb", "shoulder", "elbow", "knee", "ankle", "hip", "thigh", "shin", "arm", "forearm", "leg", "upleg",
+}  # fmt: skip
+_TWIST: Final = re.compile(r"twist|roll|bend|share|helper|adjust|scale|end", re.IGNORECASE)
+_SIDE_WORDS: Final = {"left": "L", "l": "L", "lft": "L", "right": "R", "r": "R", "rt": "R", "rgt": "R"}
+_NOISE_WORDS: Final = {"mixamorig", "bip", "biped", "j", "c", "def", "org", "mch", "character", "skeleton"}
+_WORD: Final = re.compile(r"[A-Z]+(?=[A-Z][a-z])|[A-Z]?[a-z]+|[A-Z]+|\d+")
+
+# Families recognised by their names, for the report (the mapping itself never depends on the family).
+FAMILIES: Final = (
+    ("mixamo", lambda ns: any(n.lower().startswith("mixamorig") for n in ns)),
+    ("3ds-max-biped", lambda ns: any(re.match(r"bip0*\d", n, re.IGNORECASE) for n in ns)),
+    ("vrm", lambda ns: any(n.startswith("J_Bip_") for n in ns)),
+    ("cmu", lambda ns: {"LHipJoint", "LeftUpLeg", "LowerBack"} <= set(ns)),
+    ("cmu-daz", lambda ns: {"abdomen", "lShldr", "lThigh"} <= set(ns)),
+    ("cmu-max", lambda ns: {"LeftHip", "LeftKnee", "lowerback"} <= set(ns)),
+    ("optitrack-motive", lambda ns: any(n.endswith(("LUArm", "LFArm")) for n in ns)),
+    ("xsens-mvn", lambda ns: {"T8", "L5"} <= {n.split(":")[-1] for n in ns}),
+    ("rokoko", lambda ns: {"LeftThigh", "LeftShin"} <= set(ns) or "Spine4" in ns),
+    ("perception-neuron", lambda ns: any("InHand" in n for n in ns) or "Spine3" in ns),
+    ("unity-humanoid", lambda ns: {"LeftUpperArm", "LeftLowerArm"} <= set(ns)),
+    ("unreal", lambda ns: {"upperarm_l", "calf_l"} <= {n.lower() for n in ns}),
+    ("h-anim", lambda ns: {"l_hip", "l_knee"} <= {n.lower() for n in ns}),
+    ("suffix _L/_R", lambda ns: any(re.search(r"[_.][LR]$", n) for n in ns)),
+    ("prefix l_/r_", lambda ns: any(re.match(r"[lr]_", n) for n in ns)),
+    ("left/right words", lambda ns: any("Left" in n for n in ns)),
+)
+
+# SMPL's spine joints along its pelvis -> spine3 polyline, as arc-length fractions (from the rest skeleton).
+_SPINE_POLYLINE: Final = REST_JOINTS_M[[0, 3, 6, 9]]
+_SPINE_ARC: Final = np.cumsum([0.0, *np.linalg.norm(np.diff(_SPINE_POLYLINE, axis=0), axis=1)])
+SPINE1_FRACTION: Final = float(_SPINE_ARC[1] / _SPINE_ARC[-1])
+SPINE2_FRACTION: Final = float(_SPINE_ARC[2] / _SPINE_ARC[-1])
+KNEE_FRACTION: Final = 0.53  # the knee along pelvis -> ankle by arc length (SMPL 0.53, CMU 0.56)
+ELBOW_FRACTION: Final = 0.66  # the elbow along chest -> wrist by arc length (SMPL)
+SNAP_FRACTION: Final = 0.15  # of the spine's length: see _point_along
+COLLAR_WEIGHT: Final = 0.45  # the SMPL collar, this far from the chest joint towards the shoulder
+
+# Units by the rest pose's head-joint height above the lowest foot joint (SMPL: 1.61 m for a 1.70 m person).
+UNITS: Final = (("m", 1.0), ("cm", 0.01), ("mm", 0.001), ("inch", 0.0254), ("cmu", 0.056444))
+HEAD_HEIGHT_RANGE_M: Final = (1.2, 2.0)  # adults (and tall children); the ranges of the units do not overlap
+NOMINAL_HEAD_HEIGHT_M: Final = 1.60  # a 1.70 m body, for files in no known unit
+
+
+@dataclasses.dataclass(frozen=True)
+class NameInfo:
+    """What a joint's name says: ``side`` 'L', 'R' or '', ``part`` a key of PART_WORDS or '' , ``word``
+    the normalised rest (for reports), ``twist`` an in-between helper bone."""
+
+    side: str
+    part: str
+    word: str
+    twist: bool
+
+
+def read_name(name: str) -> NameInfo:
+    """Normalise one joint name (see the module docstring)."""
+    base = re.split(r"[:|]", name)[-1]
+    side = ""
+    upper = base.upper()
+    for prefix, letter in (("LEFT", "L"), ("RIGHT", "R")):
+        if upper.startswith(prefix) and base.isupper():
+            side, base = letter, base[len(prefix) :]
+    if not side and (glued := re.match(r"^([LlRr])(?=[A-Z])", base)):
+        side, base = glued.group(1).upper(), base[1:]
+    if not side and (glued := re.match(r"^([lr])([a-z]{3,})$", base)) and glued.group(2) in _GLUED_PARTS:
+        side, base = glued.group(1).upper(), glued.group(2)  # CMU's ASF names: lfemur, ltibia, lwrist
+    words = []
+    for chunk in re.split(r"[\s_.\-]+", base):
+        words += [w.lower() for w in _WORD.findall(chunk)]
+    rest = []
+    for word in words:
+        if word in _SIDE_WORDS and not side:
+            side = _SIDE_WORDS[word]
+        elif word in _SIDE_WORDS or word in _NOISE_WORDS or word.isdigit():
+            continue
+        else:
+            rest.append(word)
+    word = "".join(rest)
+    part = _PART_OF.get(word, "")
+    if part == "hips" and side:
+        part = "thigh"  # l_hip, LeftHip: the hip joint of a leg
+    if word in ("upleg", "upperleg", "thigh", "uleg", "femur"):
+        part = "thigh"
+    return NameInfo(side=side, part=part, word=word, twist=bool(_TWIST.search(word)))
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectedRig:
+    """A rig read from a BVH file.
+
+    mapping:          where each SMPL joint comes from (metres_per_unit filled in, tpose_frame None).
+    world_from_file:  (3, 3) rotation from the file's axes to ours (y up, +z forward, +x left).
+    family:           the name family recognised ('' if none), for the report.
+    units:            'm', 'cm', 'mm', 'inch', 'cmu', or 'unknown' (then scaled to a 1.70 m body).
+    up_axis:          the file's up axis, e.g. '+Y' or '+Z'; forward_axis likewise.
+    anchors_from:     'names' or 'structure'.
+    roles:            SMPL-side role -> source joint name (head, hands, feet, knees, elbows, ...).
+    notes:            anything the user should know (mirrored names, no toe joint, ...).
+    """
+
+    mapping: RigMapping
+    world_from_file: np.ndarray
+    family: str
+    units: str
+    up_axis: str
+    forward_axis: str
+    anchors_from: str
+    roles: dict[str, str]
+    notes: tuple[str, ...]
+
+
+# ------------------------------------------------------------------------------------------- topology
+class _Tree:
+    """Parent/child queries over a clip's joints, with their rest positions (S, 3), file units."""
+
+    def __init__(self, clip: BvhClip) -> None:
+        self.names = clip.names
+        self.parents = clip.parents
+        self.end_site = clip.end_site or (False,) * len(clip.names)
+        self.rest = rest_positions(clip)
+        self.children: list[list[int]] = [[] for _ in clip.names]
+        for j, parent in enumerate(clip.parents):
+            if parent >= 0:
+                self.children[parent].append(j)
+        self.info = [read_name(n) for n in clip.names]
+
+    def ancestors(self, j: int) -> list[int]:
+        """j and its ancestors, j first."""
+        out = []
+        while j >= 0:
+            out.append(j)
+            j = int(self.parents[j])
+        return out
+
+    def common_ancestor(self, joints: list[int]) -> int:
+        chains = [self.ancestors(j)[::-1] for j in joints]
+        common = -1
+        for level in zip(*chains, strict=False):
+            if len(set(level)) != 1:
+                break
+            common = level[0]
+        return common
+
+    def path(self, top: int, bottom: int) -> list[int]:
+        """Joints from ``top`` down to ``bottom`` (both included); ``top`` must be an ancestor."""
+        chain = self.ancestors(bottom)
+        if top not in chain:
+            raise RigError(f"{self.names[top]!r} is not above {self.names[bottom]!r}")
+        return chain[: chain.index(top) + 1][::-1]
+
+    def descendants(self, j: int) -> list[int]:
+        out, todo = [], [j]
+        while todo:
+            k = todo.pop()
+            out.append(k)
+            todo += self.children[k]
+        return out
+
+    def leaves(self, j: int) -> list[int]:
+        return [k for k in self.descendants(j) if not self.children[k]]
+
+    def arc(self, path: list[int]) -> np.ndarray:
+        """Cumulative rest length along a path, (len(path),)."""
+        steps = np.linalg.norm(np.diff(self.rest[path], axis=0), axis=1)
+        return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+# -------------------------------------------------------------------------------------------- anchors
+def _named(tree: _Tree, part: str, side: str) -> int | None:
+    """The shallowest joint whose name says ``part`` on ``side`` (None if no name says so)."""
+    hits = [j for j, info in enumerate(tree.info) if info.part == part and info.side == side]
+    hits = [j for j in hits if not tree.end_site[j]]
+    return min(hits, key=lambda j: len(tree.ancestors(j))) if hits else None
+
+
+def _anchors_by_name(tree: _Tree) -> dict[str, int] | None:
+    anchors = {
+        "head": _named(tree, "head", ""),
+        "hand_L": _named(tree, "hand", "L"),
+        "hand_R": _named(tree, "hand", "R"),
+        "foot_L": _named(tree, "foot", "L"),
+        "foot_R": _named(tree, "foot", "R"),
+    }
+    if None in anchors.values():
+        return None
+    return {k: v for k, v in anchors.items() if v is not None}
+
+
+def _snap(vector: np.ndarray) -> np.ndarray:
+    """The signed coordinate axis nearest to a direction."""
+    axis = int(np.argmax(np.abs(vector)))
+    out = np.zeros(3)
+    out[axis] = np.sign(vector[axis]) or 1.0
+    return out
+
+
+def _pelvis_guess(tree: _Tree) -> int:
+    """The root, or below it while it has one child (a 'root'/'Bip01' wrapper above the pelvis)."""
+    j = 0
+    while len(tree.children[j]) == 1 and tree.children[tree.children[j][0]]:
+        j = tree.children[j][0]
+    return j
+
+
+def _anchors_by_structure(tree: _Tree) -> dict[str, int]:
+    """Head, hands and feet from topology and rest geometry alone (names unknown)."""
+    pelvis = _pelvis_guess(tree)
+    branches = sorted(tree.children[pelvis], key=lambda c: len(tree.descendants(c)), reverse=True)
+    if len(branches) < 3:
+        raise RigError(
+            f"cannot find the legs and spine: the pelvis {tree.names[pelvis]!r} has "
+            f"{len(branches)} branches (legs and spine need 3), and the joint names are not recognised"
+        )
+    spine, legs = branches[0], branches[1:3]
+    rest = tree.rest - tree.rest[pelvis]
+    leg_tips = [max(tree.leaves(b), key=lambda k: np.linalg.norm(rest[k])) for b in legs]
+    up = _snap(rest[tree.descendants(spine)].mean(axis=0) - rest[leg_tips].mean(axis=0))
+    upper = tree.leaves(spine)
+    top = max(upper, key=lambda k: rest[k] @ up)
+    head = int(tree.parents[top]) if tree.end_site[top] else top  # an end site marks the head's top
+    feet = [_ankle_on_path(tree, tree.path(pelvis, tip), up) for tip in leg_tips]
+    toe_dirs = [rest[tip] - rest[foot] for tip, foot in zip(leg_tips, feet, strict=True)]
+    forward = sum(toe_dirs)
+    forward = _snap(forward - (forward @ up) * up)
+    left = np.cross(up, forward)
+    foot_l, foot_r = sorted(feet, key=lambda k: -(rest[k] @ left))
+    sideways = [k for k in upper if k not in tree.descendants(head)]
+    if len(sideways) < 2:
+        raise RigError(
+            "cannot find the left and right arm chains: the spine branch ends only in the head, and the joint "
+            "names are not recognised"
+        )
+    hand_tips = (max(sideways, key=lambda k: rest[k] @ left), min(sideways, key=lambda k: rest[k] @ left))
+    hands = [_hand_on_path(tree, tree.path(spine, tip)) for tip in hand_tips]
+    return {"head": head, "hand_L": hands[0], "hand_R": hands[1], "foot_L": foot_l, "foot_R": foot_r}
+
+
+def _ankle_on_path(tree: _Tree, path: list[int], up: np.ndarray) -> int:
+    """The ankle: where a leg chain, after its long descent, first runs more forward than down."""
+    descended = False
+    for a, b in zip(path, path[1:], strict=False):
+        step = tree.rest[b] - tree.rest[a]
+        length = np.linalg.norm(step)
+        if length < 1e-9:
+            continue
+        vertical = abs(step @ up)
+        if vertical > 0.7 * length:
+            descended = True
+        elif descended:
+            return a
+    return path[-2] if len(path) > 1 else path[-1]
+
+
+def _hand_on_path(tree: _Tree, path: list[int]) -> int:
+    """The wrist: the first joint past mid-arm that branches (fingers), else the last real joint."""
+    arc = tree.arc(path)
+    for j, s in zip(path, arc, strict=True):
+        if s > 0.6 * arc[-1] and len([c for c in tree.children[j] if not tree.info[c].twist]) >= 2:
+            return j
+    real = [j for j in path if not tree.end_site[j]]
+    return real[-1]
+
+
+# --------------------------------------------------------------------------------------------- chains
+def _distinct_above(tree: _Tree, path: list[int], joint: int, min_length: float) -> int:
+    """The nearest joint above ``joint`` on ``path`` that sits elsewhere and is no twist/roll helper."""
+    index = path.index(joint)
+    for k in range(index - 1, -1, -1):
+        j = path[k]
+        far = np.linalg.norm(tree.rest[j] - tree.rest[joint]) > min_length
+        if far and not tree.info[j].twist:
+            return j
+    return path[0]
+
+
+def _by_fraction(tree: _Tree, path: list[int], fraction: float, exclude: tuple[int, ...]) -> int:
+    arc = tree.arc(path)
+    candidates = [k for k, j in enumerate(path) if j not in exclude]
+    best = min(candidates, key=lambda k: abs(arc[k] - fraction * arc[-1]))
+    return path[best]
+
+
+def _on_path(tree: _Tree, path: list[int], part: str) -> int | None:
+    hits = [j for j in path if tree.info[j].part == part]
+    return hits[0] if hits else None
+
+
+def _leg(tree: _Tree, pelvis: int, foot: int, side: str) -> dict[str, int]:
+    path = tree.path(pelvis, foot)
+    if len(path) < 3:
+        raise RigError(f"the {side} leg chain {[tree.names[j] for j in path]} has no knee")
+    length = tree.arc(path)[-1]
+    knee = _on_path(tree, path[1:-1], "shin") or _by_fraction(tree, path, KNEE_FRACTION, (pelvis, foot))
+    hip = _distinct_above(tree, path, knee, 0.3 * length)
+    if hip == pelvis:
+        hip = path[1] if path[1] != knee else knee
+    toe = _toe_below(tree, foot)
+    return {"hip": hip, "knee": knee, "ankle": foot, "toe": toe}
+
+
+def _toe_below(tree: _Tree, foot: int) -> int:
+    """The toe (SMPL's foot joint, the ball): a toe-named joint below the ankle, else the first joint or end
+    site below it that sits elsewhere."""
+    below = tree.descendants(foot)[1:]
+    named = [j for j in below if tree.info[j].part == "toe" and not tree.end_site[j]]
+    if named:
+        return min(named, key=lambda j: len(tree.ancestors(j)))
+    far = [j for j in below if np.linalg.norm(tree.rest[j] - tree.rest[foot]) > 1e-6]
+    if not far:
+        raise RigError(f"nothing below the ankle {tree.names[foot]!r} to place the toes")
+    return min(far, key=lambda j: len(tree.ancestors(j)))
+
+
+def _arm(tree: _Tree, chest: int, hand: int, side: str) -> dict[str, int]:
+    path = tree.path(chest, hand)
+    if len(path) < 3:
+        raise RigError(f"the {side} arm chain {[tree.names[j] for j in path]} has no elbow")
+    length = tree.arc(path)[-1]
+    elbow = _on_path(tree, path[1:-1], "forearm") or _by_fraction(tree, path, ELBOW_FRACTION, (chest, hand))
+    shoulder = _distinct_above(tree, path, elbow, 0.2 * length)
+    if shoulder == chest:
+        shoulder = path[1] if path[1] != elbow else elbow
+    clavicle = int(tree.parents[shoulder]) if shoulder != chest else chest
+    return {"clavicle": clavicle, "shoulder": shoulder, "elbow": elbow, "wrist": hand}
+
+
+def _point_along(tree: _Tree, path: list[int], fraction: float) -> JointSource:
+    """A point ``fraction`` of the way along a chain (by rest arc length), driven by its segment's joint.
+
+    A joint of the chain within :data:`SNAP_FRACTION` of that point is used itself: SMPL's chain bends only
+    at its joints, so a point between two source pivots misses by centimetres whenever the source bends.
+    """
+    arc = tree.arc(path)
+    target = fraction * arc[-1]
+    inner = range(1, len(path) - 1)
+    near = [k for k in inner if abs(arc[k] - target) <= SNAP_FRACTION * arc[-1]]
+    if near:
+        k = min(near, key=lambda k: abs(arc[k] - target))
+        return JointSource(tree.names[path[k]], tree.names[path[k]])
+    k = int(np.clip(np.searchsorted(arc, target, side="right") - 1, 0, len(path) - 2))
+    span = arc[k + 1] - arc[k]
+    weight = float((target - arc[k]) / span) if span > 0 else 0.0
+    return JointSource(tree.names[path[k]], tree.names[path[k]], tree.names[path[k + 1]], weight)
+
+
+# ------------------------------------------------------------------------------------- frame and units
+def _axis_label(vector: np.ndarray) -> str:
+    axis = int(np.argmax(np.abs(vector)))
+    return ("+" if vector[axis] > 0 else "-") + "XYZ"[axis]
+
+
+def _units(head_height: float) -> tuple[str, float]:
+    low, high = HEAD_HEIGHT_RANGE_M
+    for name, metres in UNITS:
+        if low <= head_height * metres <= high:
+            return name, metres
+    return "unknown", NOMINAL_HEAD_HEIGHT_M / head_height
+
+
+def _family(names: tuple[str, ...]) -> str:
+    return next((name for name, test in FAMILIES if test(names)), "")
+
+
+# -------------------------------------------------------------------------------------------- detect
+def detect_rig(clip: BvhClip) -> DetectedRig:
+    """Read a clip's rig (see the module docstring). Raises :class:`RigError` naming what was not found."""
+    tree = _Tree(clip)
+    notes: list[str] = []
+    anchors = _anchors_by_name(tree)
+    anchors_from = "names"
+    if anchors is None:
+        anchors_from = "structure"
+        anchors = _anchors_by_structure(tree)
+    pelvis = tree.common_ancestor([anchors["foot_L"], anchors["foot_R"], anchors["head"]])
+    chest = tree.common_ancestor([anchors["hand_L"], anchors["hand_R"], anchors["head"]])
+    _check_chains(tree, anchors, pelvis, chest)
+    legs = {s: _leg(tree, pelvis, anchors[f"foot_{s}"], s) for s in "LR"}
+    arms = {s: _arm(tree, chest, anchors[f"hand_{s}"], s) for s in "LR"}
+    world_from_file = _world_from_file(tree, pelvis, anchors, legs)
+    if tree.info[legs["L"]["toe"]].part != "toe":
+        notes.append("no toe joints: SMPL's feet are placed at the end of each foot")
+    rest_ours = tree.rest @ world_from_file.T  # file units, our axes
+    if np.sum(rest_ours[[legs["L"]["ankle"], legs["R"]["ankle"]], 2] - rest_ours[[legs["L"]["toe"], legs["R"]["toe"]], 2]) > 0:
+        notes.append("the toes point backwards: left and right may be swapped in the joint names")
+    feet_y = min(rest_ours[legs[s][k], 1] for s in "LR" for k in ("ankle", "toe"))
+    units, metres = _units(float(rest_ours[anchors["head"], 1] - feet_y))
+    if units == "unknown":
+        notes.append(f"units unknown: scaled to a {NOMINAL_HEAD_HEIGHT_M / 0.94:.2f} m body")
+    mapping = _mapping(tree, pelvis, chest, anchors["head"], legs, arms, metres)
+    roles = {
+        "pelvis": tree.names[pelvis],
+        "chest": tree.names[chest],
+        "head": tree.names[anchors["head"]],
+        **{f"{s}_{k}": tree.names[j] for s in "LR" for k, j in legs[s].items()},
+        **{f"{s}_{k}": tree.names[j] for s in "LR" for k, j in arms[s].items()},
+    }
+    family = _family(clip.names)
+    return DetectedRig(
+        mapping=mapping,
+        world_from_file=world_from_file,
+        family=family,
+        units=units,
+        up_axis=_axis_label(world_from_file[1]),
+        forward_axis=_axis_label(world_from_file[2]),
+        anchors_from=anchors_from,
+        roles=roles,
+        notes=tuple(notes),
+    )
+
+
+def _check_chains(tree: _Tree, anchors: dict[str, int], pelvis: int, chest: int) -> None:
+    """Refuse rigs whose anchors do not hang together like a body, naming the chains that fail."""
+    missing = []
+    for side in "LR":
+        if pelvis not in tree.ancestors(anchors[f"foot_{side}"]) or anchors[f"foot_{side}"] == pelvis:
+            missing.append(f"{side} leg")
+        if chest not in tree.ancestors(anchors[f"hand_{side}"]) or anchors[f"hand_{side}"] == chest:
+            missing.append(f"{side} arm")
+    if chest == anchors["head"] or pelvis not in tree.ancestors(chest):
+        missing.append("spine to the head")
+    if chest == pelvis:
+        missing.append("spine (the arms branch off at the pelvis)")
+    if missing:
+        raise RigError(f"cannot map the rig: no {', '.join(missing)} chain")
+
+
+def _world_from_file(tree: _Tree, pelvis: int, anchors: dict[str, int], legs: dict) -> np.ndarray:
+    rest = tree.rest
+    feet = rest[[anchors["foot_L"], anchors["foot_R"]]].mean(axis=0)
+    up = _snap(rest[anchors["head"]] - feet)
+    across = rest[legs["L"]["hip"]] - rest[legs["R"]["hip"]]
+    if np.linalg.norm(across - (across @ up) * up) < 1e-9:
+        across = rest[anchors["hand_L"]] - rest[anchors["hand_R"]]
+    left = _snap(across - (across @ up) * up)
+    forward = np.cross(left, up)
+    return np.stack([left, up, forward])
+
+
+def _mapping(
+    tree: _Tree, pelvis: int, chest: int, head: int, legs: dict, arms: dict, metres: float
+) -> RigMapping:
+    n = tree.names
+    spine = tree.path(pelvis, chest)
+    neck_path = tree.path(chest, head)
+    if len(neck_path) > 2:
+        neck = JointSource(n[neck_path[1]], n[neck_path[-2]])
+    else:
+        neck = JointSource(n[chest], n[chest], n[head], 0.5)
+    joints = {
+        "pelvis": JointSource(n[pelvis], n[pelvis], hub=True),
+        "spine1": _point_along(tree, spine, SPINE1_FRACTION),
+        "spine2": _point_along(tree, spine, SPINE2_FRACTION),
+        "spine3": JointSource(n[chest], n[chest], hub=True),
+        "neck": neck,
+        "head": JointSource(n[head], n[head]),
+    }
+    for side, word in (("L", "left"), ("R", "right")):
+        leg, arm = legs[side], arms[side]
+        joints[f"{word}_hip"] = JointSource(n[leg["hip"]], n[leg["hip"]])
+        joints[f"{word}_knee"] = JointSource(n[leg["knee"]], n[leg["knee"]])
+        joints[f"{word}_ankle"] = JointSource(n[leg["ankle"]], n[leg["ankle"]])
+        joints[f"{word}_foot"] = JointSource(n[leg["toe"]], n[leg["toe"]])
+        joints[f"{word}_collar"] = JointSource(n[chest], n[arm["clavicle"]], n[arm["shoulder"]], COLLAR_WEIGHT)
+        joints[f"{word}_shoulder"] = JointSource(n[arm["shoulder"]], n[arm["shoulder"]])
+        joints[f"{word}_elbow"] = JointSource(n[arm["elbow"]], n[arm["elbow"]])
+        joints[f"{word}_wrist"] = JointSource(n[arm["wrist"]], n[arm["wrist"]])
+    assert set(joints) == set(JOINT_INDEX)
+    return RigMapping(
+        name="auto", metres_per_unit=metres, tpose_frame=None, joints=joints, licence=""
+    )
+
+
+__all__ = ["CMU_LICENCE", "DetectedRig", "RigError", "detect_rig", "read_name"]
