@@ -1,12 +1,16 @@
 """Synthesise training data or recorded sessions from motion capture and procedural motion.
 
-Motion (BVH in CMU conventions, AMASS .npz, procedural families) becomes headset + controller tracks and
-rendered egocentric RGB-D frames. Without --sessions it writes a sharded dataset under OUT/SPLIT/ with
+Motion (BVH from any humanoid rig, AMASS .npz, procedural families) becomes headset + controller tracks and
+rendered egocentric RGB-D frames. --motion takes files, folders (searched recursively) and globs; the same
+bytes twice and files that cannot be used are skipped and named. --split-by-subject keeps only the clips
+whose subject (performer) falls in --split, so that no person is in two splits (`egoposevr motion inspect`
+shows the assignment). Without --sessions it writes a sharded dataset under OUT/SPLIT/ with
 OUT/manifest.json and a contact-sheet preview; with --sessions, one .egrec recording per clip. The same
 --seed gives the same bytes. DATA.md describes both formats.
 
 Example (the development set; DATA.md has the full recipe):
-  egoposevr synth --motion ../shared/mocap/cmu/0[1-7]_*.bvh --procedural 240 --out data --split train --seed 1
+  egoposevr synth --motion ../shared/mocap --split-by-subject train=0.8,val=0.1,test=0.1 --split train \
+      --procedural 240 --out data --seed 1
 """
 
 from __future__ import annotations
@@ -36,7 +40,19 @@ def _positive(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--motion", nargs="*", default=[], metavar="PATH", help="BVH or AMASS .npz files or folders"
+        "--motion", nargs="*", default=[], metavar="PATH", help="BVH/AMASS .npz files, folders or globs"
+    )
+    parser.add_argument(
+        "--split-by-subject",
+        metavar="SHARES",
+        help="split the motion files by subject, e.g. train=0.8,val=0.1,test=0.1; --split picks one",
+    )
+    parser.add_argument("--subject-regex", metavar="RE", help="the subject is this regex's first group")
+    parser.add_argument(
+        "--licence",
+        default="",
+        metavar="TEXT",
+        help="the motion files' terms (CMU rigs get CMU's by default)",
     )
     parser.add_argument("--procedural", type=int, default=0, metavar="N", help="procedural clips to add")
     parser.add_argument("--families", default="", help="comma-separated procedural families (default: all)")
@@ -61,17 +77,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _motion_files(paths: list[str]) -> list[Path]:
-    files: list[Path] = []
-    for text in paths:
-        path = Path(text)
-        if path.is_dir():
-            files += sorted(p for p in path.iterdir() if p.suffix.lower() in (".bvh", ".npz"))
-        elif path.suffix.lower() in (".bvh", ".npz") and path.is_file():
-            files.append(path)
-        else:
-            raise FileNotFoundError(f"{path}: not a .bvh/.npz file or a folder of them")
-    return files
+def _select(args: argparse.Namespace) -> tuple[list, dict]:
+    """The motion files to use, and the manifest's record of the library (duplicates, split, subjects)."""
+    from ..model.synth.library import build_library, motion_seconds, parse_split_shares, split_subjects
+
+    library, empty = build_library(args.motion, args.subject_regex)
+    if empty:
+        raise FileNotFoundError(f"no .bvh/.npz files in {empty}")
+    record: dict = {
+        "duplicates_skipped": [f"{a} (same bytes as {b})" for a, b in library.duplicates],
+        "unreadable": [f"{a}: {b}" for a, b in library.unreadable],
+    }
+    files = library.files
+    if args.split_by_subject:
+        shares = parse_split_shares(args.split_by_subject)
+        if args.split not in dict(shares):
+            raise ValueError(f"--split {args.split!r} is not one of {[n for n, _ in shares]}")
+        seconds: dict[str, float] = {}
+        for item in files:
+            seconds[item.subject] = seconds.get(item.subject, 0.0) + motion_seconds(item.path)
+        assignment = split_subjects(seconds, shares, args.seed)
+        files = [f for f in files if assignment[f.subject] == args.split]
+        record["subject_split"] = {
+            "shares": dict(shares),
+            "seed": args.seed,
+            "subjects": {name: sorted(s for s, n in assignment.items() if n == name) for name, _ in shares},
+            "hours": {
+                name: round(sum(seconds[s] for s, n in assignment.items() if n == name) / 3600, 4)
+                for name, _ in shares
+            },
+        }
+    return files, record
 
 
 def run(args: argparse.Namespace) -> int:
@@ -96,8 +132,8 @@ def run(args: argparse.Namespace) -> int:
     from ..model.synth.render import Renderer
 
     try:
-        files = _motion_files(args.motion)
-    except FileNotFoundError as error:
+        files, library_record = _select(args) if args.motion else ([], {})
+    except (FileNotFoundError, ValueError) as error:
         print(f"egoposevr synth: {error}", file=sys.stderr)
         return 2
     families = [f for f in args.families.split(",") if f] or sorted(FAMILIES)
@@ -135,13 +171,17 @@ def run(args: argparse.Namespace) -> int:
         rng = np.random.default_rng([args.seed, index])
         try:
             if kind == "file":
-                path = Path(what)
+                path = what.path
                 motion = load_amass_motion(path) if path.suffix.lower() == ".npz" else load_bvh_motion(path)
+                if args.licence:
+                    motion = motion.replace(licence=args.licence)
+                elif not motion.licence:
+                    motion = motion.replace(licence=_default_licence(motion.source))
             else:
                 motion = generate(str(what), args.seconds, 60.0, rng)
                 motion = motion.replace(name=f"{what}-{index:04d}")
         except (BvhError, AmassError) as error:
-            failures.append(str(error))
+            failures.append(f"{what.path}: {error}" if kind == "file" else str(error))
             bar.update(1)
             continue
         chunk = max(2, round(args.seconds * motion.fps))
@@ -167,6 +207,7 @@ def run(args: argparse.Namespace) -> int:
                     "seconds": round(piece.duration_s, 3),
                     "licence": piece.licence,
                 }
+                | ({"file": str(what.path), "subject": what.subject} if kind == "file" else {})
             )
         bar.update(1)
         bar.set_postfix(fps=f"{frames / (time.perf_counter() - started):.1f}")
@@ -176,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - started
     rate = frames / elapsed if elapsed > 0 else 0.0
     print(f"{frames} camera frames from {len(sources)} sequences in {elapsed:.1f} s: {rate:.1f} frames/s")
-    for failure in failures:
+    for failure in failures + library_record.get("duplicates_skipped", []):
         print(f"skipped: {failure}", file=sys.stderr)
 
     if writer is not None:
@@ -194,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
             "licences": licences,
             "procedural_families": families if args.procedural else [],
             "skipped": failures,
+            "motion_library": library_record,
         }
         manifest = update_manifest(args.out, args.split, entry)
         if writer.shards:
@@ -202,3 +244,12 @@ def run(args: argparse.Namespace) -> int:
             contact_sheet(list(iter_shard_sequences(shard)), preview)
             print(f"wrote {manifest} and {preview}")
     return 0 if sources else 1
+
+
+def _default_licence(source: str) -> str:
+    """CMU's terms for motion read from one of the CMU database's rigs; otherwise say that none was given."""
+    from ..model.synth.bvh import CMU_LICENCE
+
+    if source.startswith("cmu"):
+        return CMU_LICENCE
+    return "not given: pass --licence with the terms of these files"

@@ -415,7 +415,13 @@ def retarget(
 TPOSE_BONES: Final = tuple(
     (f"{side}_{a}", f"{side}_{b}")
     for side in ("left", "right")
-    for a, b in (("hip", "knee"), ("knee", "ankle"), ("ankle", "foot"), ("shoulder", "elbow"), ("elbow", "wrist"))
+    for a, b in (
+        ("hip", "knee"),
+        ("knee", "ankle"),
+        ("ankle", "foot"),
+        ("shoulder", "elbow"),
+        ("elbow", "wrist"),
+    )
 )
 MAX_BLEND_S: Final = 0.25  # the longest blend out of a reference frame that is dropped with it
 
@@ -572,8 +578,6 @@ def bvh_to_motion(
     return motion if fps is None else resample(motion, fps)
 
 
-def load_bvh_motion(
-    path: str | Path, mapping: RigMapping | None = None, fps: float | None = None
-) -> Motion:
+def load_bvh_motion(path: str | Path, mapping: RigMapping | None = None, fps: float | None = None) -> Motion:
     path = Path(path)
     return bvh_to_motion(load_bvh(path), mapping, name=path.stem, fps=fps)

@@ -26,6 +26,7 @@ Shape legend: ``S`` source joints (end sites included).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import re
 from typing import Final
 
@@ -294,7 +295,7 @@ def _anchors_by_structure(tree: _Tree) -> dict[str, int]:
 def _ankle_on_path(tree: _Tree, path: list[int], up: np.ndarray) -> int:
     """The ankle: where a leg chain, after its long descent, first runs more forward than down."""
     descended = False
-    for a, b in zip(path, path[1:], strict=False):
+    for a, b in itertools.pairwise(path):
         step = tree.rest[b] - tree.rest[a]
         length = np.linalg.norm(step)
         if length < 1e-9:
@@ -436,7 +437,13 @@ def detect_rig(clip: BvhClip) -> DetectedRig:
     if tree.info[legs["L"]["toe"]].part != "toe":
         notes.append("no toe joints: SMPL's feet are placed at the end of each foot")
     rest_ours = tree.rest @ world_from_file.T  # file units, our axes
-    if np.sum(rest_ours[[legs["L"]["ankle"], legs["R"]["ankle"]], 2] - rest_ours[[legs["L"]["toe"], legs["R"]["toe"]], 2]) > 0:
+    if (
+        np.sum(
+            rest_ours[[legs["L"]["ankle"], legs["R"]["ankle"]], 2]
+            - rest_ours[[legs["L"]["toe"], legs["R"]["toe"]], 2]
+        )
+        > 0
+    ):
         notes.append("the toes point backwards: left and right may be swapped in the joint names")
     feet_y = min(rest_ours[legs[s][k], 1] for s in "LR" for k in ("ankle", "toe"))
     units, metres = _units(float(rest_ours[anchors["head"], 1] - feet_y))
@@ -516,14 +523,14 @@ def _mapping(
         joints[f"{word}_knee"] = JointSource(n[leg["knee"]], n[leg["knee"]])
         joints[f"{word}_ankle"] = JointSource(n[leg["ankle"]], n[leg["ankle"]])
         joints[f"{word}_foot"] = JointSource(n[leg["toe"]], n[leg["toe"]])
-        joints[f"{word}_collar"] = JointSource(n[chest], n[arm["clavicle"]], n[arm["shoulder"]], COLLAR_WEIGHT)
+        joints[f"{word}_collar"] = JointSource(
+            n[chest], n[arm["clavicle"]], n[arm["shoulder"]], COLLAR_WEIGHT
+        )
         joints[f"{word}_shoulder"] = JointSource(n[arm["shoulder"]], n[arm["shoulder"]])
         joints[f"{word}_elbow"] = JointSource(n[arm["elbow"]], n[arm["elbow"]])
         joints[f"{word}_wrist"] = JointSource(n[arm["wrist"]], n[arm["wrist"]])
     assert set(joints) == set(JOINT_INDEX)
-    return RigMapping(
-        name="auto", metres_per_unit=metres, tpose_frame=None, joints=joints, licence=""
-    )
+    return RigMapping(name="auto", metres_per_unit=metres, tpose_frame=None, joints=joints, licence="")
 
 
 __all__ = ["CMU_LICENCE", "DetectedRig", "RigError", "detect_rig", "read_name"]

@@ -4,12 +4,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from rigfamilies import FAMILIES, FAMILY, Layout, reference_motion, write_family_bvh
 
 from egoposevr.model.skeleton import JOINT_NAMES, forward_kinematics, rest_offsets
 from egoposevr.model.synth.bvh import BvhError, parse_bvh, retarget_bvh
 from egoposevr.model.synth.rigs import RigError, detect_rig, read_name
-
-from .rigfamilies import FAMILIES, FAMILY, Layout, reference_motion, write_family_bvh
 
 FPS = 60.0
 LOCAL_ROT, ROOT_M = reference_motion(fps=FPS)
@@ -51,9 +50,11 @@ def test_every_family_retargets_to_the_same_joints_within_2cm(family, reference)
     assert result.dropped == 0 and len(joints) == len(TRUTH_M)
     to_truth = np.linalg.norm(joints[:, OTHERS] - TRUTH_M[:, OTHERS], axis=-1)
     to_each_other = np.linalg.norm(joints - reference, axis=-1)
-    assert to_truth.max() < 0.025, dict(zip(np.array(JOINT_NAMES)[OTHERS], to_truth.max(0).round(3)))
+    assert to_truth.max() < 0.025, dict(
+        zip(np.array(JOINT_NAMES)[OTHERS], to_truth.max(0).round(3), strict=False)
+    )
     assert np.linalg.norm(joints[:, PLACED] - TRUTH_M[:, PLACED], axis=-1).max() < 0.08
-    assert to_each_other.max() < 0.02, dict(zip(JOINT_NAMES, to_each_other.max(0).round(3)))
+    assert to_each_other.max() < 0.02, dict(zip(JOINT_NAMES, to_each_other.max(0).round(3), strict=False))
 
 
 @pytest.mark.parametrize("layout", list(LAYOUTS))
@@ -61,7 +62,7 @@ def test_every_family_retargets_to_the_same_joints_within_2cm(family, reference)
 def test_rest_pose_axes_units_and_channel_order_do_not_change_the_result(family, layout, reference):
     joints, result = _joints(family, layout)
     error = np.linalg.norm(joints - reference, axis=-1)
-    assert error.max() < 0.02, dict(zip(JOINT_NAMES, error.max(0).round(3)))
+    assert error.max() < 0.02, dict(zip(JOINT_NAMES, error.max(0).round(3), strict=False))
     rig = result.rig
     assert rig.up_axis == ("+Z" if LAYOUTS[layout].z_up else "+Y")
     assert rig.forward_axis == ("-Y" if LAYOUTS[layout].z_up else "+Z")
@@ -159,7 +160,9 @@ def test_fuzzed_files_give_a_bvh_error_or_a_motion(cut, junk, data):
     tokens = _SAMPLE[:cut].split() + junk.split() + _SAMPLE[cut:].split()
     if tokens and data.draw(st.booleans()):
         k = data.draw(st.integers(0, len(tokens) - 1))
-        tokens[k] = data.draw(st.sampled_from(["{", "}", "JOINT", "End", "nan", "-1", "1e309", "7", "ROOT", "x"]))
+        tokens[k] = data.draw(
+            st.sampled_from(["{", "}", "JOINT", "End", "nan", "-1", "1e309", "7", "ROOT", "x"])
+        )
     try:
         clip = parse_bvh(" ".join(tokens))
         retarget_bvh(clip)

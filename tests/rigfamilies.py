@@ -261,14 +261,32 @@ def _skeleton(family: Family) -> list[_Joint]:
         wrist = rest[JOINT_INDEX[ROLE_JOINT[f"{s}_hand"]]]
         if family.twist:
             elbow = joints[k].rest_m
-            k = add(f"lowerarm_twist_01_{family.sides['LR'.index(s)]}", k, (elbow + wrist) / 2, joints[k].driver, s)
+            k = add(
+                f"lowerarm_twist_01_{family.sides['LR'.index(s)]}",
+                k,
+                (elbow + wrist) / 2,
+                joints[k].driver,
+                s,
+            )
         hand = place(f"{s}_hand", k, arm=s)
         if family.fingers:
             out = np.sign(wrist[0])
-            for f, (dz, name) in enumerate(((0.03, "Thumb"), (0.0, "Index"), (-0.02, "Ring"))):
-                base = add(f"{side_name(f'{s}_hand')}{name}1", hand, wrist + [out * 0.08, 0, dz], f"{s}_finger", s)
-                add(f"{side_name(f'{s}_hand')}{name}2", base, wrist + [out * 0.11, 0, dz], f"{s}_finger", s)
-    for k, joint in enumerate(joints):
+            for _f, (dz, name) in enumerate(((0.03, "Thumb"), (0.0, "Index"), (-0.02, "Ring"))):
+                base = add(
+                    f"{side_name(f'{s}_hand')}{name}1",
+                    hand,
+                    wrist + np.array([out * 0.08, 0, dz]),
+                    f"{s}_finger",
+                    s,
+                )
+                add(
+                    f"{side_name(f'{s}_hand')}{name}2",
+                    base,
+                    wrist + np.array([out * 0.11, 0, dz]),
+                    f"{s}_finger",
+                    s,
+                )
+    for joint in joints:
         if joint.driver == "end":
             joint.name, joint.driver = "", joints[joint.parent].driver
         elif joint.driver.endswith("_finger"):
@@ -281,13 +299,18 @@ def _a_pose_turn(side: str, degrees: float) -> np.ndarray:
     return Rotation.from_rotvec([0, 0, sign * np.radians(degrees)]).as_matrix()
 
 
-def write_family_bvh(family: Family, layout: Layout, local_rot: np.ndarray, root_m: np.ndarray, fps: float) -> str:
+def write_family_bvh(
+    family: Family, layout: Layout, local_rot: np.ndarray, root_m: np.ndarray, fps: float
+) -> str:
     """BVH text of the reference motion on ``family``'s rig written as ``layout`` says."""
     joints = _skeleton(family)
     pos_m, global_rot = forward_kinematics(local_rot, root_m, rest_offsets())
     shoulder = {s: REST_JOINTS_M[JOINT_INDEX[f"{w}_shoulder"]] for s, w in (("L", "left"), ("R", "right"))}
     turn = {s: _a_pose_turn(s, layout.a_pose_deg) for s in "LR"}
-    rest_a = [j.rest_m if not j.arm else shoulder[j.arm] + turn[j.arm] @ (j.rest_m - shoulder[j.arm]) for j in joints]
+    rest_a = [
+        j.rest_m if not j.arm else shoulder[j.arm] + turn[j.arm] @ (j.rest_m - shoulder[j.arm])
+        for j in joints
+    ]
     pre = [turn[j.arm] if j.arm else np.eye(3) for j in joints]  # each joint's rest frame against the T-pose
     world = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]) if layout.z_up else np.eye(3)  # file from ours
     frames = len(local_rot)
@@ -304,7 +327,14 @@ def write_family_bvh(family: Family, layout: Layout, local_rot: np.ndarray, root
         if j.parent < 0:
             offset = np.zeros(3)
         if not j.name:
-            lines.extend([f"{pad}End Site", pad + "{", f"{pad}  OFFSET {offset[0]:.6f} {offset[1]:.6f} {offset[2]:.6f}", pad + "}"])
+            lines.extend(
+                [
+                    f"{pad}End Site",
+                    pad + "{",
+                    f"{pad}  OFFSET {offset[0]:.6f} {offset[1]:.6f} {offset[2]:.6f}",
+                    pad + "}",
+                ]
+            )
             return
         lines.append(f"{pad}{'ROOT' if j.parent < 0 else 'JOINT'} {j.name}")
         lines.append(pad + "{")
