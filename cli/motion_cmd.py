@@ -1,10 +1,11 @@
 """Inspect motion files: the rig read from each BVH, how it retargets to SMPL-22, and a library's splits.
 
-`egoposevr motion inspect FILE|FOLDER|GLOB...` prints, per file, the detected family (or 'unrecognised' when
+`egoposevr motion inspect FILE|FOLDER|GLOB...` prints, per BVH file, the detected family (or 'unrecognised' when
 the structure alone was read), units, up and forward axes, frame rate, duration, reference frames dropped
 and the retargeting error (cm: distance between the SMPL-22 result and the source joints it was mapped to;
 the pelvis and spine3 are placed by the retargeting and not counted). One file: the whole joint mapping too.
-A file that cannot be used is named with the reason. With --split-by-subject, the hours each split would get.
+A file that cannot be used is named with the reason. AMASS .npz files (SMPL already) get their frame rate
+and duration. With --split-by-subject, the subjects and hours each split would get.
 
 Examples:
   egoposevr motion inspect my_clip.bvh --png my_clip.png
@@ -31,15 +32,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="SHARES",
         help="report the subject-disjoint split, e.g. train=0.8,val=0.2",
     )
-    inspect.add_argument("--seed", type=int, default=0, help="seed of the subject split")
+    inspect.add_argument("--split-seed", type=int, default=0, help="seed of the subject split (as synth's)")
     inspect.add_argument("--verbose", action="store_true", help="the joint mapping of every file")
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from ..model.synth.amass import AmassError
     from ..model.synth.bvh import BvhError
-    from ..model.synth.inspection import inspect_bvh, report, sheet, summary_line
+    from ..model.synth.inspection import amass_report, inspect_bvh, report, sheet, summary_line
     from ..model.synth.library import build_library, parse_split_shares, split_subjects
 
     try:
@@ -50,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     library, empty = build_library(args.paths, args.subject_regex)
     for pattern in empty:
         print(f"egoposevr motion: {pattern}: no .bvh/.npz file there", file=sys.stderr)
-    files = [f for f in library.files if f.path.suffix.lower() == ".bvh"]
+    files = library.files
     several = len(files) > 1
     if args.png and several:
         args.png.mkdir(parents=True, exist_ok=True)
@@ -58,16 +60,21 @@ def run(args: argparse.Namespace) -> int:
     seconds: dict[str, float] = {}
     for item in files:
         try:
-            inspection = inspect_bvh(item.path)
-        except BvhError as error:
+            if item.path.suffix.lower() == ".npz":
+                inspection, entry = None, amass_report(item.path) | {"subject": item.subject}
+            else:
+                inspection = inspect_bvh(item.path)
+                entry = report(inspection) | {"subject": item.subject}
+        except (BvhError, AmassError) as error:
             failures.append({"file": str(item.path), "reason": str(error)})
             print(f"{item.path}: cannot use: {error}")
             continue
-        entry = report(inspection) | {"subject": item.subject}
         reports.append(entry)
         seconds[item.subject] = seconds.get(item.subject, 0.0) + entry["duration_s"]
-        errors_cm.append(inspection.result.error_m[::4].ravel() * 100)
         print(summary_line(entry))
+        if inspection is None:
+            continue  # AMASS: no rig, no mapping, no picture of a source skeleton
+        errors_cm.append(inspection.result.error_m[::4].ravel() * 100)
         if not several or args.verbose:
             _print_mapping(entry)
         if args.png:
@@ -86,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         },
     }
     if shares:
-        assignment = split_subjects(seconds, shares, args.seed)
+        assignment = split_subjects(seconds, shares, args.split_seed)
         summary["splits"] = {
             name: {
                 "subjects": sorted(s for s, n in assignment.items() if n == name),

@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--subject-regex", metavar="RE", help="the subject is this regex's first group")
     parser.add_argument(
+        "--split-seed", type=int, default=0, help="seed of the subject split (the same for every split's run)"
+    )
+    parser.add_argument(
         "--licence",
         default="",
         metavar="TEXT",
@@ -96,11 +99,11 @@ def _select(args: argparse.Namespace) -> tuple[list, dict]:
         seconds: dict[str, float] = {}
         for item in files:
             seconds[item.subject] = seconds.get(item.subject, 0.0) + motion_seconds(item.path)
-        assignment = split_subjects(seconds, shares, args.seed)
+        assignment = split_subjects(seconds, shares, args.split_seed)
         files = [f for f in files if assignment[f.subject] == args.split]
         record["subject_split"] = {
             "shares": dict(shares),
-            "seed": args.seed,
+            "seed": args.split_seed,
             "subjects": {name: sorted(s for s, n in assignment.items() if n == name) for name, _ in shares},
             "hours": {
                 name: round(sum(seconds[s] for s, n in assignment.items() if n == name) / 3600, 4)

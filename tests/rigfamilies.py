@@ -40,6 +40,7 @@ class Family:
     wrapper:    name of a joint above the pelvis at the same place (Biped's Bip01), or ''.
     fingers:    add finger chains below the hands; twist: add an in-line forearm twist bone.
     neck_mid:   name of a joint half-way from the neck to the head (CMU's Neck1), or ''.
+    head_top:   what ends the head chain: an End Site, a HeadTop_End joint, or two eyes (Daz).
     """
 
     name: str
@@ -50,6 +51,7 @@ class Family:
     fingers: bool = False
     twist: bool = False
     neck_mid: str = ""
+    head_top: str = "end"  # 'end': an End Site; 'joint': a HeadTop_End joint (Mixamo); 'eyes': two eye joints
 
 
 def _limbs(thigh, shin, foot, toe, clavicle, upper, fore, hand) -> dict[str, str]:
@@ -87,6 +89,7 @@ FAMILIES = (
         | _limbs("mixamorig:{s}UpLeg", "mixamorig:{s}Leg", "mixamorig:{s}Foot", "mixamorig:{s}ToeBase",
                  "mixamorig:{s}Shoulder", "mixamorig:{s}Arm", "mixamorig:{s}ForeArm", "mixamorig:{s}Hand"),
         fingers=True,
+        head_top="joint",
     ),
     Family(
         "unity-humanoid",
@@ -155,6 +158,7 @@ FAMILIES = (
         sides=("l", "r"),
         spacers={"L_thigh": "lButtock", "R_thigh": "rButtock"},
         fingers=True,
+        head_top="eyes",
     ),
     Family(
         "xsens-mvn",
@@ -187,6 +191,7 @@ class Layout:
     units_per_m: float = 1.0
     order: str = "ZXY"  # rotation channels as listed (BVH: intrinsic, in this order)
     root_order: str = "ZYX"
+    six_channels: bool = False  # every joint with position channels too (holding its offset), as some exports
 
 
 def reference_motion(frames: int = 150, fps: float = 60.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -245,8 +250,16 @@ def _skeleton(family: Family) -> list[_Joint]:
     if family.neck_mid:
         neck = add(family.neck_mid, neck, (rest[12] + rest[15]) / 2, "neck")
     head = place("head", neck)
-    top = "end" if family.name == "unknown-names" else "head"  # generic rigs end the head in an End Site
-    joints.append(_Joint("HeadTop_End", head, rest[15] + [0, 0.12, 0], top))
+    if family.head_top == "eyes":
+        for side, x in (("left", 0.035), ("right", -0.035)):
+            eye = add(f"{side}Eye", head, rest[15] + [x, 0.06, 0.08], "head")
+            joints.append(_Joint("", eye, rest[15] + [x, 0.06, 0.09], "end"))
+    else:
+        joints.append(
+            _Joint(
+                "HeadTop_End", head, rest[15] + [0, 0.12, 0], "head" if family.head_top == "joint" else "end"
+            )
+        )
     for s in "LR":
         k = place(f"{s}_thigh", pelvis)
         k = place(f"{s}_shin", k)
@@ -346,6 +359,9 @@ def write_family_bvh(
         if j.parent < 0:
             lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition {rot_chans}")
             columns.append((pos_m[:, 0] @ world.T) * layout.units_per_m)
+        elif layout.six_channels:
+            lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition {rot_chans}")
+            columns.append(np.broadcast_to(offset, (frames, 3)))
         else:
             lines.append(f"{pad}  CHANNELS 3 {rot_chans}")
         columns.append(euler)

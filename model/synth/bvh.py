@@ -1,10 +1,17 @@
 """BVH motion files: parsing, forward kinematics, and retargeting to the SMPL-22 skeleton.
 
+Which source joint becomes which SMPL joint, the file's axes and its units come from ``rigs.detect_rig``
+(any humanoid rig), or from a hand-written :class:`RigMapping` (``CMU_MAPPING``). The rig's T-pose is its
+rest pose (the OFFSETs) with the limbs turned onto SMPL's T-pose directions (:func:`tpose_reference`), or a
+frame of the file that a mapping names.
+
 Retargeting keeps rotations, not only positions: each SMPL joint's global rotation starts as its driving
-source joint's rotation relative to the rig's T-pose frame (CMU files add one as frame 0), and is then
-corrected by the smallest rotation that points its bones at the mapped source joints (Kabsch over several
-children). Bone lengths come from the source, as per-bone scales of the SMPL rest skeleton, so FK of the
-result lands on the source joints (the test holds it to 2 cm) and twist about a bone follows the source.
+source joint's rotation relative to the rig's T-pose, and is then corrected by the smallest rotation that
+points its bones at the mapped source joints (Kabsch over several children). Bone lengths come from the
+source, as per-bone scales of the SMPL rest skeleton, so FK of the result lands on the source joints and
+twist about a bone follows the source.
+
+``rigs`` builds on this module's types, so :func:`retarget_bvh` imports it when called.
 
 Shape legend: ``F`` frames, ``S`` source joints, ``J`` = 22 SMPL joints.
 """
@@ -13,13 +20,16 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Final
+from typing import TYPE_CHECKING, Final
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, global_to_local, rest_offsets
 from .motion import Motion, ground, resample
+
+if TYPE_CHECKING:
+    from .rigs import DetectedRig
 
 CMU_LICENCE: Final = (
     "CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu): free for all uses, including inside "
@@ -511,7 +521,7 @@ class Retargeted:
     """
 
     motion: Motion
-    rig: object | None
+    rig: DetectedRig | None
     dropped: int
     error_m: np.ndarray
 

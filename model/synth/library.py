@@ -8,8 +8,8 @@ Subjects: a CMU trial name ``SS_TT`` (any of the database's conversions) is CMU 
 file's folder is its subject (one performer per folder, as most capture exports are laid out), unless a
 ``--subject-regex`` whose first group names it matches the file's path.
 
-Splits are assigned to whole subjects by duration: subjects in a seeded order, each to the split furthest
-below its share of the hours so far (``train=0.8,val=0.1,test=0.1`` by default).
+Splits are assigned to whole subjects by duration (``train=0.8,val=0.1,test=0.1`` by default): see
+:func:`split_subjects`.
 """
 
 from __future__ import annotations
@@ -136,19 +136,31 @@ def split_subjects(
 ) -> dict[str, str]:
     """Assign whole subjects to splits by duration; -> {subject: split}. Same input and seed, same result.
 
-    Each split first gets one subject (while there are enough), so a held-out split is never empty.
+    Subjects are taken largest first with seed 0 (the most even split), in a seeded random order with any
+    other seed (other folds, less even); each goes to the split that it leaves closest to its share of the
+    hours. The last subjects go to splits still empty, so that no split is empty when there are at least as
+    many subjects as splits.
     """
-    names = sorted(seconds_by_subject)
-    order = [names[i] for i in np.random.default_rng(seed).permutation(len(names))]
-    assigned: dict[str, str] = {}
-    hours = {name: 0.0 for name, _ in shares}
     total = sum(seconds_by_subject.values()) or 1.0
-    for subject in order:
-        empty = [n for n, _ in shares if hours[n] == 0.0 and n not in assigned.values()]
-        if empty and len(assigned) < len(shares):
-            choice = empty[-1]  # the smallest shares come last: fill held-out splits first
-        else:
-            choice = max(shares, key=lambda s: s[1] - hours[s[0]] / total)[0]
+    names = sorted(seconds_by_subject)
+    if seed == 0:
+        order = sorted(names, key=lambda s: (-seconds_by_subject[s], s))
+    else:
+        order = [names[i] for i in np.random.default_rng(seed).permutation(len(names))]
+    hours = {name: 0.0 for name, _ in shares}
+    filled = {name: 0 for name, _ in shares}
+    assigned: dict[str, str] = {}
+    for index, subject in enumerate(order):
+        empty = [n for n, count in filled.items() if count == 0]
+        left = len(order) - index
+        candidates = empty if len(empty) >= left else [n for n, _ in shares]
+
+        def miss(split: str, subject: str = subject) -> float:
+            after = {n: h + (seconds_by_subject[subject] if n == split else 0.0) for n, h in hours.items()}
+            return sum((after[n] / total - share) ** 2 for n, share in shares)
+
+        choice = min(candidates, key=miss)
         assigned[subject] = choice
         hours[choice] += seconds_by_subject[subject]
+        filled[choice] += 1
     return assigned

@@ -273,21 +273,23 @@ def _anchors_by_structure(tree: _Tree) -> dict[str, int]:
     leg_tips = [max(tree.leaves(b), key=lambda k: np.linalg.norm(rest[k])) for b in legs]
     up = _snap(rest[tree.descendants(spine)].mean(axis=0) - rest[leg_tips].mean(axis=0))
     upper = tree.leaves(spine)
-    top = max(upper, key=lambda k: rest[k] @ up)
-    head = int(tree.parents[top]) if tree.end_site[top] else top  # an end site marks the head's top
     feet = [_ankle_on_path(tree, tree.path(pelvis, tip), up) for tip in leg_tips]
     toe_dirs = [rest[tip] - rest[foot] for tip, foot in zip(leg_tips, feet, strict=True)]
     forward = sum(toe_dirs)
     forward = _snap(forward - (forward @ up) * up)
     left = np.cross(up, forward)
     foot_l, foot_r = sorted(feet, key=lambda k: -(rest[k] @ left))
-    sideways = [k for k in upper if k not in tree.descendants(head)]
-    if len(sideways) < 2:
+    hand_tips = (max(upper, key=lambda k: rest[k] @ left), min(upper, key=lambda k: rest[k] @ left))
+    chest = tree.common_ancestor(list(hand_tips))
+    top = max(upper, key=lambda k: rest[k] @ up)
+    neck = next((c for c in tree.children[chest] if top in tree.descendants(c)), None)
+    if neck is None or hand_tips[0] == hand_tips[1] or chest in hand_tips:
         raise RigError(
-            "cannot find the left and right arm chains: the spine branch ends only in the head, and the joint "
-            "names are not recognised"
+            "cannot find the left and right arm chains and the head: the spine branch does not split into "
+            "two arms and a neck, and the joint names are not recognised"
         )
-    hand_tips = (max(sideways, key=lambda k: rest[k] @ left), min(sideways, key=lambda k: rest[k] @ left))
+    head = tree.common_ancestor(tree.leaves(neck))  # below the eyes, jaw or head-top end sites
+    head = int(tree.parents[head]) if tree.end_site[head] else head
     hands = [_hand_on_path(tree, tree.path(spine, tip)) for tip in hand_tips]
     return {"head": head, "hand_L": hands[0], "hand_R": hands[1], "foot_L": foot_l, "foot_R": foot_r}
 
@@ -446,7 +448,12 @@ def detect_rig(clip: BvhClip) -> DetectedRig:
     ):
         notes.append("the toes point backwards: left and right may be swapped in the joint names")
     feet_y = min(rest_ours[legs[s][k], 1] for s in "LR" for k in ("ankle", "toe"))
-    units, metres = _units(float(rest_ours[anchors["head"], 1] - feet_y))
+    head_height = float(rest_ours[anchors["head"], 1] - feet_y)
+    if not head_height > 1e-6 * float(np.abs(tree.rest).max(initial=1.0)):
+        raise RigError(
+            "cannot map the rig: its rest pose (OFFSETs) does not stand: the head is not above the feet"
+        )
+    units, metres = _units(head_height)
     if units == "unknown":
         notes.append(f"units unknown: scaled to a {NOMINAL_HEAD_HEIGHT_M / 0.94:.2f} m body")
     mapping = _mapping(tree, pelvis, chest, anchors["head"], legs, arms, metres)
@@ -496,6 +503,8 @@ def _world_from_file(tree: _Tree, pelvis: int, anchors: dict[str, int], legs: di
         across = rest[anchors["hand_L"]] - rest[anchors["hand_R"]]
     left = _snap(across - (across @ up) * up)
     forward = np.cross(left, up)
+    if not np.any(forward):
+        raise RigError("cannot map the rig: its rest pose has no left-right extent (hips and hands coincide)")
     return np.stack([left, up, forward])
 
 

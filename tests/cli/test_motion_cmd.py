@@ -14,12 +14,16 @@ def _library(root):
         ("mixamo", "alice", Layout()),
         ("3ds-max-biped", "bob", Layout(z_up=True, units_per_m=100.0, a_pose_deg=30)),
         ("unknown-names", "carol", Layout(units_per_m=1 / 0.0254)),
+        ("perception-neuron", "dave", Layout(six_channels=True)),
     ):
         (root / subject).mkdir(parents=True)
         (root / subject / f"{family}.bvh").write_text(
             write_family_bvh(FAMILY[family], layout, rot, trans, 60.0)
         )
     (root / "carol" / "copy.bvh").write_bytes((root / "alice" / "mixamo.bvh").read_bytes())
+    poses = np.zeros((120, 156))
+    poses[:, 50] = np.linspace(0, 1, 120)  # the left knee bends
+    np.savez(root / "dave" / "amass.npz", poses=poses, trans=np.zeros((120, 3)), mocap_framerate=60.0)
     (root / "bob" / "armless.bvh").write_text(
         "HIERARCHY ROOT Hips { OFFSET 0 0 0 CHANNELS 1 Xrotation } MOTION"
     )
@@ -35,13 +39,19 @@ def test_inspect_reports_rigs_errors_splits_and_pictures(tmp_path, capsys):
     assert "armless.bvh: cannot use" in out and "duplicate:" in out
     report = json.loads((tmp_path / "r.json").read_text())
     by_family = {f["family"]: f for f in report["files"]}
-    assert set(by_family) == {"mixamo", "3ds-max-biped", "unrecognised"}
+    assert set(by_family) == {"mixamo", "3ds-max-biped", "unrecognised", "perception-neuron", "amass"}
     assert by_family["3ds-max-biped"]["units"] == "cm" and by_family["3ds-max-biped"]["up_axis"] == "+Z"
     assert by_family["unrecognised"]["units"] == "inch"
     assert all(f["retarget_error_cm"]["p95"] < 3.0 for f in report["files"])
+    assert by_family["amass"]["duration_s"] == 2.0
     splits = report["summary"]["splits"]
-    assert sorted(splits["train"]["subjects"] + splits["val"]["subjects"]) == ["alice", "bob", "carol"]
-    assert len(list((tmp_path / "png").glob("*.png"))) == 3
+    assert sorted(splits["train"]["subjects"] + splits["val"]["subjects"]) == [
+        "alice",
+        "bob",
+        "carol",
+        "dave",
+    ]
+    assert len(list((tmp_path / "png").glob("*.png"))) == 4
 
 
 def test_inspect_one_file_prints_its_mapping(tmp_path, capsys):
@@ -68,5 +78,5 @@ def test_synth_takes_a_library_split_by_subject(tmp_path, capsys):
     record = splits["train"]["motion_library"]["subject_split"]
     assert record["subjects"]["val"] == sorted(subjects["val"])
     licences = {s["licence"] for split in splits.values() for s in split["sources"]}
-    assert licences == {"not given: pass --licence with the terms of these files"}
-    assert np.isclose(sum(record["hours"].values()), 3 * 2.5 / 3600, rtol=0.01)
+    assert "not given: pass --licence with the terms of these files" in licences  # AMASS brings its own
+    assert np.isclose(sum(record["hours"].values()), (4 * 2.5 + 2.0) / 3600, rtol=0.01)

@@ -1,5 +1,7 @@
 """Any-rig retargeting: one known motion written in many rig families retargets to the same SMPL-22 joints."""
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -27,6 +29,7 @@ LAYOUTS = {
     "cm": Layout(units_per_m=100.0),
     "inches": Layout(units_per_m=1 / 0.0254, order="XYZ"),
     "yxz-channels": Layout(order="YXZ", root_order="XZY"),
+    "six-channels-mm": Layout(six_channels=True, units_per_m=1000.0, order="XYZ"),
     "z-up-cm-a-pose": Layout(z_up=True, units_per_m=100.0, a_pose_deg=30.0, order="YZX"),
 }
 
@@ -66,8 +69,27 @@ def test_rest_pose_axes_units_and_channel_order_do_not_change_the_result(family,
     rig = result.rig
     assert rig.up_axis == ("+Z" if LAYOUTS[layout].z_up else "+Y")
     assert rig.forward_axis == ("-Y" if LAYOUTS[layout].z_up else "+Z")
-    expected_units = {1.0: "m", 100.0: "cm", 1 / 0.0254: "inch"}[LAYOUTS[layout].units_per_m]
+    expected_units = {1.0: "m", 100.0: "cm", 1000.0: "mm", 1 / 0.0254: "inch"}[LAYOUTS[layout].units_per_m]
     assert rig.units == expected_units
+
+
+def _generic_names(text: str) -> str:
+    """The same file with every joint renamed j000, j001, ... (names carry no information)."""
+    counter = iter(range(10_000))
+    return re.sub(
+        r"^(\s*(?:ROOT|JOINT)\s+).*$", lambda m: f"{m.group(1)}j{next(counter):03d}", text, flags=re.M
+    )
+
+
+@pytest.mark.parametrize("family", [f.name for f in FAMILIES if f.head_top != "joint"])
+def test_the_structure_alone_reads_every_rig_as_its_names_do(family):
+    """Names renamed away: the structural fallback finds the same chains (a Mixamo-style HeadTop_End joint
+    is the known exception: without a name it looks like the head)."""
+    text = write_family_bvh(FAMILY[family], LAYOUTS["z-up-cm-a-pose"], LOCAL_ROT, ROOT_M, FPS)
+    named = retarget_bvh(parse_bvh(text))
+    generic = retarget_bvh(parse_bvh(_generic_names(text)))
+    assert generic.rig.anchors_from == "structure"
+    assert np.abs(generic.motion.joints() - named.motion.joints()).max() < 1e-6
 
 
 def test_head_rotation_follows_the_source():
@@ -123,6 +145,15 @@ def test_a_rig_without_arms_is_refused_naming_the_chains():
         detect_rig(parse_bvh(_legs_and_head_only()))
 
 
+def test_a_rest_pose_that_does_not_stand_is_refused():
+    text = write_family_bvh(FAMILY["mixamo"], Layout(), LOCAL_ROT[:3], ROOT_M[:3], FPS)
+    flat = "\n".join(
+        "  OFFSET 0 0 0" if line.strip().startswith("OFFSET") else line for line in text.splitlines()
+    )
+    with pytest.raises(RigError, match="cannot map the rig"):
+        detect_rig(parse_bvh(flat))
+
+
 def test_joint_names_are_read_across_families():
     def side_part(name: str) -> tuple[str, str]:
         info = read_name(name)
@@ -141,7 +172,7 @@ def test_parser_reads_spaced_names_and_end_sites():
     text = write_family_bvh(FAMILY["3ds-max-biped"], Layout(), LOCAL_ROT[:3], ROOT_M[:3], FPS)
     clip = parse_bvh(text)
     assert "Bip01 L Thigh" in clip.names
-    assert any(clip.end_site) is False  # Biped has toe joints and fingers: every leaf is a joint here
+    assert [n for n, end in zip(clip.names, clip.end_site, strict=True) if end] == ["Bip01 Head_EndSite"]
     daz = parse_bvh(write_family_bvh(FAMILY["daz"], Layout(), LOCAL_ROT[:3], ROOT_M[:3], FPS))
     assert "lFoot_EndSite" in daz.names and daz.end_site[daz.names.index("lFoot_EndSite")]
 
