@@ -52,6 +52,7 @@ class Family:
     twist: bool = False
     neck_mid: str = ""
     head_top: str = "end"  # 'end': an End Site; 'joint': a HeadTop_End joint (Mixamo); 'eyes': two eye joints
+    clavicle_at_chest: bool = False  # the clavicle pivots at the chest joint (CMU's conversion), not medially
 
 
 def _limbs(thigh, shin, foot, toe, clavicle, upper, fore, hand) -> dict[str, str]:
@@ -235,6 +236,8 @@ def _skeleton(family: Family) -> list[_Joint]:
     def place(role: str, parent: int, arm: str = "") -> int:
         smpl = ROLE_JOINT[role]
         at = rest[JOINT_INDEX[smpl]]
+        if family.clavicle_at_chest and role.endswith("_clavicle"):
+            at = rest[JOINT_INDEX["spine3"]]
         if role in family.spacers:
             driver = joints[parent].driver
             parent = add(family.spacers[role], parent, joints[parent].rest_m, driver)
@@ -267,7 +270,12 @@ def _skeleton(family: Family) -> list[_Joint]:
         if f"{s}_toe" in family.names:
             place(f"{s}_toe", foot)
         else:
-            joints.append(_Joint("", foot, rest[JOINT_INDEX[ROLE_JOINT[f"{s}_toe"]]].copy(), "end"))
+            ball, ankle = (
+                rest[JOINT_INDEX[ROLE_JOINT[f"{s}_toe"]]],
+                rest[JOINT_INDEX[ROLE_JOINT[f"{s}_foot"]]],
+            )
+            tip = ankle + (ball - ankle) / 0.7  # the foot's end site is the toe tip, the ball 70 % of the way
+            joints.append(_Joint("", foot, tip, "end"))
         k = place(f"{s}_clavicle", chest)
         k = place(f"{s}_upperarm", k, arm=s)
         k = place(f"{s}_forearm", k, arm=s)

@@ -90,7 +90,9 @@ SPINE2_FRACTION: Final = float(_SPINE_ARC[2] / _SPINE_ARC[-1])
 KNEE_FRACTION: Final = 0.53  # the knee along pelvis -> ankle by arc length (SMPL 0.53, CMU 0.56)
 ELBOW_FRACTION: Final = 0.66  # the elbow along chest -> wrist by arc length (SMPL)
 SNAP_FRACTION: Final = 0.15  # of the spine's length: see _point_along
-COLLAR_WEIGHT: Final = 0.45  # the SMPL collar, this far from the chest joint towards the shoulder
+COLLAR_WEIGHT: Final = 0.45  # the SMPL collar, this far from the chest joint towards the shoulder...
+COLLAR_AWAY: Final = 0.25  # ...unless the clavicle joint is this far (of chest -> shoulder) from both ends
+BALL_FRACTION: Final = 0.7  # the ball of the foot along ankle -> toe tip, for feet without a toe joint
 
 # Units by the rest pose's head-joint height above the lowest foot joint (SMPL: 1.61 m for a 1.70 m person).
 UNITS: Final = (("m", 1.0), ("cm", 0.01), ("mm", 0.001), ("inch", 0.0254), ("cmu", 0.056444))
@@ -370,6 +372,27 @@ def _toe_below(tree: _Tree, foot: int) -> int:
     return min(far, key=lambda j: len(tree.ancestors(j)))
 
 
+def _toe_source(tree: _Tree, leg: dict[str, int]) -> JointSource:
+    """SMPL's foot joint (the ball of the foot): the toe joint, or, where the foot ends in its tip (no toe
+    joint), that far along the ankle -> tip line, turned by the ankle."""
+    ankle, toe = tree.names[leg["ankle"]], tree.names[leg["toe"]]
+    if tree.end_site[leg["toe"]]:
+        return JointSource(ankle, ankle, toe, BALL_FRACTION)
+    return JointSource(toe, toe)
+
+
+def _collar_source(tree: _Tree, chest: int, arm: dict[str, int]) -> JointSource:
+    """SMPL's collar: the clavicle joint where it sits away from the chest joint (its medial end, as most rigs
+    place it), else a point on the chest -> shoulder line (CMU's clavicles start at the chest joint)."""
+    chest_name, clavicle, shoulder = tree.names[chest], arm["clavicle"], arm["shoulder"]
+    span = np.linalg.norm(tree.rest[shoulder] - tree.rest[chest])
+    from_chest = np.linalg.norm(tree.rest[clavicle] - tree.rest[chest])
+    to_shoulder = np.linalg.norm(tree.rest[shoulder] - tree.rest[clavicle])
+    if clavicle != chest and min(from_chest, to_shoulder) > COLLAR_AWAY * span:
+        return JointSource(tree.names[clavicle], tree.names[clavicle])
+    return JointSource(chest_name, tree.names[clavicle], tree.names[shoulder], COLLAR_WEIGHT)
+
+
 def _arm(tree: _Tree, chest: int, hand: int, side: str) -> dict[str, int]:
     path = tree.path(chest, hand)
     if len(path) < 3:
@@ -531,10 +554,8 @@ def _mapping(
         joints[f"{word}_hip"] = JointSource(n[leg["hip"]], n[leg["hip"]])
         joints[f"{word}_knee"] = JointSource(n[leg["knee"]], n[leg["knee"]])
         joints[f"{word}_ankle"] = JointSource(n[leg["ankle"]], n[leg["ankle"]])
-        joints[f"{word}_foot"] = JointSource(n[leg["toe"]], n[leg["toe"]])
-        joints[f"{word}_collar"] = JointSource(
-            n[chest], n[arm["clavicle"]], n[arm["shoulder"]], COLLAR_WEIGHT
-        )
+        joints[f"{word}_foot"] = _toe_source(tree, leg)
+        joints[f"{word}_collar"] = _collar_source(tree, chest, arm)
         joints[f"{word}_shoulder"] = JointSource(n[arm["shoulder"]], n[arm["shoulder"]])
         joints[f"{word}_elbow"] = JointSource(n[arm["elbow"]], n[arm["elbow"]])
         joints[f"{word}_wrist"] = JointSource(n[arm["wrist"]], n[arm["wrist"]])
