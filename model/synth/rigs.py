@@ -4,15 +4,17 @@ A rig is read in three steps, each from what every humanoid file has:
 
 1. **Anchors** (head, both hands, both feet) by joint name. Names are normalised first: namespaces
    (``mixamorig:``) go, CamelCase and ``_ . - space`` split words, a side is ``Left``/``Right``, ``L``/``R``,
-   ``l_``/``_l`` or a one-letter prefix glued to a capital (``LThigh``, ``lShldr``), digits are dropped, and the
-   rest is looked up in :data:`PART_WORDS`. Where a name is missing the **structure** finds the anchor
-   instead: the limb chains from the pelvis by topology and rest-pose geometry (the head is the highest leaf,
-   the feet are where the leg chains turn forward, the hands end the two chains that leave the chest
-   sideways), and the sides come from the facing (the toes point forward, left = up × forward).
+   ``l_``/``_l`` or a letter glued to the front (``LThigh``, ``lShldr``, ``lfemur``), digits are dropped,
+   and the rest is looked up in :data:`PART_WORDS`. Where a name is missing the **structure** finds the
+   anchors instead: the pelvis's three branches (two legs, the spine), up from the legs to the spine, the
+   ankles where the leg chains turn forward, left = up × forward, the hands at the spine's most lateral
+   leaves, the chest where their chains meet, and the head below the leaves of the chest's third branch
+   (eyes, jaw or an end site).
 2. **Chains** between anchors by topology: the pelvis is the lowest common ancestor of the feet and the
    head, the chest (SMPL's spine3) that of the hands and the head. Knees and elbows by name on their chain,
-   or by arc length where no name says; the hip and shoulder are the last joints before them that sit
-   elsewhere (a twist or roll bone in between is skipped); the clavicle is what holds the shoulder.
+   or by arc length where no name says; the hip and shoulder are the nearest joints above them that sit
+   elsewhere (twist or roll bones and zero-length spacers skipped); the clavicle is what holds the shoulder,
+   and SMPL's collar sits on it where it is medial, else on the chest -> shoulder line.
 3. **Frame and units** from the rest pose (the OFFSETs): up is the snapped feet→head axis, left the snapped
    right→left hip axis; units are whichever of m, cm, mm, inches and CMU units gives an adult height; a file
    in none of them (a rescaled rig) is scaled to a 1.70 m body, and the report says so.
@@ -48,6 +50,7 @@ PART_WORDS: Final = {
     "hand": ("hand", "wrist", "palm"),
     "forearm": ("forearm", "lowerarm", "elbow", "farm", "larm", "radius"),
     "foot": ("foot", "ankle", "talus"),
+    "thigh": ("upleg", "upperleg", "thigh", "uleg", "femur"),
     "shin": ("leg", "lowerleg", "shin", "calf", "knee", "lleg", "tibia", "crus"),
     "toe": ("toe", "toes", "toebase", "ball", "metatarsal", "midtarsal", "toe0"),
     "hips": ("hips", "hip", "pelvis", "humanoidroot", "root"),
@@ -89,6 +92,8 @@ SPINE1_FRACTION: Final = float(_SPINE_ARC[1] / _SPINE_ARC[-1])
 SPINE2_FRACTION: Final = float(_SPINE_ARC[2] / _SPINE_ARC[-1])
 KNEE_FRACTION: Final = 0.53  # the knee along pelvis -> ankle by arc length (SMPL 0.53, CMU 0.56)
 ELBOW_FRACTION: Final = 0.66  # the elbow along chest -> wrist by arc length (SMPL)
+THIGH_MIN: Final = 0.3  # of pelvis -> ankle: the thigh is longer (0.39-0.42), a mid-thigh twist bone shorter
+UPPER_ARM_MIN: Final = 0.2  # of chest -> wrist: the upper arm is longer (0.32-0.35), a mid-arm twist shorter
 SNAP_FRACTION: Final = 0.15  # of the spine's length: see _point_along
 COLLAR_WEIGHT: Final = 0.45  # the SMPL collar, this far from the chest joint towards the shoulder...
 COLLAR_AWAY: Final = 0.25  # ...unless the clavicle joint is this far (of chest -> shoulder) from both ends
@@ -111,35 +116,32 @@ class NameInfo:
     twist: bool
 
 
+def _side_prefix(base: str) -> tuple[str, str]:
+    """(side, rest) for a side glued to the front of a name: LEFTARM, LThigh, lShldr, lfemur."""
+    for prefix, letter in (("LEFT", "L"), ("RIGHT", "R")):
+        if base.isupper() and base.startswith(prefix):
+            return letter, base[len(prefix) :]
+    if glued := re.match(r"^([LlRr])(?=[A-Z])", base):
+        return glued.group(1).upper(), base[1:]
+    if (glued := re.match(r"^([lr])([a-z]{3,})$", base)) and glued.group(2) in _GLUED_PARTS:
+        return glued.group(1).upper(), glued.group(2)  # CMU's ASF names: lfemur, ltibia, lwrist
+    return "", base
+
+
 def read_name(name: str) -> NameInfo:
     """Normalise one joint name (see the module docstring)."""
-    base = re.split(r"[:|]", name)[-1]
-    side = ""
-    upper = base.upper()
-    for prefix, letter in (("LEFT", "L"), ("RIGHT", "R")):
-        if upper.startswith(prefix) and base.isupper():
-            side, base = letter, base[len(prefix) :]
-    if not side and (glued := re.match(r"^([LlRr])(?=[A-Z])", base)):
-        side, base = glued.group(1).upper(), base[1:]
-    if not side and (glued := re.match(r"^([lr])([a-z]{3,})$", base)) and glued.group(2) in _GLUED_PARTS:
-        side, base = glued.group(1).upper(), glued.group(2)  # CMU's ASF names: lfemur, ltibia, lwrist
-    words = []
-    for chunk in re.split(r"[\s_.\-]+", base):
-        words += [w.lower() for w in _WORD.findall(chunk)]
+    side, base = _side_prefix(re.split(r"[:|]", name)[-1])
+    words = [w.lower() for chunk in re.split(r"[\s_.\-]+", base) for w in _WORD.findall(chunk)]
     rest = []
     for word in words:
         if word in _SIDE_WORDS and not side:
             side = _SIDE_WORDS[word]
-        elif word in _SIDE_WORDS or word in _NOISE_WORDS or word.isdigit():
-            continue
-        else:
+        elif not (word in _SIDE_WORDS or word in _NOISE_WORDS or word.isdigit()):
             rest.append(word)
     word = "".join(rest)
     part = _PART_OF.get(word, "")
     if part == "hips" and side:
         part = "thigh"  # l_hip, LeftHip: the hip joint of a leg
-    if word in ("upleg", "upperleg", "thigh", "uleg", "femur"):
-        part = "thigh"
     return NameInfo(side=side, part=part, word=word, twist=bool(_TWIST.search(word)))
 
 
@@ -346,17 +348,30 @@ def _on_path(tree: _Tree, path: list[int], part: str) -> int | None:
     return hits[0] if hits else None
 
 
-def _leg(tree: _Tree, pelvis: int, foot: int, side: str) -> dict[str, int]:
-    path = tree.path(pelvis, foot)
+def _limb(
+    tree: _Tree, top: int, end: int, what: str, middle: tuple[str, float], upper_min: float
+) -> tuple[int, int]:
+    """The upper and middle joints of a limb chain ``top`` -> ``end`` (hip and knee, shoulder and elbow).
+
+    middle:    (the part its name says, its arc-length fraction along the chain where no name says).
+    upper_min: the upper joint is the nearest one above the middle joint at least this fraction of the
+               chain's length away (twist bones and zero-length spacers in between are skipped).
+    """
+    path = tree.path(top, end)
     if len(path) < 3:
-        raise RigError(f"the {side} leg chain {[tree.names[j] for j in path]} has no knee")
-    length = tree.arc(path)[-1]
-    knee = _on_path(tree, path[1:-1], "shin") or _by_fraction(tree, path, KNEE_FRACTION, (pelvis, foot))
-    hip = _distinct_above(tree, path, knee, 0.3 * length)
-    if hip == pelvis:
-        hip = path[1] if path[1] != knee else knee
-    toe = _toe_below(tree, foot)
-    return {"hip": hip, "knee": knee, "ankle": foot, "toe": toe}
+        raise RigError(f"the {what} chain {[tree.names[j] for j in path]} has no middle joint")
+    part, fraction = middle
+    named = _on_path(tree, path[1:-1], part)
+    mid = named if named is not None else _by_fraction(tree, path, fraction, (top, end))
+    upper = _distinct_above(tree, path, mid, upper_min * tree.arc(path)[-1])
+    if upper == top:
+        upper = path[1] if path[1] != mid else mid
+    return upper, mid
+
+
+def _leg(tree: _Tree, pelvis: int, foot: int, side: str) -> dict[str, int]:
+    hip, knee = _limb(tree, pelvis, foot, f"{side} leg", ("shin", KNEE_FRACTION), THIGH_MIN)
+    return {"hip": hip, "knee": knee, "ankle": foot, "toe": _toe_below(tree, foot)}
 
 
 def _toe_below(tree: _Tree, foot: int) -> int:
@@ -394,14 +409,7 @@ def _collar_source(tree: _Tree, chest: int, arm: dict[str, int]) -> JointSource:
 
 
 def _arm(tree: _Tree, chest: int, hand: int, side: str) -> dict[str, int]:
-    path = tree.path(chest, hand)
-    if len(path) < 3:
-        raise RigError(f"the {side} arm chain {[tree.names[j] for j in path]} has no elbow")
-    length = tree.arc(path)[-1]
-    elbow = _on_path(tree, path[1:-1], "forearm") or _by_fraction(tree, path, ELBOW_FRACTION, (chest, hand))
-    shoulder = _distinct_above(tree, path, elbow, 0.2 * length)
-    if shoulder == chest:
-        shoulder = path[1] if path[1] != elbow else elbow
+    shoulder, elbow = _limb(tree, chest, hand, f"{side} arm", ("forearm", ELBOW_FRACTION), UPPER_ARM_MIN)
     clavicle = int(tree.parents[shoulder]) if shoulder != chest else chest
     return {"clavicle": clavicle, "shoulder": shoulder, "elbow": elbow, "wrist": hand}
 
@@ -447,39 +455,27 @@ def _family(names: tuple[str, ...]) -> str:
 def detect_rig(clip: BvhClip) -> DetectedRig:
     """Read a clip's rig (see the module docstring). Raises :class:`RigError` naming what was not found."""
     tree = _Tree(clip)
-    notes: list[str] = []
     anchors = _anchors_by_name(tree)
-    anchors_from = "names"
+    anchors_from = "names" if anchors is not None else "structure"
     if anchors is None:
-        anchors_from = "structure"
         anchors = _anchors_by_structure(tree)
     pelvis = tree.common_ancestor([anchors["foot_L"], anchors["foot_R"], anchors["head"]])
     chest = tree.common_ancestor([anchors["hand_L"], anchors["hand_R"], anchors["head"]])
     _check_chains(tree, anchors, pelvis, chest)
-    legs = {s: _leg(tree, pelvis, anchors[f"foot_{s}"], s) for s in "LR"}
-    arms = {s: _arm(tree, chest, anchors[f"hand_{s}"], s) for s in "LR"}
-    world_from_file = _world_from_file(tree, pelvis, anchors, legs)
-    if tree.info[legs["L"]["toe"]].part != "toe":
-        notes.append("no toe joints: SMPL's feet are placed at the end of each foot")
-    rest_ours = tree.rest @ world_from_file.T  # file units, our axes
-    if (
-        np.sum(
-            rest_ours[[legs["L"]["ankle"], legs["R"]["ankle"]], 2]
-            - rest_ours[[legs["L"]["toe"], legs["R"]["toe"]], 2]
-        )
-        > 0
-    ):
-        notes.append("the toes point backwards: left and right may be swapped in the joint names")
-    feet_y = min(rest_ours[legs[s][k], 1] for s in "LR" for k in ("ankle", "toe"))
-    head_height = float(rest_ours[anchors["head"], 1] - feet_y)
-    if not head_height > 1e-6 * float(np.abs(tree.rest).max(initial=1.0)):
-        raise RigError(
-            "cannot map the rig: its rest pose (OFFSETs) does not stand: the head is not above the feet"
-        )
-    units, metres = _units(head_height)
-    if units == "unknown":
-        notes.append(f"units unknown: scaled to a {NOMINAL_HEAD_HEIGHT_M / 0.94:.2f} m body")
-    mapping = _mapping(tree, pelvis, chest, anchors["head"], legs, arms, metres)
+    swapped = False
+    while True:
+        legs = {s: _leg(tree, pelvis, anchors[f"foot_{s}"], s) for s in "LR"}
+        arms = {s: _arm(tree, chest, anchors[f"hand_{s}"], s) for s in "LR"}
+        world_from_file = _world_from_file(tree, anchors, legs)
+        rest_ours = tree.rest @ world_from_file.T  # file units, our axes
+        if swapped or _toes_forward(rest_ours, legs):
+            break
+        # Toes pointing backwards: the names call the actor's left side right. Trust the body.
+        anchors = {
+            k.replace("_L", "_X").replace("_R", "_L").replace("_X", "_R"): v for k, v in anchors.items()
+        }
+        swapped = True
+    units, metres = _units(_head_height(rest_ours, anchors["head"], legs))
     roles = {
         "pelvis": tree.names[pelvis],
         "chest": tree.names[chest],
@@ -487,18 +483,47 @@ def detect_rig(clip: BvhClip) -> DetectedRig:
         **{f"{s}_{k}": tree.names[j] for s in "LR" for k, j in legs[s].items()},
         **{f"{s}_{k}": tree.names[j] for s in "LR" for k, j in arms[s].items()},
     }
-    family = _family(clip.names)
     return DetectedRig(
-        mapping=mapping,
+        mapping=_mapping(tree, pelvis, chest, anchors["head"], legs, arms, metres),
         world_from_file=world_from_file,
-        family=family,
+        family=_family(clip.names),
         units=units,
         up_axis=_axis_label(world_from_file[1]),
         forward_axis=_axis_label(world_from_file[2]),
         anchors_from=anchors_from,
         roles=roles,
-        notes=tuple(notes),
+        notes=_notes(tree, legs, units)
+        + (("left and right are swapped in the joint names: swapped back",) if swapped else ()),
     )
+
+
+def _head_height(rest_ours: np.ndarray, head: int, legs: dict[str, dict[str, int]]) -> float:
+    """The head joint's height above the lowest foot joint in the rest pose, file units (refused if <= 0)."""
+    feet_y = min(rest_ours[legs[s][k], 1] for s in "LR" for k in ("ankle", "toe"))
+    height = float(rest_ours[head, 1] - feet_y)
+    if not height > 1e-6 * float(np.abs(rest_ours).max(initial=1.0)):
+        raise RigError(
+            "cannot map the rig: its rest pose (OFFSETs) does not stand: the head is not above the feet"
+        )
+    return height
+
+
+def _toes_forward(rest_ours: np.ndarray, legs: dict[str, dict[str, int]]) -> bool:
+    """False only when the feet clearly point backwards (a foot pointing down says nothing)."""
+    feet = [rest_ours[legs[s]["toe"]] - rest_ours[legs[s]["ankle"]] for s in "LR"]
+    return sum(f[2] for f in feet) > -0.3 * sum(np.linalg.norm(f) for f in feet)
+
+
+def _notes(tree: _Tree, legs: dict[str, dict[str, int]], units: str) -> tuple[str, ...]:
+    """What the user should know about how the rig was read."""
+    notes = []
+    if any(tree.end_site[legs[s]["toe"]] for s in "LR"):
+        notes.append(
+            f"no toe joints: SMPL's feet placed {BALL_FRACTION:.0%} of the way from ankle to toe tip"
+        )
+    if units == "unknown":
+        notes.append(f"units unknown: scaled to a {NOMINAL_HEAD_HEIGHT_M / 0.94:.2f} m body")
+    return tuple(notes)
 
 
 def _check_chains(tree: _Tree, anchors: dict[str, int], pelvis: int, chest: int) -> None:
@@ -517,7 +542,8 @@ def _check_chains(tree: _Tree, anchors: dict[str, int], pelvis: int, chest: int)
         raise RigError(f"cannot map the rig: no {', '.join(missing)} chain")
 
 
-def _world_from_file(tree: _Tree, pelvis: int, anchors: dict[str, int], legs: dict) -> np.ndarray:
+def _world_from_file(tree: _Tree, anchors: dict[str, int], legs: dict) -> np.ndarray:
+    """(3, 3) rows: the file's left, up and forward axes (snapped), so ours = this @ the file's."""
     rest = tree.rest
     feet = rest[[anchors["foot_L"], anchors["foot_R"]]].mean(axis=0)
     up = _snap(rest[anchors["head"]] - feet)

@@ -64,6 +64,15 @@ def test_rest_pose_axes_units_and_channel_order_do_not_change_the_result(family,
     assert rig.units == expected_units
 
 
+def test_left_and_right_swapped_in_the_names_are_swapped_back(reference):
+    family = dataclasses.replace(FAMILY["mixamo"], sides=("Right", "Left"))
+    result = retarget_bvh(parse_bvh(write_family_bvh(family, Layout(), LOCAL_ROT, ROOT_M, FPS)))
+    joints = result.motion.joints()
+    joints -= np.median(joints - reference, axis=(0, 1))
+    assert np.linalg.norm(joints - reference, axis=-1).max() < 0.02
+    assert any("swapped" in note for note in result.rig.notes)
+
+
 def test_a_clavicle_pivoting_at_the_chest_keeps_the_limbs_within_3cm():
     """CMU's conversion starts the clavicles at the chest joint: SMPL's collar is then a point on the chest ->
     shoulder line and the girdle is placed by convention (spine3 7 cm and the collars 6 cm from SMPL's own);
