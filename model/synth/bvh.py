@@ -478,27 +478,37 @@ def tpose_reference(
     return pos, rot
 
 
-def leading_reference_frames(clip: BvhClip, pos_m: np.ndarray) -> int:
+def _rotation_columns(clip: BvhClip, joints: list[int]) -> list[int]:
+    """Columns of clip.values that hold the rotation channels of ``joints``."""
+    starts = np.concatenate([[0], np.cumsum([len(c) for c in clip.channels])])
+    return [
+        int(starts[j]) + k
+        for j in joints
+        for k, name in enumerate(clip.channels[j])
+        if name.endswith("rotation")
+    ]
+
+
+def leading_reference_frames(clip: BvhClip, pos_m: np.ndarray, body: list[int]) -> int:
     """How many leading frames are no motion: a reference pose at frame 0 and any blend out of it.
 
-    pos_m: (F, S, 3) joint positions, metres. Frame 0 is a reference pose when every rotation below the root
-    is zero while frame 1's are not (a rest-pose frame, as Daz-style exports add), or when the body jumps
-    from it to frame 1 (an added T-pose, as CMU's BVH conversion has). Converters often blend out of such a
+    pos_m: (F, S, 3) joint positions, metres; body: the source joints the body is read from (fingers, eyes
+    and props say nothing). Frame 0 is a reference pose when every body rotation below the root is within 5°
+    of zero and frame 1 turns some joint 10° further (a rest-pose frame, as Daz-style exports add, with
+    crumbs of a few degrees; an actor who starts near the rig's rest pose does not turn 10° in one frame),
+    or when the body jumps from it to
+    frame 1 (an added T-pose, as CMU's BVH conversion has, or a glitch). Converters often blend out of such a
     frame: the frames after it that still move much faster than the clip ever does again go with it.
     """
     frames = len(pos_m)
     if frames < 3:
         return 0
-    rel = pos_m - pos_m[:, :1]
+    rel = pos_m[:, body] - pos_m[:, :1]
     step = np.linalg.norm(np.diff(rel, axis=0), axis=-1).max(axis=-1)  # (F-1,) largest joint step
     typical = float(np.percentile(step[1:], 95))
-    rot_cols = [
-        k
-        for k, c in enumerate(c for j, chans in enumerate(clip.channels) for c in chans if j > 0)
-        if c.endswith("rotation")
-    ]
-    body = clip.values[:, sum(len(c) for c in clip.channels[:1]) :][:, rot_cols]
-    zero_first = len(rot_cols) > 0 and np.abs(body[0]).max() < 1e-3 and np.abs(body[1]).max() >= 1e-3
+    angles = clip.values[:2, _rotation_columns(clip, [j for j in body if j > 0])]
+    near_rest = angles.size > 0 and np.abs(angles[0]).max() < 5.0
+    zero_first = near_rest and np.abs(angles[1] - angles[0]).max() > 10.0
     jump_first = step[0] > max(0.10, 4.0 * typical)
     if not (zero_first or jump_first):
         return 0
@@ -539,7 +549,11 @@ def retarget_bvh(clip: BvhClip, mapping: RigMapping | None = None, name: str = "
     unit = mapping.metres_per_unit
     pos_m, rot = pos @ world.T * unit, world @ rot
     if mapping.tpose_frame is None:
-        dropped = leading_reference_frames(clip, pos_m)
+        index = {n: i for i, n in enumerate(clip.names)}
+        body = sorted(
+            {index[n] for src in mapping.joints.values() for n in (src.a, src.rotation, src.b) if n}
+        )
+        dropped = leading_reference_frames(clip, pos_m, body)
         rest_rot = np.broadcast_to(world, rot.shape[1:])
         tpose_pos, tpose_rot = tpose_reference(rest_positions(clip) @ world.T * unit, rest_rot, clip, mapping)
         pos_m = np.concatenate([tpose_pos[None], pos_m[dropped:]])

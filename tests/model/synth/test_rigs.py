@@ -8,6 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rigfamilies import FAMILIES, FAMILY, Layout, reference_motion, write_family_bvh
+from scipy.spatial.transform import Rotation
 
 from egoposevr.model.skeleton import JOINT_NAMES, forward_kinematics, rest_offsets
 from egoposevr.model.synth.bvh import BvhError, parse_bvh, retarget_bvh
@@ -135,11 +136,16 @@ def test_family_and_anchor_source_are_reported(family, expected):
 
 def test_a_reference_frame_0_and_its_blend_are_dropped():
     rot, root = reference_motion(fps=120.0)
+    for side, sign in (("left", -1), ("right", 1)):  # arms down, 75° from the T-pose, as people hold them
+        shoulder = JOINT_NAMES.index(f"{side}_shoulder")
+        rot[:, shoulder] = Rotation.from_rotvec([0, 0, sign * np.radians(75)]).as_matrix() @ rot[:, shoulder]
+    clean = retarget_bvh(
+        parse_bvh(write_family_bvh(FAMILY["daz"], Layout(units_per_m=100.0), rot, root, 120.0))
+    )
+    assert clean.dropped == 0
     rot[0] = np.eye(3)  # a rest-pose reference frame, then a blend into the motion over 4 frames (cmu-daz's)
     for k in range(1, 5):
-        rot[k] = np.eye(3) + (rot[5] - np.eye(3)) * (k / 5)
-        u, _, vt = np.linalg.svd(rot[k])
-        rot[k] = u @ vt
+        rot[k] = Rotation.from_rotvec(Rotation.from_matrix(rot[5]).as_rotvec() * k / 5).as_matrix()
     text = write_family_bvh(FAMILY["daz"], Layout(units_per_m=100.0), rot, root, 120.0)
     assert retarget_bvh(parse_bvh(text)).dropped == 5
 
