@@ -13,6 +13,7 @@ from egoposevr.model.synth.bvh import (
     load_bvh_motion,
     mapped_positions,
     parse_bvh,
+    retarget_bvh,
 )
 from egoposevr.model.synth.motion import FOOT_JOINT_HEIGHT_M
 
@@ -213,3 +214,15 @@ def test_rotation_channel_order_follows_the_file():
     _, rot = bvh_fk(parse_bvh(text))
     expected = Rotation.from_euler("XYZ", [10, 20, 30], degrees=True).as_matrix()
     assert np.allclose(rot[0, 0], expected)
+
+
+def test_the_cmu_rig_is_detected_and_its_tpose_frame_dropped(bvh_file):
+    """Without a mapping the rig is read from the file: CMU's names, its units, Y up, frame 0 dropped."""
+    result = retarget_bvh(parse_bvh(bvh_file.read_text()))
+    assert result.rig.family == "cmu" and result.rig.units == "cmu" and result.rig.up_axis == "+Y"
+    assert result.dropped == 1 and result.motion.num_frames == 239
+    pinned = load_bvh_motion(bvh_file, CMU_MAPPING)
+    apart_m = np.linalg.norm(result.motion.joints() - pinned.joints(), axis=-1).max(axis=0)
+    # Only spine2 is placed otherwise: 66 % of the way Spine -> Spine1 (SMPL's arc length), not half-way.
+    assert apart_m[J["spine2"]] < 0.03
+    assert np.delete(apart_m, J["spine2"]).max() < 0.01
