@@ -48,7 +48,19 @@ import numpy as np
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from ..protocol import Error, Hello, Hmd, Message, Models, Pose, Rgbd, SelectModel, Welcome, decode, encode
+from ..protocol import (
+    Error,
+    Hello,
+    Hmd,
+    Message,
+    Models,
+    Pose,
+    Rgbd,
+    SelectModel,
+    Welcome,
+    decode_from_server,
+    encode,
+)
 from . import session_url
 
 log = logging.getLogger("egoposevr.input")
@@ -112,7 +124,7 @@ class HeadsetClient:
             role="input", session=self.session, model=self.model, token=self.token, client=self.label
         )
         await ws.send(encode(hello))
-        first = decode(await ws.recv())
+        first = decode_from_server(await ws.recv())
         if isinstance(first, Error):
             await ws.close()
             raise InputClientError(f"the server refused the session: {first.code}: {first.message}")
@@ -142,7 +154,9 @@ class HeadsetClient:
         while not self._closed:
             try:
                 async for data in self._ws:
-                    self._on_message(decode(data))
+                    msg = decode_from_server(data)
+                    if msg is not None:  # a type this version does not know: ignored (PROTOCOL.md §9)
+                        self._on_message(msg)
                     delay = self.backoff_s[0]
             except ConnectionClosed:
                 pass

@@ -25,7 +25,7 @@ from websockets.asyncio.client import connect
 from ..model.inputs import decode_rgbd
 from ..model.runtime import LoadedModel, Pipeline
 from ..model.skeleton import JOINT_NAMES, LOWER_BODY, NUM_JOINTS, PARENTS, UPPER_BODY
-from ..protocol import Hello, decode, encode
+from ..protocol import Hello, decode_from_server, encode
 from . import session_url
 from .replay import Recording
 
@@ -157,10 +157,10 @@ async def _live_poses(url: str, session: str, seconds: float) -> list[tuple[floa
         start = time.perf_counter()
         while (left := seconds - (time.perf_counter() - start)) > 0:
             try:
-                msg = decode(await asyncio.wait_for(ws.recv(), left))
+                msg = decode_from_server(await asyncio.wait_for(ws.recv(), left))
             except TimeoutError:
                 break
-            if msg.type == "pose":
+            if msg is not None and msg.type == "pose":
                 out.append((time.perf_counter() - start, msg))
     return out
 

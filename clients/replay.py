@@ -24,7 +24,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from ..model.skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY
-from ..protocol import Hello, Message, ProtocolError, decode, encode
+from ..protocol import Hello, Message, ProtocolError, decode, decode_from_server, encode
 from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, read_header, read_records
 from . import session_url
 
@@ -247,7 +247,9 @@ class Replayer:
         try:
             async for data in ws:
                 received = time.perf_counter()
-                msg = decode(data)
+                msg = decode_from_server(data)
+                if msg is None:
+                    continue  # a type this version does not know: ignored (PROTOCOL.md §9)
                 if msg.type == "pose":
                     self._on_pose(msg, received)
                 elif msg.type == "error":

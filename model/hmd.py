@@ -18,6 +18,8 @@ Robustness (real headsets jitter, drop and repeat samples):
 - a sample whose timestamp does not advance keeps the previous velocities and does not enter the history;
 - an untracked device (valid = False) holds its last tracked pose — a controller relative to the head, so a
   lost controller moves with the body — with zero velocity; a device never yet tracked sits at a default pose.
+  Its own seven numbers are never read: zeros, NaN or a stale pose all give the same features
+  (:func:`ignore_untracked` makes them harmless for code that converts every row).
 """
 
 from __future__ import annotations
@@ -77,8 +79,8 @@ class HmdFeatureExtractor:
         valid = np.ascontiguousarray(valid, dtype=np.bool_)
         if poses.shape != (3, 7) or valid.shape != (3,):
             raise ValueError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
-        if not np.isfinite(poses).all():
-            raise ValueError("poses must be finite")
+        if not np.isfinite(poses[valid]).all():
+            raise ValueError("tracked poses must be finite")
         if ((poses[:, 3:] ** 2).sum(-1)[valid] < 1e-12).any():
             raise ValueError("quaternion of zero length")
         return kernels.hmd_feature_step(
@@ -88,6 +90,18 @@ class HmdFeatureExtractor:
 
 
 _TIMING: Final = np.array([MIN_DT_S, MAX_GAP_S, DT_REF_S])
+PLACEHOLDER_POSE: Final = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # origin, identity rotation
+
+
+def ignore_untracked(poses: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(3, 7) poses with every untracked device's row replaced by :data:`PLACEHOLDER_POSE` (a copy).
+
+    A client may send anything for a device it does not track (PROTOCOL.md §5: zeros, NaN, its last pose);
+    nothing downstream may read those numbers, and this keeps code that converts every row from failing.
+    """
+    poses = np.array(poses, dtype=np.float64)
+    poses[~np.asarray(valid, dtype=bool)] = PLACEHOLDER_POSE
+    return poses
 
 
 def hmd_features(t_us: np.ndarray, poses: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:

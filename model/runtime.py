@@ -32,7 +32,7 @@ import onnxruntime as ort
 from . import kernels
 from .body import BodyCalibrator, BodyRegressor, load_regressor_for
 from .filters import OneEuroFilter
-from .hmd import HmdFeatureExtractor
+from .hmd import HmdFeatureExtractor, ignore_untracked
 from .inputs import (
     VisibilityFilter,
     camera_to_world,
@@ -398,9 +398,11 @@ class Pipeline:
         self, t_us: int, poses: np.ndarray, valid: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Update the stream state -> poses (3, 7), valid (3,), tracked joint positions (3, 3)."""
-        poses = np.asarray(poses, dtype=np.float64)
         valid = np.asarray(valid, dtype=bool)
-        x = self.features.push(t_us, poses, valid)  # validates shapes and finiteness
+        if np.shape(poses) != (3, 7) or valid.shape != (3,):
+            raise ValueError(f"poses must be (3, 7) and valid (3,), got {np.shape(poses)} and {valid.shape}")
+        poses = ignore_untracked(poses, valid)  # an untracked device's numbers are never read
+        x = self.features.push(t_us, poses, valid)  # validates finiteness
         self._remember_head(t_us, poses[0], bool(valid[0]))
         self.hmd_window = (
             np.tile(x, (self.window, 1)) if self.hmd_window is None else np.roll(self.hmd_window, -1, 0)

@@ -5,7 +5,7 @@
 1
 """
 
-from .codec import DEFAULT_MAX_MESSAGE_BYTES, decode, encode
+from .codec import DEFAULT_MAX_MESSAGE_BYTES, decode, decode_from_server, encode
 from .errors import ErrorCode, ProtocolError
 from .messages import (
     CLIENT_MESSAGES,
@@ -22,8 +22,10 @@ from .messages import (
     Ping,
     Pong,
     Pose,
+    Ref,
     Rgbd,
     SelectModel,
+    SessionStatus,
     Welcome,
 )
 
@@ -45,9 +47,12 @@ __all__ = [
     "Pong",
     "Pose",
     "ProtocolError",
+    "Ref",
     "Rgbd",
     "SelectModel",
+    "SessionStatus",
     "Welcome",
     "decode",
+    "decode_from_server",
     "encode",
 ]

@@ -53,10 +53,22 @@ class ProtocolError(Exception):
     """A message that does not follow protocol v1.
 
     ``code`` is machine-readable (an :class:`ErrorCode`), ``message`` says what was expected and what came.
+    ``ref_type`` / ``ref_seq``: the offending message's ``type`` and ``seq`` where they could be read (a
+    message refused for one bad field still says which message it was), else None.
     """
 
-    def __init__(self, code: ErrorCode, message: str, *, fatal: bool = False) -> None:
+    def __init__(
+        self,
+        code: ErrorCode,
+        message: str,
+        *,
+        fatal: bool = False,
+        ref_type: str | None = None,
+        ref_seq: int | None = None,
+    ) -> None:
         super().__init__(f"{code}: {message}")
         self.code = ErrorCode(code)
         self.message = message
         self.fatal = fatal
+        self.ref_type = ref_type
+        self.ref_seq = ref_seq

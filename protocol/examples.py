@@ -21,8 +21,10 @@ from .messages import (
     Ping,
     Pong,
     Pose,
+    Ref,
     Rgbd,
     SelectModel,
+    SessionStatus,
     Welcome,
 )
 
@@ -122,7 +124,45 @@ def example_messages() -> dict[str, Message]:
             ],
         ),
         "error": Error(
-            code="wrong_length", message="hmd.head: List should have at least 7 items", fatal=False, seq=43
+            code="wrong_length",
+            message="hmd.head: expected exactly 7 items, got 6",
+            fatal=False,
+            seq=43,
+            ref=Ref(type="hmd", seq=43),
+        ),
+        "session": SessionStatus(
+            session="room-1", event="input_joined", input=True, model="egoposevr", renders=2
         ),
         "pong": Pong(nonce=3, t_us=1_000_900, server_t_us=5_000_000_123),
+    }
+
+
+# OpenXR walk-through of PROTOCOL.md §3.3: (VIEW pose, flags), (left grip pose, flags), (right grip pose, flags).
+_ALL_FLAGS = 0xF  # ORIENTATION/POSITION, VALID and TRACKED
+OPENXR_INPUTS: dict[str, tuple[tuple[list[float], int], ...]] = {
+    "openxr-tracked": (
+        ([0.0, 1.625, 0.0, 0.0, 0.0, 0.0, 1.0], _ALL_FLAGS),
+        ([-0.25, 1.0, -0.25, 0.0, 0.0, 0.0, 1.0], _ALL_FLAGS),
+        ([0.25, 1.0, -0.25, 0.0, 0.7071067690849304, 0.0, 0.7071067690849304], 0x3),  # valid, not tracked
+    ),
+    "openxr-lost-right": (
+        ([0.0, 1.625, 0.0, 0.0, 0.0, 0.0, 1.0], _ALL_FLAGS),
+        ([-0.25, 1.0, -0.25, 0.0, 0.0, 0.0, 1.0], _ALL_FLAGS),
+        ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 0x0),  # the runtime lost the controller
+    ),
+    "openxr-orientation-only": (
+        ([0.0, 1.625, 0.0, 0.0, 0.0, 0.0, 1.0], _ALL_FLAGS),
+        ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], 0x5),  # 3-DoF: orientation valid and tracked, no position
+        ([0.25, 1.0, -0.25, 0.0, 0.7071067690849304, 0.0, 0.7071067690849304], _ALL_FLAGS),
+    ),
+}
+
+
+def openxr_examples() -> dict[str, Hmd]:
+    """{name: hmd message} for the OpenXR walk-through (``tests/protocol/openxr/<name>.msgpack``)."""
+    from .openxr import hmd_from_openxr
+
+    return {
+        name: hmd_from_openxr(7, 2_000_000, *inputs)  # type: ignore[arg-type]
+        for name, inputs in OPENXR_INPUTS.items()
     }

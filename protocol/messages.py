@@ -39,7 +39,11 @@ def vec(n: int, item: object = Float) -> object:
     return Annotated[list[item], Len(n, n)]  # type: ignore[valid-type]
 
 
-DevicePose = vec(7, Coord)  # [px, py, pz, qx, qy, qz, qw]
+# [px, py, pz, qx, qy, qz, qw]. Any number at all for an untracked device (zeros, NaN, a stale pose): its seven
+# numbers are ignored. A tracked device's are checked by Hmd (finite, |coordinate| <= 10 km, unit quaternion).
+AnyFloat = Annotated[float, Strict()]
+DevicePose = vec(7, AnyFloat)
+COORD_LIMIT = 1e4
 IMAGE_MAX_SIDE_PX = 4096
 QUAT_NORM_TOLERANCE = 0.1  # |‖q‖ - 1| allowed for a tracked device; consumers normalise
 JPEG_SIGNATURE = b"\xff\xd8\xff"
@@ -87,18 +91,36 @@ class Hmd(Message):
     truth: vec(66, Coord) | None = None  # ground-truth joints (recorded sessions): echoed in the pose
 
     @model_validator(mode="after")
-    def _tracked_quaternions_are_unit(self) -> Hmd:
+    def _tracked_devices_are_usable(self) -> Hmd:
         for name, pose, tracked in zip(("head", "left", "right"), self.poses(), self.valid, strict=True):
-            norm = math.sqrt(sum(q * q for q in pose[3:]))
-            if tracked and abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
-                raise PydanticCustomError(
-                    "bad_quaternion", f"{name} quaternion norm is {norm:.4g}, expected 1 ± 0.1"
-                )
+            if tracked:
+                _check_tracked_pose(name, pose)
         return self
 
     def poses(self) -> tuple[list[float], list[float], list[float]]:
         """(head, left, right) device poses, each [px, py, pz, qx, qy, qz, qw]."""
         return self.head, self.left, self.right
+
+
+def _check_tracked_pose(name: str, pose: list[float]) -> None:
+    """A tracked device's seven numbers: finite, coordinates within ±10 km, a unit quaternion (±0.1)."""
+    for k, value in enumerate(pose):
+        if not math.isfinite(value):
+            raise PydanticCustomError(
+                "finite_number",
+                f"{name}[{k}]: expected a finite number for a tracked device (valid is true), got {value}",
+            )
+        if abs(value) > COORD_LIMIT:
+            raise PydanticCustomError(
+                "out_of_range", f"{name}[{k}]: expected a value within ±{COORD_LIMIT:g}, got {value:g}"
+            )
+    norm = math.sqrt(sum(q * q for q in pose[3:]))
+    if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
+        raise PydanticCustomError(
+            "bad_quaternion",
+            f"{name}: expected a unit quaternion (norm 1 ± {QUAT_NORM_TOLERANCE}) for a tracked device, "
+            f"got norm {norm:.4g}",
+        )
 
 
 class Rgbd(Message):
@@ -119,15 +141,16 @@ class Rgbd(Message):
     def _check_images_and_camera(self) -> Rgbd:
         fx, fy, _, _ = self.intrinsics
         if fx <= 0 or fy <= 0:
-            raise PydanticCustomError("out_of_range", f"intrinsics fx, fy must be > 0, got {fx}, {fy}")
+            raise PydanticCustomError("out_of_range", f"intrinsics: expected fx, fy > 0, got {fx} and {fy}")
         if not self.rgb.startswith(JPEG_SIGNATURE):
             raise PydanticCustomError(
-                "bad_image", f"rgb must be a JPEG (starts {JPEG_SIGNATURE.hex()}), got {self.rgb[:4].hex()}"
+                "bad_image",
+                f"rgb: expected a JPEG (starts {JPEG_SIGNATURE.hex()}), got {self.rgb[:4].hex()}...",
             )
         if not self.depth.startswith(PNG_SIGNATURE):
             raise PydanticCustomError(
                 "bad_image",
-                f"depth must be a PNG (starts {PNG_SIGNATURE[:4].hex()}), got {self.depth[:4].hex()}",
+                f"depth: expected a PNG (starts {PNG_SIGNATURE[:4].hex()}), got {self.depth[:4].hex()}...",
             )
         if self.cam_from_head is not None:
             _check_rigid(self.cam_from_head)
@@ -137,13 +160,18 @@ class Rgbd(Message):
 def _check_rigid(m: list[float]) -> None:
     """Raise unless the row-major 4x4 ``m`` is a rotation + translation with last row (0, 0, 0, 1)."""
     if any(abs(a - b) > 1e-6 for a, b in zip(m[12:], (0.0, 0.0, 0.0, 1.0), strict=True)):
-        raise PydanticCustomError("bad_transform", f"cam_from_head last row must be 0 0 0 1, got {m[12:]}")
+        raise PydanticCustomError(
+            "bad_transform", f"cam_from_head: expected the last row 0 0 0 1, got {m[12:]}"
+        )
     rows = (m[0:3], m[4:7], m[8:11])
     for i in range(3):
         for j in range(3):
             dot = sum(a * b for a, b in zip(rows[i], rows[j], strict=True))
             if abs(dot - (1.0 if i == j else 0.0)) > 1e-3:
-                raise PydanticCustomError("bad_transform", "cam_from_head rotation block is not orthonormal")
+                raise PydanticCustomError(
+                    "bad_transform",
+                    "cam_from_head: expected a rotation (orthonormal rows) in the upper 3x3 block",
+                )
 
 
 class SelectModel(Message):
@@ -229,8 +257,20 @@ class Models(Message):
     models: Annotated[list[ModelInfo], Len(0, 256)]
 
 
+class Ref(BaseModel):
+    """Which client message an ``error`` is about: its ``type`` and, when it had a readable one, its ``seq``
+    (``hmd`` and ``rgbd`` count separately, so the type says which counter)."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+    type: Annotated[str, Strict(), Field(min_length=1, max_length=64)]
+    seq: Seq | None = None
+
+
 class Error(Message):
-    """Something the peer sent was refused; ``fatal`` means the server closes the connection next."""
+    """Something the peer sent was refused; ``fatal`` means the server closes the connection next.
+
+    ``ref`` names the message that caused it (type and seq) whenever one did and could be read; ``seq``
+    repeats ``ref.seq`` for clients written before ``ref`` existed."""
 
     TYPE: ClassVar[str] = "error"
     type: Literal["error"] = "error"
@@ -238,6 +278,20 @@ class Error(Message):
     message: Text
     fatal: Bool = False
     seq: Seq | None = None  # seq of the offending message, when it had one
+    ref: Ref | None = None
+
+
+class SessionStatus(Message):
+    """Who is in a session, sent to its render clients: when one joins (``event`` 'joined') and whenever the
+    input client joins or leaves ('input_joined', 'input_left'). ``input``: an input client is connected."""
+
+    TYPE: ClassVar[str] = "session"
+    type: Literal["session"] = "session"
+    session: Name
+    event: Literal["joined", "input_joined", "input_left"]
+    input: Bool
+    model: Name
+    renders: Annotated[int, Strict(), Field(ge=0, le=1_000_000)]
 
 
 class Pong(Message):
@@ -251,5 +305,5 @@ class Pong(Message):
 
 
 CLIENT_MESSAGES: tuple[type[Message], ...] = (Hello, Hmd, Rgbd, SelectModel, ListModels, Ping)
-SERVER_MESSAGES: tuple[type[Message], ...] = (Welcome, Pose, Models, Error, Pong)
+SERVER_MESSAGES: tuple[type[Message], ...] = (Welcome, Pose, Models, Error, Pong, SessionStatus)
 MESSAGE_TYPES: dict[str, type[Message]] = {m.TYPE: m for m in CLIENT_MESSAGES + SERVER_MESSAGES}

@@ -37,7 +37,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from ..model.runtime import LoadedModel
-from ..protocol import Error, ErrorCode
+from ..protocol import Error, ErrorCode, Ref
 from .config import ConfigError, ServerConfig
 from .hub import CLOSE_NORMAL, Client, Hub
 from .metrics import CONTENT_TYPE, Metrics
@@ -315,8 +315,13 @@ class Server:
                     if not failed:  # logged once per session: a model that fails tends to fail every time
                         log.exception("inference failed in session %s", session.id)
                     failed = True
+                    newest = job.samples[-1].msg if job.samples else None
+                    ref = Ref(type="hmd", seq=newest.seq) if newest is not None else None
                     error = Error(
-                        code=ErrorCode.INTERNAL.value, message="server error while running the model"
+                        code=ErrorCode.INTERNAL.value,
+                        message="server error while running the model; the session goes on",
+                        seq=None if ref is None else ref.seq,
+                        ref=ref,
                     )
                     result = RunResult(errors=[error])
                 self.hub.publish(session, result)

@@ -27,8 +27,10 @@ from ..protocol import (
     Ping,
     Pong,
     ProtocolError,
+    Ref,
     Rgbd,
     SelectModel,
+    SessionStatus,
     Welcome,
     decode,
     encode,
@@ -114,6 +116,7 @@ class Hub:
         if session.input is client:
             session.input = None
             session.restart_stream()
+            self._tell_renders(session, "input_left")
         elif client in session.renders:
             session.renders.remove(client)
         if not session.clients:
@@ -135,11 +138,20 @@ class Hub:
         ]
 
     def fail(
-        self, client: Client, code: ErrorCode, message: str, *, fatal: bool = False, seq: int | None = None
+        self,
+        client: Client,
+        code: ErrorCode,
+        message: str,
+        *,
+        fatal: bool = False,
+        about: tuple[str | None, int | None] = (None, None),
     ) -> None:
-        """Send an ``error``; a fatal one closes the connection after it."""
+        """Send an ``error``; a fatal one closes the connection after it. ``about``: the (type, seq) of the
+        client message that caused it, where known (PROTOCOL.md §6: ``ref``)."""
+        ref_type, seq = about
+        ref = Ref(type=ref_type, seq=seq) if ref_type is not None else None
         client.outbox.put_control(
-            encode(Error(code=code.value, message=message[:1024], fatal=fatal, seq=seq))
+            encode(Error(code=code.value, message=message[:1024], fatal=fatal, seq=seq, ref=ref))
         )
         self.metrics.errors.labels(code.value).inc()
         if fatal:
@@ -159,17 +171,22 @@ class Hub:
             msg = decode(data, max_bytes=self.config.max_message_bytes)
         except ProtocolError as exc:
             self.metrics.messages.labels("invalid").inc()
+            about = (exc.ref_type, exc.ref_seq)
             if exc.code is ErrorCode.TOO_LARGE:
                 self.fail(client, exc.code, exc.message, fatal=True)
+            elif not greeted and exc.ref_type == "hello":  # a bad hello says what is wrong with it
+                self.fail(client, exc.code, exc.message, fatal=True, about=about)
             elif not greeted:
                 self.fail(
                     client,
                     ErrorCode.HANDSHAKE_REQUIRED,
-                    f"the first message must be hello ({exc})",
+                    f"the first message must be a valid hello; this one was refused ({exc.code.value}: "
+                    f"{exc.message})",
                     fatal=True,
+                    about=about,
                 )
             else:
-                self.fail(client, exc.code, exc.message)
+                self.fail(client, exc.code, exc.message, about=about)
             return
         decode_ns = time.perf_counter_ns() - recv_ns
         self.metrics.messages.labels(msg.type).inc()
@@ -182,10 +199,11 @@ class Hub:
                     ErrorCode.HANDSHAKE_REQUIRED,
                     f"the first message must be hello, got {msg.type}",
                     fatal=True,
+                    about=_about(msg),
                 )
             return
         if not client.session.rate.allow(recv_ns):
-            self._rate_limited(client, recv_ns)
+            self._rate_limited(client, recv_ns, msg)
             return
         self._dispatch(client, msg, Received(msg, recv_ns, decode_ns), data)
 
@@ -196,7 +214,7 @@ class Hub:
                 client,
                 ErrorCode.WRONG_ROLE,
                 f"{msg.type} is for the input role; this client is {client.role}",
-                seq=getattr(msg, "seq", None),
+                about=_about(msg),
             )
         elif isinstance(msg, Hmd):
             self._record(client, data, received.recv_ns)
@@ -210,7 +228,7 @@ class Hub:
             self.on_work(session)
         elif isinstance(msg, SelectModel):
             self._record(client, data, received.recv_ns)
-            self._select(client, msg.model)
+            self._select(client, msg.model, msg)
         elif isinstance(msg, ListModels):
             client.outbox.put_control(encode(self._models(session)))
         elif isinstance(msg, Ping):
@@ -218,12 +236,20 @@ class Hub:
             client.outbox.put_control(encode(pong))
         elif isinstance(msg, Hello):
             self.fail(
-                client, ErrorCode.ALREADY_GREETED, f"this connection already joined session {session.id}"
+                client,
+                ErrorCode.ALREADY_GREETED,
+                f"this connection already joined session {session.id}",
+                about=_about(msg),
             )
         else:
-            self.fail(client, ErrorCode.UNEXPECTED_MESSAGE, f"{msg.type} is a server-to-client message")
+            self.fail(
+                client,
+                ErrorCode.UNEXPECTED_MESSAGE,
+                f"{msg.type} is a server-to-client message",
+                about=_about(msg),
+            )
 
-    def _rate_limited(self, client: Client, now_ns: int) -> None:
+    def _rate_limited(self, client: Client, now_ns: int, msg: Message) -> None:
         self.metrics.rate_limited.inc()
         if now_ns - client.last_rate_error_ns >= RATE_ERROR_INTERVAL_NS:
             client.last_rate_error_ns = now_ns
@@ -231,14 +257,17 @@ class Hub:
             self.fail(
                 client,
                 ErrorCode.RATE_LIMITED,
-                f"session {client.session.id} is over {cfg.rate_limit_hz:g} messages/s (burst {cfg.rate_burst}); excess messages are dropped",
+                f"session {client.session.id} is over {cfg.rate_limit_hz:g} messages/s (burst {cfg.rate_burst}); "
+                "excess messages are dropped (this one among them); one such error per second",
+                about=_about(msg),
             )
 
     # ------------------------------------------------------------------------------ handshake
     def _hello(self, client: Client, hello: Hello, url_session: str | None, data: bytes | str) -> None:
+        about = _about(hello)
         refusal = self._refuse_hello(hello, url_session)
         if refusal is not None:
-            self.fail(client, *refusal, fatal=True)
+            self.fail(client, *refusal, fatal=True, about=about)
             return
         session = self.sessions.get(hello.session) or self._new_session(hello)
         if session is None:
@@ -247,6 +276,7 @@ class Hub:
                 ErrorCode.SERVER_FULL,
                 f"{self.config.max_sessions} sessions are open; try again later",
                 fatal=True,
+                about=about,
             )
         if hello.role == "input":
             if session.input is not None:
@@ -255,6 +285,7 @@ class Hub:
                     ErrorCode.SESSION_BUSY,
                     f"session {hello.session} already has an input client",
                     fatal=True,
+                    about=about,
                 )
             session.input = client
             session.restart_stream()
@@ -265,6 +296,7 @@ class Hub:
                     ErrorCode.SERVER_FULL,
                     f"session {hello.session} has {len(session.renders)} render clients, the limit",
                     fatal=True,
+                    about=about,
                 )
             session.renders.append(client)
         client.role, client.session, client.label = hello.role, session, hello.client or ""
@@ -284,8 +316,27 @@ class Hub:
         )
         client.outbox.put_control(encode(welcome))
         if requested is not None and self.registry.get(requested) is None:
-            self._unknown_model(client, requested)
+            self._unknown_model(client, requested, about)
         client.outbox.put_control(encode(self._models(session)))
+        if hello.role == "render":
+            client.outbox.put_control(encode(self._status(session, "joined")))
+        else:
+            self._tell_renders(session, "input_joined")
+
+    def _status(self, session: Session, event: str) -> SessionStatus:
+        return SessionStatus(
+            session=session.id,
+            event=event,
+            input=session.input is not None,
+            model=session.model_name,
+            renders=len(session.renders),
+        )
+
+    def _tell_renders(self, session: Session, event: str) -> None:
+        """A ``session`` message to every render client of ``session`` (the input client joined or left)."""
+        status = encode(self._status(session, event))
+        for render in session.renders:
+            render.outbox.put_control(status)
 
     def _refuse_hello(self, hello: Hello, url_session: str | None) -> tuple[ErrorCode, str] | None:
         if not self.accepting:
@@ -323,22 +374,23 @@ class Hub:
         names = self.registry.names()
         return self.config.default_model if self.config.default_model in names else names[0]
 
-    def _select(self, client: Client, name: str) -> None:
-        """select_model: swap the session's model and tell every client of the session."""
+    def _select(self, client: Client, name: str, msg: Message) -> None:
+        """select_model: swap the session's model and tell every client of the session (an unknown name:
+        ``unknown_model`` to the sender, then ``models`` to every client, unchanged)."""
         session = client.session
         model = self.registry.get(name)
         if model is None:
-            self._unknown_model(client, name)
+            self._unknown_model(client, name, _about(msg))
         elif name != session.model_name:
             session.select(name, model)
         models = encode(self._models(session))
         for member in session.clients:
             member.outbox.put_control(models)
 
-    def _unknown_model(self, client: Client, name: str) -> None:
+    def _unknown_model(self, client: Client, name: str, about: tuple[str | None, int | None]) -> None:
         known = ", ".join(self.registry.names())
         message = f"no model {name!r}; the session keeps {client.session.model_name} (models: {known})"
-        self.fail(client, ErrorCode.UNKNOWN_MODEL, message)
+        self.fail(client, ErrorCode.UNKNOWN_MODEL, message, about=about)
 
     def _models(self, session: Session) -> Models:
         return Models(active=session.model_name, models=self.registry.wire_infos())
@@ -372,3 +424,8 @@ class Hub:
 
     def internal_error(self, client: Client, what: str) -> None:
         self.fail(client, ErrorCode.INTERNAL, f"server error while {what}; the connection closes", fatal=True)
+
+
+def _about(msg: Message) -> tuple[str | None, int | None]:
+    """(type, seq) of a client message, for an error's ``ref``."""
+    return msg.type, getattr(msg, "seq", None)

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..model.inputs import decode_rgbd
 from ..model.runtime import EncodedFrame, LoadedModel, Pipeline, PoseResult, encode_frame
-from ..protocol import Error, ErrorCode, Hmd, Pose, Rgbd, encode
+from ..protocol import Error, ErrorCode, Hmd, Pose, Ref, Rgbd, encode
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
@@ -265,7 +265,7 @@ class Session:
         try:
             pushed = self._pipeline.push_rgbd(msg.t_us, *frame)
         except ValueError as exc:
-            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg.seq))
+            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg))
             return image_us
         result.stale_frame = not pushed and self._pipeline.model.visual is not None
         return image_us
@@ -274,17 +274,17 @@ class Session:
         try:
             self._pipeline.observe_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
         except ValueError as exc:
-            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg.seq))
+            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg))
 
     def _infer(self, msg: Hmd, result: RunResult) -> PoseResult | None:
         try:
             pose = self._pipeline.push_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
         except ValueError as exc:
-            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg.seq))
+            result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg))
             return None
         if not (np.isfinite(pose.joints).all() and np.isfinite(pose.body_pose).all()):
             result.errors.append(
-                _error(ErrorCode.INTERNAL, f"hmd {msg.seq}: the model produced non-finite numbers", msg.seq)
+                _error(ErrorCode.INTERNAL, f"hmd {msg.seq}: the model produced non-finite numbers", msg)
             )
             return None
         return pose
@@ -303,7 +303,7 @@ def encode_received_frame(received: Received, model: LoadedModel) -> FrameResult
     try:
         result.encoded = encode_frame(model, msg.t_us, *frame)
     except ValueError as exc:
-        result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg.seq))
+        result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg))
     return result
 
 
@@ -314,15 +314,17 @@ def _decode_frame(msg: Rgbd) -> tuple[tuple[Any, ...] | None, Error | None, int]
     try:
         rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
     except ValueError as exc:
-        error = _error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg.seq)
+        error = _error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg)
         return None, error, (time.perf_counter_ns() - started) // 1000
     image_us = (time.perf_counter_ns() - started) // 1000
     cam_from_head = None if msg.cam_from_head is None else np.reshape(msg.cam_from_head, (4, 4))
     return (rgb, depth, np.asarray(msg.intrinsics), cam_from_head), None, image_us
 
 
-def _error(code: ErrorCode, message: str, seq: int | None = None) -> Error:
-    return Error(code=code.value, message=message[:1024], fatal=False, seq=seq)
+def _error(code: ErrorCode, message: str, about: Hmd | Rgbd) -> Error:
+    """An error about one client message: its type and seq go into ``ref`` (and ``seq``)."""
+    ref = Ref(type=about.type, seq=about.seq)
+    return Error(code=code.value, message=message[:1024], fatal=False, seq=about.seq, ref=ref)
 
 
 def encode_pose(pose: PoseResult, sample: Hmd, model: str, timing_us: dict[str, int], skipped: int) -> bytes:

@@ -176,17 +176,25 @@ def test_hello_then_routing(registry, samples):
     hub, woken, ended = hub_with(registry)
     viewer = hub.connect("v")
     hub.receive(viewer, encode(Hello(role="render", session="s")), time.perf_counter_ns())
-    assert [m.type for m in sent(viewer)] == ["welcome", "models"]
+    replies = sent(viewer)
+    assert [m.type for m in replies] == ["welcome", "models", "session"]
+    assert (replies[2].event, replies[2].input, replies[2].renders) == ("joined", False, 1)
     headset = hub.connect("h")
     hub.receive(headset, encode(Hello(role="input", session="s", model="nope")), time.perf_counter_ns())
     replies = sent(headset)
     assert [m.type for m in replies] == ["welcome", "error", "models"]
     assert replies[1].code == "unknown_model" and replies[2].active == "egoposevr"
+    assert replies[1].ref.type == "hello"
+    [status] = sent(viewer)
+    assert (status.type, status.event, status.input) == ("session", "input_joined", True)
     hub.receive(headset, encode(samples[0]), time.perf_counter_ns())
     assert woken == [hub.sessions["s"]]
     hub.receive(viewer, encode(samples[1]), time.perf_counter_ns())
-    assert sent(viewer)[0].code == "wrong_role"
+    error = sent(viewer)[0]
+    assert error.code == "wrong_role" and (error.ref.type, error.ref.seq, error.seq) == ("hmd", 1, 1)
     hub.disconnect(headset)
+    [status] = sent(viewer)
+    assert (status.event, status.input) == ("input_left", False)
     assert "s" in hub.sessions and not ended
     hub.disconnect(viewer)
     assert "s" not in hub.sessions and len(ended) == 1
