@@ -5,14 +5,16 @@ synthetic data only. The sketch below shows where a real capture loop plugs in::
 
     import asyncio
     from egoposevr.clients.input import HeadsetClient
+    from egoposevr.protocol.openxr import hmd_from_openxr
 
     async def main():
         async with HeadsetClient("ws://server:8765/ws", session="player-1") as headset:
             asyncio.create_task(camera_loop(headset))
             asyncio.create_task(pose_consumer(headset))
             while True:  # one sample per display frame (OpenXR: after xrWaitFrame / xrLocateSpace)
-                t_us, head, left, right, valid = read_openxr_poses()  # [px,py,pz,qx,qy,qz,qw] in STAGE space
-                await headset.send_hmd(t_us, head, left, right, valid)
+                t_us, view, left_grip, right_grip = read_openxr_poses()  # each ([px,py,pz,qx,qy,qz,qw], flags)
+                msg = hmd_from_openxr(0, t_us, view, left_grip, right_grip)  # PROTOCOL.md §3.3
+                await headset.send_hmd(t_us, msg.head, msg.left, msg.right, msg.valid)
 
     async def camera_loop(headset):  # e.g. a RealSense D4xx: aligned color + depth frames at 30 Hz
         while True:
@@ -24,9 +26,11 @@ synthetic data only. The sketch below shows where a real capture loop plugs in::
             drive_avatar(pose.global_orient, pose.body_pose, pose.transl)
 
 Timestamps are the rig's own monotonic clock in µs, the same clock for both streams (PROTOCOL.md §3).
-On a Quest, use OpenXR's STAGE reference space (floor at y = 0); `xrLocateSpace` gives the controllers' grip
-poses. A RealSense needs depth aligned to color (`rs.align`) and the color intrinsics; `cam_from_head` is the
-camera's pose in the headset's frame from your mount's calibration (omit it to use the training camera's).
+On a Quest, use OpenXR's STAGE reference space (floor at y = 0) and locate the VIEW space and the two
+``grip`` poses in it; ``hmd_from_openxr`` turns the grips' orientations the quarter turn the models expect
+and maps the location flags to ``valid`` (PROTOCOL.md §3.3). A RealSense needs depth aligned to color
+(`rs.align`) and the color intrinsics; `cam_from_head` is the camera's pose in the headset's frame from your
+mount's calibration (omit it to use the training camera's).
 
 Connection handling: the client says ``hello`` as ``input``, and if the connection drops it reconnects with
 exponential backoff and resumes the same session (same id, model and sequence counters). Samples sent while
@@ -64,7 +68,11 @@ from ..protocol import (
 from . import session_url
 
 log = logging.getLogger("egoposevr.input")
-PERMANENT_REFUSALS = frozenset({"auth_failed", "session_busy", "invalid_field"})
+# Fatal refusals that retrying cannot fix: a wrong token, a session taken, or a hello the server refuses for
+# its content (it answers the broken rule's own code, PROTOCOL.md §4).
+PERMANENT_REFUSALS = frozenset(
+    {"auth_failed", "session_busy", "invalid_field", "wrong_length", "missing_field", "unsupported_version"}
+)
 
 
 class InputClientError(RuntimeError):

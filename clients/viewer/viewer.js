@@ -22,6 +22,7 @@ const DEVICE_FROM_JOINT = new THREE.Quaternion().setFromAxisAngle(new THREE.Vect
 const state = (window.viewerState = {
   connected: false, session: null, model: null, models: [], poses: 0, lastSeq: null, fps: 0,
   serverMs: null, camera: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
+  headset: null, // from `session` messages: is an input client connected (null: not told yet)
 });
 
 const $ = (id) => document.getElementById(id);
@@ -53,6 +54,8 @@ function onMessage(msg) {
   else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(); }
   else if (msg.type === "pose") { onPose(msg); }
   else if (msg.type === "error") { state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`]; }
+  else if (msg.type === "session") { state.headset = msg.input; }
+  // Any other type is one this viewer does not know: ignored (PROTOCOL.md §8).
 }
 
 function onPose(pose) {
@@ -233,7 +236,8 @@ function frame() {
   if (latest) { view.show(latest); latest = null; }
   view.draw();
   const s = state;
-  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}` : "connecting…";
+  const headset = s.headset === null ? "" : s.headset ? " · headset connected" : " · no headset";
+  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}${headset}` : "connecting…";
   $("hud").textContent = s.poses
     ? `poses ${s.poses}  ·  ${s.fps} FPS  ·  server ${s.serverMs?.toFixed(1) ?? "?"} ms  ·  camera ${s.camera === null ? "n/a" : s.camera ? "on" : "off"}  ·  skipped ${s.skipped}` +
       (s.errors.length ? `  ·  last error ${s.errors[s.errors.length - 1]}` : "")

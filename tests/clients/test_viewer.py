@@ -108,6 +108,7 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             assert state["connected"] and state["session"] == "walk" and state["renderer"] in ("webgl", "2d")
             assert state["truthSeen"] and state["serverMs"] > 0 and state["fps"] > 10
             assert "walk" in state["sessions"] and "egoposevr" in state["models"]
+            assert state["headset"] is True  # told by the session status messages
             first = browser.screenshot()
             time.sleep(0.8)
             second = browser.screenshot()
