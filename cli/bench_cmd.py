@@ -19,9 +19,13 @@ import json
 import sys
 from pathlib import Path
 
+from ..clients import url_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--url", default=None, help="an already running server (default: start one)")
+    parser.add_argument(
+        "--url", type=url_argument, default=None, help="an already running server (default: start one)"
+    )
     parser.add_argument("--sessions", type=int, default=1, help="concurrent mock headsets (default 1)")
     parser.add_argument("--seconds", type=float, default=20.0, help="length of each run (default 20)")
     parser.add_argument("--hmd-rate", type=float, default=90.0, help="headset rate, Hz (default 90)")

@@ -12,12 +12,16 @@ import argparse
 import asyncio
 import sys
 
+from ..clients import url_argument
+
 DEFAULT_URL = "ws://127.0.0.1:8765/ws"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("protocol", choices=["vmc"], help="output protocol")
-    parser.add_argument("--url", default=DEFAULT_URL, help=f"server WebSocket URL (default {DEFAULT_URL})")
+    parser.add_argument(
+        "--url", type=url_argument, default=DEFAULT_URL, help=f"server WebSocket URL (default {DEFAULT_URL})"
+    )
     parser.add_argument("--session", required=True, help="session to follow")
     parser.add_argument("--to", required=True, metavar="HOST:PORT", help="where the VMC receiver listens")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this long (default: Ctrl-C)")

@@ -15,10 +15,14 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..clients import url_argument
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", type=Path, nargs="?", metavar="FILE.egrec", help="recorded session")
-    parser.add_argument("--url", default=None, help="live server WebSocket URL instead of a recording")
+    parser.add_argument(
+        "--url", type=url_argument, default=None, help="live server WebSocket URL instead of a recording"
+    )
     parser.add_argument("--session", default="demo", help="live session to watch (default demo)")
     parser.add_argument("--seconds", type=float, default=10.0, help="live: how long to watch (default 10)")
     parser.add_argument(

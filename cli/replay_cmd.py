@@ -17,12 +17,16 @@ import json
 import sys
 from pathlib import Path
 
+from ..clients import url_argument
+
 DEFAULT_URL = "ws://127.0.0.1:8765/ws"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recording", type=Path, metavar="FILE.egrec")
-    parser.add_argument("--url", default=DEFAULT_URL, help=f"server WebSocket URL (default {DEFAULT_URL})")
+    parser.add_argument(
+        "--url", type=url_argument, default=DEFAULT_URL, help=f"server WebSocket URL (default {DEFAULT_URL})"
+    )
     parser.add_argument("--session", default=None, help="session id (default: the recording's)")
     parser.add_argument("--model", default=None, help="model to ask for (default: the server's default)")
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor (default 1)")

@@ -1,6 +1,37 @@
 """Clients of the EgoPoseVR server: mock headset, input library, renderer, VMC bridge, bench. No torch here."""
 
+from __future__ import annotations
+
+import argparse
+import urllib.parse
+
+WS_PATH = "/ws"
+
+
+def server_url(url: str) -> str:
+    """A server address as people type it -> the WebSocket URL: ``ws://host:port`` (no path) gets ``/ws``;
+    ``http(s)://`` is refused with the scheme to use. Raises ``ValueError`` saying what to write instead."""
+    parts = urllib.parse.urlsplit(url.strip())
+    if parts.scheme in ("http", "https"):
+        scheme = "wss" if parts.scheme == "https" else "ws"
+        raise ValueError(
+            f"{url}: the server speaks WebSocket, not HTTP; use {scheme}://{parts.netloc}{parts.path or WS_PATH}"
+        )
+    if parts.scheme not in ("ws", "wss") or not parts.netloc:
+        raise ValueError(f"{url}: expected ws://HOST:PORT/ws (or wss:// for TLS)")
+    path = parts.path if parts.path not in ("", "/") else WS_PATH
+    return urllib.parse.urlunsplit((parts.scheme, parts.netloc, path, parts.query, ""))
+
 
 def session_url(url: str, session: str) -> str:
     """The WebSocket URL with ``?session=`` added (PROTOCOL.md §1: balancers route on it)."""
-    return f"{url}{'&' if '?' in url else '?'}session={session}"
+    url = server_url(url)
+    return f"{url}{'&' if '?' in url else '?'}session={urllib.parse.quote(session, safe='')}"
+
+
+def url_argument(text: str) -> str:
+    """``--url`` for argparse: normalised by :func:`server_url`, a clear usage error otherwise."""
+    try:
+        return server_url(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
