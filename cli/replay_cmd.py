@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--token", default=None, help="shared token, if the server requires one")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the report as JSON")
     parser.add_argument("--quiet", action="store_true", help="no live line each second")
+    parser.add_argument(
+        "--strict", action="store_true", help="refuse a recording cut short (default: replay its good part)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,10 +48,13 @@ def run(args: argparse.Namespace) -> int:
         print("egoposevr replay: --speed must be > 0", file=sys.stderr)
         return 2
     try:
-        recording = Recording.load(args.recording)
+        recording = Recording.load(args.recording, strict=args.strict)
     except (OSError, EgrecError, ReplayError) as exc:
         print(f"egoposevr replay: {exc}", file=sys.stderr)
         return 2
+    if recording.cut is not None:
+        print(f"egoposevr replay: warning: {args.recording} was {recording.cut.describe()}; replaying the "
+              f"{len(recording.messages)} messages before it (--strict refuses such files)", file=sys.stderr)  # fmt: skip
     replayer = Replayer(
         recording, args.url, args.session, args.model, args.speed, args.loop, args.seconds, args.token
     )
@@ -65,7 +71,13 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         stats = replayer.stats
     report = stats.report()
-    print(summary_line(report))
+    report["recording_cut"] = None if recording.cut is None else {
+        "records_read": recording.cut.records,
+        "bytes_read": recording.cut.bytes_read,
+        "bytes_total": recording.cut.bytes_total,
+        "reason": recording.cut.reason,
+    }  # fmt: skip
+    print(summary_line(report) + ("  (recording cut short)" if recording.cut is not None else ""))
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2))
     return 0 if report["answered"] else 1

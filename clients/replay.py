@@ -25,7 +25,7 @@ from websockets.exceptions import ConnectionClosed
 
 from ..model.skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY
 from ..protocol import Hello, Message, ProtocolError, decode, decode_from_server, encode
-from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, read_header, read_records
+from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, Cut, read_header, read_records
 from . import session_url
 
 LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
@@ -47,13 +47,17 @@ class Recording:
     messages: list[tuple[int, Message, bytes]]  # (send time µs from start, decoded, exact bytes), no hello
     hello: Hello | None
     truth: dict[int, np.ndarray]  # hmd seq -> (J, 3) true joints, m
+    cut: Cut | None = None  # set when the file was cut short and only its good part was read
 
     @classmethod
-    def load(cls, path: str | Path) -> Recording:
+    def load(cls, path: str | Path, strict: bool = False) -> Recording:
+        """Read a recording. A file cut short (crash, full disk) loads up to its last complete record and
+        says so in ``cut``; ``strict`` refuses it instead (:class:`EgrecError`)."""
         path = Path(path)
         header = read_header(path)
         messages, hello, truth = [], None, {}
-        for record in read_records(path):
+        cut = Cut()
+        for record in read_records(path, strict=strict, cut=cut):
             if record.kind == KIND_CLIENT:
                 try:
                     msg = decode(record.payload)
@@ -68,8 +72,10 @@ class Recording:
                     NUM_JOINTS, 3
                 )
         if not any(m.type == "hmd" for _, m, _ in messages):
-            raise ReplayError(f"{path}: no hmd messages to replay")
-        return cls(path, header, [_with_truth(m, truth) for m in messages], hello, truth)
+            why = f" ({cut.describe()})" if cut.happened else ""
+            raise ReplayError(f"{path}: no hmd messages to replay{why}")
+        entries = [_with_truth(m, truth) for m in messages]
+        return cls(path, header, entries, hello, truth, cut if cut.happened else None)
 
     @property
     def duration_us(self) -> int:

@@ -112,30 +112,74 @@ def _header(unpacker: msgpack.Unpacker, path: str | Path) -> dict[str, Any]:
     return header
 
 
-def read_records(path: str | Path) -> Iterator[Record]:
-    """Every record after the header, in file order. Raises :class:`EgrecError` at the first bad one."""
+@dataclasses.dataclass
+class Cut:
+    """Where a recording cut short (a crash, SIGKILL, a full disk) stopped being readable.
+
+    records: complete records read; bytes_read / bytes_total: how far into the file they reach; reason:
+    what was wrong after them. Filled in by :func:`read_records` when ``strict`` is False.
+    """
+
+    records: int = 0
+    bytes_read: int = 0
+    bytes_total: int = 0
+    reason: str = ""
+
+    @property
+    def happened(self) -> bool:
+        return bool(self.reason)
+
+    def describe(self) -> str:
+        lost = self.bytes_total - self.bytes_read
+        return f"cut after record {self.records} ({self.reason}; {lost} of {self.bytes_total} bytes unread)"
+
+
+def read_records(path: str | Path, *, strict: bool = True, cut: Cut | None = None) -> Iterator[Record]:
+    """Every record after the header, in file order.
+
+    strict: a truncated or corrupt record raises :class:`EgrecError`. Otherwise reading stops at the last
+    complete record and ``cut`` (if given) says where and why: a recording cut by a crash or a full disk
+    replays its good part. A bad header raises either way (nothing after it can be trusted).
+    """
     size = Path(path).stat().st_size
+    cut = cut if cut is not None else Cut()
+    cut.bytes_total = size
     with Path(path).open("rb") as file:
         unpacker = _unpacker(file)
         _header(unpacker, path)
         index = 0
         while True:
+            good_until = unpacker.tell()
+            problem = None
             try:
                 item = next(unpacker)
             except StopIteration:
                 if unpacker.tell() < size:  # msgpack stops quietly at a cut record; say so
-                    raise EgrecError(f"{path}: truncated after record {index}") from None
-                return
+                    problem = f"truncated after record {index}"
+                else:
+                    cut.records, cut.bytes_read = index, size
+                    return
             except (ValueError, msgpack.UnpackException) as error:
-                raise EgrecError(f"{path}: record {index} is corrupt ({error})") from None
-            if (
-                not isinstance(item, list)
-                or len(item) != 3
-                or not isinstance(item[0], int)
-                or not isinstance(item[1], str)
-            ):
-                raise EgrecError(f"{path}: record {index} is not [t_us, kind, payload]")
-            if item[1] == KIND_CLIENT and not isinstance(item[2], bytes):
-                raise EgrecError(f"{path}: record {index} (c2s) holds no message bytes")
+                problem = f"record {index} is corrupt ({error})"
+            else:
+                problem = _record_problem(item, index)
+            if problem is not None:
+                if strict:
+                    raise EgrecError(f"{path}: {problem}")
+                cut.records, cut.bytes_read, cut.reason = index, good_until, problem
+                return
             yield Record(item[0], item[1], item[2])
             index += 1
+
+
+def _record_problem(item: Any, index: int) -> str | None:
+    if (
+        not isinstance(item, list)
+        or len(item) != 3
+        or not isinstance(item[0], int)
+        or not isinstance(item[1], str)
+    ):
+        return f"record {index} is not [t_us, kind, payload]"
+    if item[1] == KIND_CLIENT and not isinstance(item[2], bytes):
+        return f"record {index} (c2s) holds no message bytes"
+    return None

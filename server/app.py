@@ -73,7 +73,11 @@ class Server:
         self.config = config
         self.metrics = Metrics()
         self.registry = ModelRegistry(config.models_dir, config.bundled_models, config.ort_threads)
-        self.recorder = Recorder(config.record, server_name()) if config.record else None
+        self.recorder = (
+            Recorder(config.record, server_name(), on_failure=self.metrics.recordings_failed.inc)
+            if config.record
+            else None
+        )
         self.hub = Hub(
             config, self.registry, self.metrics, self.recorder,
             on_work=self._wake_session, on_session_end=self._end_session, server_name=server_name(),

@@ -49,6 +49,11 @@ class Metrics:
         self.rate_limited = Counter(
             "egoposevr_rate_limited_messages", "Messages dropped by the per-session rate cap", registry=r
         )
+        self.recordings_failed = Counter(
+            "egoposevr_recordings_failed",
+            "Recordings (--record) that stopped on an error, e.g. a full disk",
+            registry=r,
+        )
         self.models_loaded = Gauge("egoposevr_models_loaded", "Models servable now", registry=r)
         self.model_failures = Gauge("egoposevr_model_failures", "Model files that failed to load", registry=r)
         self.stage_seconds = Histogram(

@@ -3,13 +3,16 @@
 One file per input connection, ``<session>-<UTC time>-<n>.egrec``, holding the exact bytes of each valid
 message the headset sent (hello, hmd, rgbd, select_model) with its arrival time. Writes go through a buffered
 file, so a write on the event loop costs a memory copy; files are flushed when the connection closes and at
-shutdown. A write that fails (disk full) is logged once and that connection's recording stops; serving goes on.
+shutdown. A write that fails (disk full) is logged once, counted (``egoposevr_recordings_failed_total``) and
+that connection's recording stops; serving goes on. What reached the disk replays up to its last complete
+record (``egoposevr replay`` warns and says how much was cut).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,10 +24,13 @@ log = logging.getLogger("egoposevr.server")
 class Recorder:
     """Open recordings, one per input client."""
 
-    def __init__(self, directory: Path, server_name: str = "") -> None:
+    def __init__(
+        self, directory: Path, server_name: str = "", on_failure: Callable[[], None] = lambda: None
+    ) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.server_name = server_name
+        self.on_failure = on_failure  # a recording stopped on an error (counted in /metrics)
         self._writers: dict[Any, tuple[EgrecWriter, int]] = {}  # client -> (writer, start ns)
         self._count = 0
 
@@ -36,6 +42,7 @@ class Recorder:
             writer = EgrecWriter(path, session_id, source="server", recorded_by=self.server_name)
         except OSError as exc:
             log.warning("cannot record session %s to %s: %s", session_id, path, exc)
+            self.on_failure()
             return
         self._writers[client] = (writer, time.perf_counter_ns())
         log.info("recording session %s to %s", session_id, path)
@@ -49,6 +56,7 @@ class Recorder:
             writer.message((recv_ns - start_ns) // 1000, data)
         except OSError as exc:
             log.warning("recording %s stopped: %s", writer.path, exc)
+            self.on_failure()
             self._close(client)
 
     def close(self, client: Any) -> None:
