@@ -98,6 +98,7 @@ class Server:
     # ------------------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
         """Bind, load the models, check the configuration against them, then accept hellos."""
+        tls = self.config.ssl_context()  # a bad certificate fails before anything binds
         self._ws = await serve(
             self._connection,
             self.config.host,
@@ -111,6 +112,7 @@ class Server:
             ping_timeout=self.config.ping_timeout_s,
             close_timeout=2,
             server_header=server_name(),
+            ssl=tls,
         )
         try:
             await self._rescan()
@@ -121,9 +123,11 @@ class Server:
         self.hub.ready = True
         if self.config.models_dir is not None and self.config.rescan_s > 0:
             self._rescan_task = asyncio.create_task(self._rescan_forever())
+        scheme = "wss" if tls is not None else "ws"
         log.info(
-            "serving %s on ws://%s:%d%s",
+            "serving %s on %s://%s:%d%s",
             ", ".join(self.registry.names()),
+            scheme,
             self.config.host,
             self.port,
             WS_PATH,
@@ -152,7 +156,8 @@ class Server:
     @property
     def url(self) -> str:
         host = "127.0.0.1" if self.config.host in ("0.0.0.0", "") else self.config.host
-        return f"ws://{host}:{self.port}{WS_PATH}"
+        scheme = "wss" if self.config.ssl_certfile is not None else "ws"
+        return f"{scheme}://{host}:{self.port}{WS_PATH}"
 
     async def stop(self) -> None:
         """Graceful stop, bounded by ``shutdown_timeout_s``."""

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import contextvars
 import os
+import ssl
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, SecretStr, ValidationError, field_validator
+from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     NoDecode,
@@ -61,6 +62,12 @@ class ServerConfig(BaseSettings):
         description="kernel send buffer per connection: bounds how stale a slow viewer's poses get",
     )
     token: SecretStr | None = Field(None, description="shared secret every hello must carry")
+    ssl_certfile: Path | None = Field(
+        None, description="TLS certificate chain (PEM): serve wss:// and https:// on the same port"
+    )
+    ssl_keyfile: Path | None = Field(
+        None, description="its private key (PEM), if not in the certificate file"
+    )
     origins: Annotated[tuple[str, ...], NoDecode] = Field(
         (), description="browser origins allowed (comma-separated); empty allows any"
     )
@@ -78,6 +85,29 @@ class ServerConfig(BaseSettings):
         "(off: each frame rides on the next headset job, adding its cost to that pose's latency)",
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @model_validator(mode="after")
+    def _tls_files_exist(self) -> ServerConfig:
+        if self.ssl_keyfile is not None and self.ssl_certfile is None:
+            raise ValueError("ssl_keyfile needs ssl_certfile")
+        for path in (self.ssl_certfile, self.ssl_keyfile):
+            if path is not None and not path.is_file():
+                raise ValueError(f"{path} does not exist")
+        return self
+
+    def ssl_context(self) -> ssl.SSLContext | None:
+        """The server's TLS context, or None for plain ws://. Raises ConfigError for unusable files."""
+        if self.ssl_certfile is None:
+            return None
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        context.minimum_version = ssl.TLSVersion.TLSv1_2
+        try:
+            context.load_cert_chain(self.ssl_certfile, self.ssl_keyfile)
+        except (ssl.SSLError, OSError) as exc:
+            raise ConfigError(
+                f"ssl_certfile/ssl_keyfile: cannot load the certificate and key ({exc})"
+            ) from None
+        return context
 
     @field_validator("origins", mode="before")
     @classmethod
