@@ -261,9 +261,13 @@ class HeadsetClient:
             if self._failure is not None:
                 raise self._failure
             try:
-                yield await asyncio.wait_for(self._poses.get(), 0.5)
+                # asyncio.timeout, not wait_for: in Python 3.11 wait_for can swallow a cancellation that
+                # arrives as the queue hands over a pose, leaving a cancelled consumer looping forever.
+                async with asyncio.timeout(0.5):
+                    pose = await self._poses.get()
             except TimeoutError:
                 continue
+            yield pose
 
 
 def encode_frame(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int = 90) -> tuple[bytes, bytes]:

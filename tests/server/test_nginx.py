@@ -241,13 +241,16 @@ async def _failover(cluster: Cluster, how: signal.Signals) -> dict[str, float]:
         assert doomed is not None and survivor is not None and doomed is not survivor
         killed_at = time.monotonic()
         doomed.process.send_signal(how)
+        while headset.online and time.monotonic() < killed_at + 5:  # poses in flight may still arrive
+            await asyncio.sleep(0.001)
+        dropped_at = time.monotonic()
         await asyncio.sleep(4.0)
         stop.set()
         for task in tasks:  # the collectors wait for poses that no longer come: cancel them
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-        back = [t for t in poses["victim"] if t > killed_at]
-        viewer_back = [t for t in poses["viewer"] if t > killed_at]
+        back = [t for t in poses["victim"] if t > dropped_at]  # from the new replica
+        viewer_back = [t for t in poses["viewer"] if t > dropped_at]
         around = [t for t in poses["bystander"] if killed_at - 1 < t < killed_at + 3]
         gaps = [b - a for a, b in itertools.pairwise(around)]
         assert back, "the headset never got a pose again"
@@ -256,6 +259,7 @@ async def _failover(cluster: Cluster, how: signal.Signals) -> dict[str, float]:
         assert moved_to is not None and moved_to is not doomed
         return {
             "failover_s": back[0] - killed_at,
+            "connection_lost_s": dropped_at - killed_at,
             "viewer_back_s": viewer_back[0] - killed_at,
             "bystander_max_gap_s": max(gaps),
             "reconnects": headset.reconnects,
