@@ -5,11 +5,15 @@ one clock) p50/p95/p99/max, the server-reported stages, skipped samples and the 
 --sweep finds the most sessions that keep p99 within one 90 Hz frame (11.1 ms); --flat-out measures the
 paper's full-pipeline FPS in-process (a new RGB-D frame every sample); --naive also runs a server that
 re-encodes the whole visual window per request and reports how much the incremental cache saves.
+--soak SECONDS streams the sessions without a break against a server that records them (--record), samples
+the server's memory, open files, threads and the latency every --soak-interval, and fails (exit 1) if its
+memory grows more than --soak-growth-mib after --soak-warmup.
 
 Examples:
   egoposevr bench                                   # egoposevr, 1 session, 20 s, 90 Hz + 30 Hz
   egoposevr bench --sessions 4 --models egoposevr,hmd --json bench.json --plot bench.png
   egoposevr bench --sweep --flat-out --naive --seconds 10
+  egoposevr bench --soak 3600 --sessions 2 --json soak.json       # an hour; CI runs --soak 120
 """
 
 from __future__ import annotations
@@ -39,6 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sweep", action="store_true", help="find the most sessions with p99 <= 11.1 ms")
     parser.add_argument("--max-sessions", type=int, default=12, help="upper bound of the sweep (default 12)")
     parser.add_argument("--flat-out", action="store_true", help="full-pipeline FPS, in-process")
+    parser.add_argument("--soak", type=float, default=None, metavar="SECONDS", help="one long run, sampled")
+    parser.add_argument("--soak-interval", type=float, default=60.0, metavar="S", help="sample period (60)")
+    parser.add_argument(
+        "--soak-warmup", type=float, default=120.0, metavar="S", help="before memory counts (120)"
+    )
+    parser.add_argument(
+        "--soak-growth-mib", type=float, default=64.0, metavar="MIB", help="allowed growth after warm-up (64)"
+    )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT")
     parser.add_argument("--plot", type=Path, default=None, metavar="OUT.png", help="needs matplotlib")
 
@@ -77,7 +89,47 @@ def print_tables(results: dict[str, dict]) -> None:
                   "per request than re-encoding the window (mean of the visual stage, side by side)")  # fmt: skip
 
 
+def run_soak(args: argparse.Namespace) -> int:
+    """--soak: one long run against a recording server, sampled every interval; exit 1 if memory grows."""
+    import dataclasses
+    import tempfile
+
+    from ..clients.bench import Load, serving, soak, soak_verdict
+    from ..recordings import bundled
+
+    model = args.models.split(",")[0].strip()
+    load = Load(
+        args.sessions, args.soak, args.hmd_rate, args.camera_rate, tuple(args.recordings or bundled())
+    )
+    print("| t (s) | server RSS (MiB) | open files | threads | e2e p50 | p99 (ms) | answered | skipped |")
+    print("|---|---|---|---|---|---|---|---|")
+
+    def show(s) -> None:
+        print(f"| {s.t_s:.0f} | {_ms(s.rss_mib)} | {s.open_files} | {s.threads} | {_ms(s.p50_ms)} | "
+              f"{_ms(s.p99_ms)} | {s.answered} | {s.skipped} |", flush=True)  # fmt: skip
+
+    with tempfile.TemporaryDirectory(prefix="egoposevr-soak-") as folder:
+        try:
+            with serving(args.url, "--record", folder) as (url, pid):
+                samples = soak(url, pid, load, model, args.soak_interval, show)
+        except (OSError, RuntimeError) as exc:
+            print(f"egoposevr bench: {exc}", file=sys.stderr)
+            return 1
+    verdict = soak_verdict(samples, args.soak_warmup, args.soak_growth_mib)
+    print(json.dumps(verdict))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"load": dataclasses.asdict(load) | {"recordings": None},
+                                         "model": model, "samples": [dataclasses.asdict(s) for s in samples],
+                                         "verdict": verdict}, indent=2, default=str))  # fmt: skip
+    return 0 if verdict["passed"] else 1
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.soak is not None:
+        if args.soak <= 0 or args.soak_interval <= 0:
+            print("egoposevr bench: --soak and --soak-interval must be > 0", file=sys.stderr)
+            return 2
+        return run_soak(args)
     from ..clients.bench import Load, flat_out_fps, measure, plot, serving, sweep
     from ..clients.replay import Recording
     from ..model.weights import model_files

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -200,3 +200,113 @@ def plot(results: dict[str, dict[str, Any]], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------------ soak
+@dataclasses.dataclass(frozen=True)
+class SoakSample:
+    """One interval of a soak: the server's resident memory, open files and threads at its end, and the
+    interval's end-to-end latency, answered and skipped samples over all sessions."""
+
+    t_s: float
+    rss_mib: float | None
+    open_files: int | None
+    threads: int | None
+    p50_ms: float | None
+    p99_ms: float | None
+    answered: int
+    skipped: int
+
+
+def _server_usage(pid: int | None) -> tuple[float | None, int | None, int | None]:
+    """(resident MiB, open file descriptors, threads) of the server process, or Nones."""
+    if pid is None:
+        return None, None, None
+    try:
+        import psutil
+
+        process = psutil.Process(pid)
+        return process.memory_info().rss / 2**20, process.num_fds(), process.num_threads()
+    except (ImportError, OSError):
+        return None, None, None
+
+
+def soak(
+    url: str,
+    pid: int | None,
+    load: Load,
+    model: str,
+    interval_s: float = 60.0,
+    on_sample: Callable[[SoakSample], None] = lambda sample: None,
+) -> list[SoakSample]:
+    """``load.sessions`` headsets streaming without a break for ``load.seconds``; a sample every
+    ``interval_s`` (memory, files, threads of the server; latency of the interval)."""
+    recordings = [Recording.load(p).retimed(load.hmd_rate_hz, load.camera_rate_hz) for p in load.recordings]
+    return asyncio.run(_soak(url, pid, recordings, load, model, interval_s, on_sample))
+
+
+async def _soak(
+    url: str,
+    pid: int | None,
+    recordings: list[Recording],
+    load: Load,
+    model: str,
+    interval_s: float,
+    on_sample: Callable[[SoakSample], None],
+) -> list[SoakSample]:
+    replayers = [
+        Replayer(recordings[i % len(recordings)], url, f"soak-{i}", model, loop=True, seconds=load.seconds)
+        for i in range(load.sessions)
+    ]
+
+    async def run(i: int) -> ReplayStats:
+        await asyncio.sleep(i / (load.hmd_rate_hz * load.sessions))
+        return await replayers[i].run()
+
+    tasks = [asyncio.create_task(run(i)) for i in range(load.sessions)]
+    started, samples = time.perf_counter(), []
+    answered, skipped = [0] * load.sessions, [0] * load.sessions
+    while not all(t.done() for t in tasks):
+        await asyncio.wait(tasks, timeout=interval_s)
+        latencies: list[float] = []
+        new_answered = new_skipped = 0
+        for i, replayer in enumerate(replayers):
+            stats = replayer.stats
+            fresh = stats.answered - answered[i]
+            latencies += list(stats.latency_ms)[-fresh:] if fresh > 0 else []
+            new_answered, new_skipped = new_answered + fresh, new_skipped + stats.skipped - skipped[i]
+            answered[i], skipped[i] = stats.answered, stats.skipped
+        if not new_answered and all(t.done() for t in tasks):
+            break  # the sessions ended inside this interval: nothing new to report
+        rss, files, threads = _server_usage(pid)
+        spread = _percentiles(latencies)
+        sample = SoakSample(
+            round(time.perf_counter() - started, 1), rss, files, threads, spread["p50"], spread["p99"],
+            new_answered, new_skipped,
+        )  # fmt: skip
+        samples.append(sample)
+        on_sample(sample)
+    for task in tasks:
+        task.result()  # a replay that failed fails the soak
+    return samples
+
+
+def soak_verdict(samples: list[SoakSample], warmup_s: float, growth_limit_mib: float) -> dict[str, Any]:
+    """Memory at the first sample, after warm-up and at the end; growth past warm-up against the limit."""
+    measured = [s for s in samples if s.rss_mib is not None]
+    if not measured:
+        return {"memory_checked": False, "passed": True, "reason": "the server's memory was not measured"}
+    warm = next((s for s in measured if s.t_s >= warmup_s), measured[-1])
+    after = [s for s in measured if s.t_s >= warm.t_s]
+    growth = max(s.rss_mib for s in after) - warm.rss_mib
+    files = [s.open_files for s in after if s.open_files is not None]
+    return {
+        "memory_checked": True,
+        "rss_start_mib": measured[0].rss_mib,
+        "rss_after_warmup_mib": warm.rss_mib,
+        "rss_end_mib": measured[-1].rss_mib,
+        "rss_growth_after_warmup_mib": growth,
+        "growth_limit_mib": growth_limit_mib,
+        "open_files_after_warmup": [min(files), max(files)] if files else None,
+        "passed": growth <= growth_limit_mib,
+    }
