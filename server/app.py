@@ -108,6 +108,7 @@ class Server:
             max_size=self.config.max_message_bytes * FRAME_HEADROOM,
             max_queue=8,
             origins=self._origins(),
+            open_timeout=self.config.hello_timeout_s,  # a TCP connection that never upgrades is dropped
             ping_interval=self.config.ping_interval_s,
             ping_timeout=self.config.ping_timeout_s,
             close_timeout=2,

@@ -41,3 +41,26 @@ def test_bench_refuses_bad_arguments(capsys):
     assert main(["bench", "--sessions", "0"]) == 2
     assert main(["bench", "--flat-out", "--models", "nope"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_a_two_minute_soak_keeps_memory_files_and_answers_steady(tmp_path, capsys):
+    """CI's short version of the hour-long soak (PERFORMANCE.md): two recorded sessions without a break."""
+    out = tmp_path / "soak.json"
+    args = ["bench", "--soak", "120", "--soak-interval", "20", "--soak-warmup", "40", "--soak-growth-mib", "32",
+            "--sessions", "2", "--json", str(out)]  # fmt: skip
+    assert main(args) == 0
+    report = json.loads(out.read_text())
+    samples, verdict = report["samples"], report["verdict"]
+    assert len(samples) >= 5 and verdict["passed"] and verdict["memory_checked"]
+    assert all(s["answered"] > 2 * 90 * 15 for s in samples[:-1])  # ~90 Hz per session in every interval
+    files = [s["open_files"] for s in samples[1:]]
+    assert max(files) - min(files) <= 2  # no file leaks while the sessions run
+    assert "| t (s) | server RSS (MiB)" in capsys.readouterr().out
+
+
+def test_a_soak_whose_memory_grows_fails():
+    from egoposevr.clients.bench import SoakSample, soak_verdict
+
+    growing = [SoakSample(60.0 * k, 300.0 + 10 * k, 12, 9, 3.0, 6.0, 10_000, 0) for k in range(10)]
+    assert not soak_verdict(growing, warmup_s=120, growth_limit_mib=32)["passed"]
+    assert soak_verdict(growing[:4], warmup_s=120, growth_limit_mib=32)["passed"]
