@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from ..model.synth.amass import AmassError
     from ..model.synth.bvh import BvhError
     from ..model.synth.inspection import amass_report, inspect_bvh, report, sheet, summary_line
-    from ..model.synth.library import build_library, parse_split_shares, split_subjects
+    from ..model.synth.library import build_library, motion_seconds, parse_split_shares, split_subjects
 
     try:
         shares = parse_split_shares(args.split_by_subject) if args.split_by_subject else None
@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{item.path}: cannot use: {error}")
             continue
         reports.append(entry)
-        seconds[item.subject] = seconds.get(item.subject, 0.0) + entry["duration_s"]
+        # The split weighs subjects by the files' header durations, exactly as `egoposevr synth` does.
+        seconds[item.subject] = seconds.get(item.subject, 0.0) + motion_seconds(item.path)
         print(summary_line(entry))
         if inspection is None:
             continue  # AMASS: no rig, no mapping, no picture of a source skeleton
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         "failed": failures,
         "duplicates": [[str(a), str(b)] for a, b in library.duplicates],
         "unreadable": [[str(a), b] for a, b in library.unreadable],
-        "hours": round(sum(seconds.values()) / 3600, 3),
+        "hours": round(sum(r["duration_s"] for r in reports) / 3600, 3),
         "retarget_error_cm": {
             "median": round(float(np.median(pooled)), 2) if len(pooled) else None,
             "p95": round(float(np.percentile(pooled, 95)), 2) if len(pooled) else None,
