@@ -6,16 +6,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import socket
 import threading
 import time
+import urllib.parse
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import msgpack
+from websockets.client import ClientProtocol
+from websockets.exceptions import ConnectionClosed
+from websockets.protocol import State
 from websockets.sync.client import ClientConnection, connect
+from websockets.uri import parse_uri
 
 from egoposevr.protocol import Hello, Message, decode, encode
+from egoposevr.protocol.examples import example_messages
 from egoposevr.recordings.egrec import KIND_CLIENT, read_records
 from egoposevr.server.app import Server
 from egoposevr.server.config import ServerConfig
@@ -184,3 +192,58 @@ def replay(client: Client, messages: list[tuple[int, str, bytes]], speed: float 
             sent[decode(data).seq] = time.perf_counter()
         client.send(data)
     return sent
+
+
+# ------------------------------------------------------------------------------------------ raw and odd clients
+def address(url: str) -> tuple[str, int]:
+    """(host, port) of a ws:// URL."""
+    parts = urllib.parse.urlsplit(url)
+    return parts.hostname, parts.port
+
+
+def raw_client(
+    url: str, session: str, role: str = "render", receive_buffer: int | None = None
+) -> socket.socket:
+    """A client that joins (upgrade + hello) and then never reads its socket: it drains nothing and answers
+    no ping, as a stalled viewer or a peer gone without closing (half-open TCP) does. The handshake is
+    driven by websockets' sans-I/O protocol, so nothing reads in the background. ``receive_buffer`` sets the
+    TCP window before connecting (a small one makes the server's sends back up quickly)."""
+    protocol = ClientProtocol(parse_uri(url + f"?session={session}"))
+    sock = socket.socket()
+    if receive_buffer is not None:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
+    sock.connect(address(url))
+    protocol.send_request(protocol.connect())
+    sock.sendall(b"".join(protocol.data_to_send()))
+    while protocol.state is State.CONNECTING:
+        protocol.receive_data(sock.recv(4096))
+    protocol.send_binary(encode(Hello(role=role, session=session)))
+    sock.sendall(b"".join(protocol.data_to_send()))
+    return sock
+
+
+def close_code(client: Client, timeout: float = 10.0) -> int:
+    """Read until the server closes the connection (messages still queued are skipped): its close code."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            client.recv(timeout=timeout)
+        except ConnectionClosed as closed:
+            return closed.rcvd.code
+    raise AssertionError("the connection stayed open")
+
+
+def pack(obj: Any) -> bytes:
+    """Any value as msgpack, unvalidated (for messages the server must refuse)."""
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def example_with(kind: str, **changes: Any) -> bytes:
+    """The canonical example message of ``kind`` with fields changed (None deletes), packed unvalidated."""
+    fields = example_messages()[kind].model_dump(exclude_none=True)
+    for key, value in changes.items():
+        if value is None:
+            fields.pop(key)
+        else:
+            fields[key] = value
+    return pack(fields)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
 
 import cv2
 import msgpack
@@ -13,28 +12,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from loopback import Client, recorded_messages, replay, running_server
+from loopback import Client, example_with, pack, recorded_messages, replay, running_server
 from websockets.exceptions import ConnectionClosed
 
 from egoposevr.protocol import Hello, Ping, SelectModel, encode
 from egoposevr.protocol.examples import example_messages
 
 EXAMPLES = example_messages()
-
-
-def _pack(obj: Any) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
-
-
-def _with(kind: str, **changes: Any) -> bytes:
-    """An example message with some fields changed (None deletes), packed without validation."""
-    fields = EXAMPLES[kind].model_dump(exclude_none=True)
-    for key, value in changes.items():
-        if value is None:
-            fields.pop(key)
-        else:
-            fields[key] = value
-    return _pack(fields)
 
 
 def _jpeg(w: int, h: int) -> bytes:
@@ -59,25 +43,25 @@ NON_FATAL = [
     ("not msgpack", b"\xc1", "malformed"),
     ("trailing bytes", encode(Ping()) + b"\x00", "malformed"),
     ("text frame", "hello", "malformed"),
-    ("ext type", _pack(msgpack.ExtType(1, b"x")), "malformed"),
-    ("array", _pack([1, 2, 3]), "not_a_map"),
-    ("no type", _pack({"v": 1}), "missing_type"),
-    ("unknown type", _pack({"type": "dance", "v": 1}), "unknown_type"),
-    ("version 2", _pack({"type": "ping", "v": 2}), "unsupported_version"),
-    ("hmd without head", _with("hmd", head=None), "missing_field"),
-    ("head as text", _with("hmd", head="up"), "invalid_field"),
-    ("bool as float", _with("hmd", head=[True] * 7), "invalid_field"),
-    ("six numbers", _with("hmd", head=[0.0] * 6), "wrong_length"),
-    ("NaN", _with("hmd", head=HEAD_NAN), "non_finite"),
-    ("negative seq", _with("hmd", seq=-1), "out_of_range"),
-    ("100 km away", _with("hmd", head=[1e5, 0, 0, 0, 0, 0, 1.0]), "out_of_range"),
-    ("non-unit quaternion", _with("hmd", head=[0, 1.6, 0, 0, 0, 0, 2.0]), "bad_quaternion"),
-    ("camera not rigid", _with("rgbd", cam_from_head=NOT_RIGID), "bad_transform"),
-    ("rgb not JPEG", _with("rgbd", rgb=b"GIF89a"), "bad_image"),
-    ("width 0", _with("rgbd", width=0), "out_of_range"),
-    ("JPEG that does not decode", _with("rgbd", rgb=b"\xff\xd8\xff" + b"\x00" * 64), "image_decode"),
-    ("size disagrees", _with("rgbd", rgb=_jpeg(8, 6), depth=_png(8, 6)), "image_decode"),
-    ("header claims 60000²", _with("rgbd", depth=_huge_png_header()), "image_decode"),
+    ("ext type", pack(msgpack.ExtType(1, b"x")), "malformed"),
+    ("array", pack([1, 2, 3]), "not_a_map"),
+    ("no type", pack({"v": 1}), "missing_type"),
+    ("unknown type", pack({"type": "dance", "v": 1}), "unknown_type"),
+    ("version 2", pack({"type": "ping", "v": 2}), "unsupported_version"),
+    ("hmd without head", example_with("hmd", head=None), "missing_field"),
+    ("head as text", example_with("hmd", head="up"), "invalid_field"),
+    ("bool as float", example_with("hmd", head=[True] * 7), "invalid_field"),
+    ("six numbers", example_with("hmd", head=[0.0] * 6), "wrong_length"),
+    ("NaN", example_with("hmd", head=HEAD_NAN), "non_finite"),
+    ("negative seq", example_with("hmd", seq=-1), "out_of_range"),
+    ("100 km away", example_with("hmd", head=[1e5, 0, 0, 0, 0, 0, 1.0]), "out_of_range"),
+    ("non-unit quaternion", example_with("hmd", head=[0, 1.6, 0, 0, 0, 0, 2.0]), "bad_quaternion"),
+    ("camera not rigid", example_with("rgbd", cam_from_head=NOT_RIGID), "bad_transform"),
+    ("rgb not JPEG", example_with("rgbd", rgb=b"GIF89a"), "bad_image"),
+    ("width 0", example_with("rgbd", width=0), "out_of_range"),
+    ("JPEG that does not decode", example_with("rgbd", rgb=b"\xff\xd8\xff" + b"\x00" * 64), "image_decode"),
+    ("size disagrees", example_with("rgbd", rgb=_jpeg(8, 6), depth=_png(8, 6)), "image_decode"),
+    ("header claims 60000²", example_with("rgbd", depth=_huge_png_header()), "image_decode"),
     ("a server message", encode(EXAMPLES["pose"]), "unexpected_message"),
     ("second hello", encode(Hello(role="input", session="bad")), "already_greeted"),
     ("unknown model", encode(SelectModel(model="nope")), "unknown_model"),
@@ -104,7 +88,7 @@ def test_errors_name_the_offending_seq_and_count_in_metrics(server):
     before = server.metric("egoposevr_errors_total", code="image_decode")
     with Client(server.url, "seqs") as headset:
         headset.hello("input", "seqs", model="hmd-rgbd")
-        headset.send(_with("rgbd", seq=77, rgb=_jpeg(8, 6), depth=_png(8, 6)))
+        headset.send(example_with("rgbd", seq=77, rgb=_jpeg(8, 6), depth=_png(8, 6)))
         error = headset.recv_type("error")
         assert (error.code, error.seq) == ("image_decode", 77)
         assert "8x6" in error.message and "4x2" in error.message
@@ -147,7 +131,7 @@ def test_fatal_faults_close_with_their_code(server):
         _fatal(two, "session_busy", 1008)
     with Client(server.url, "big") as big:
         big.hello("input", "big")
-        big.send(_with("rgbd", rgb=b"\xff\xd8\xff" + bytes(server.config.max_message_bytes)))
+        big.send(example_with("rgbd", rgb=b"\xff\xd8\xff" + bytes(server.config.max_message_bytes)))
         _fatal(big, "too_large", 1009)
 
 
@@ -234,7 +218,7 @@ message_like = st.fixed_dictionaries(
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(frame=st.binary(max_size=200) | message_like.map(_pack) | msgpack_values.map(_pack))
+@given(frame=st.binary(max_size=200) | message_like.map(pack) | msgpack_values.map(pack))
 def test_fuzzed_frames_never_break_the_connection(fuzz_client, frame):
     fuzz_client.send(frame)
     fuzz_client.send(Ping(nonce=123))

@@ -9,10 +9,8 @@ from __future__ import annotations
 import json
 import math
 import re
-import socket
 import threading
 import time
-import urllib.parse
 from pathlib import Path
 from typing import Any
 from unittest import mock
@@ -20,11 +18,18 @@ from unittest import mock
 import msgpack
 import numpy as np
 import pytest
-from loopback import Client, ServerThread, recorded_messages, replay, running_server, server_config
-from websockets.exceptions import ConnectionClosed
-from websockets.protocol import State
-from websockets.sync.client import ClientProtocol
-from websockets.uri import parse_uri
+from loopback import (
+    Client,
+    ServerThread,
+    close_code,
+    example_with,
+    pack,
+    raw_client,
+    recorded_messages,
+    replay,
+    running_server,
+    server_config,
+)
 
 from egoposevr.cli.main import main as cli_main
 from egoposevr.model.skeleton import forward_kinematics
@@ -68,32 +73,6 @@ def test_every_tagged_statement_has_a_test_and_every_tested_tag_exists():
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _pack(obj: Any) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
-
-
-def _with(kind: str, **changes: Any) -> bytes:
-    """An example message with fields changed (None deletes), packed without validation."""
-    fields = EXAMPLES[kind].model_dump(exclude_none=True)
-    for key, value in changes.items():
-        if value is None:
-            fields.pop(key)
-        else:
-            fields[key] = value
-    return _pack(fields)
-
-
-def _closed_with(client: Client) -> int:
-    """The close code the server ends the connection with (messages still queued before it are skipped)."""
-    deadline = time.monotonic() + 5
-    while time.monotonic() < deadline:
-        try:
-            client.recv(timeout=5)
-        except ConnectionClosed as closed:
-            return closed.rcvd.code
-    raise AssertionError("the connection stayed open")
-
-
 def _ref(error: Any) -> tuple[str, int | None] | None:
     return None if error.ref is None else (error.ref.type, error.ref.seq)
 
@@ -137,27 +116,13 @@ def test_a_hello_for_another_session_than_the_url_is_refused(server):
         client.send(Hello(role="render", session="there"))
         error = client.recv_type("error")
         assert (error.code, error.fatal, _ref(error)) == ("invalid_field", True, ("hello", None))
-        assert _closed_with(client) == 1008
-
-
-def _raw_client(url: str, session: str) -> socket.socket:
-    """A client that joins and then never reads its socket, so it never answers a ping."""
-    protocol = ClientProtocol(parse_uri(url + f"?session={session}"))
-    parts = urllib.parse.urlsplit(url)
-    sock = socket.create_connection((parts.hostname, parts.port))
-    protocol.send_request(protocol.connect())
-    sock.sendall(b"".join(protocol.data_to_send()))
-    while protocol.state is State.CONNECTING:
-        protocol.receive_data(sock.recv(4096))
-    protocol.send_binary(encode(Hello(role="render", session=session)))
-    sock.sendall(b"".join(protocol.data_to_send()))
-    return sock
+        assert close_code(client) == 1008
 
 
 @pytest.mark.protocol("keepalive")
 def test_a_client_that_never_answers_pings_is_closed_and_one_that_does_stays():
     with running_server(ping_interval_s=0.2, ping_timeout_s=0.3) as server:
-        silent = _raw_client(server.url, "keep")
+        silent = raw_client(server.url, "keep")
         with Client(server.url, "keep") as alive:  # the websockets client answers pings by itself
             alive.hello("render", "keep")
             deadline = time.monotonic() + 5
@@ -195,7 +160,7 @@ def test_not_ready_while_loading_models():
                 early.send(Hello(role="input", session="early"))
                 error = early.recv_type("error")
                 assert (error.code, error.fatal) == ("server_full", True)
-                assert _closed_with(early) == 1013
+                assert close_code(early) == 1013
         finally:
             release.set()
         assert thread._started.wait(30)
@@ -210,12 +175,12 @@ def test_not_ready_while_loading_models():
 def test_key_order_unknown_fields_nil_optionals_and_integers_are_accepted(server):
     with Client(server.url, "lenient") as headset:
         headset.hello("input", "lenient", model="hmd")
-        headset.send(_pack({"nonce": 4, "v": 1, "type": "ping", "t_us": None}))  # type last, t_us nil
+        headset.send(pack({"nonce": 4, "v": 1, "type": "ping", "t_us": None}))  # type last, t_us nil
         pong = headset.recv_type("pong")
         assert (pong.nonce, pong.t_us) == (4, None)
         sample = EXAMPLES["hmd"].model_dump(exclude_none=True)
         sample |= {"head": [0, 2, 0, 0, 0, 0, 1], "some_future_field": {"x": 1}}  # integers for floats
-        headset.send(_pack(sample))
+        headset.send(pack(sample))
         assert headset.recv_type("pose").seq == sample["seq"]
 
 
@@ -260,7 +225,7 @@ def test_the_documented_default_camera_equals_leaving_it_out():
                 fields.pop("cam_from_head", None)
                 if cam is not None:
                     fields["cam_from_head"] = cam
-                data = _pack(fields)
+                data = pack(fields)
             out.append((t_us, kind, data))
         return out
 
@@ -330,7 +295,7 @@ def test_a_first_message_that_is_no_hello_is_fatal(server):
         client.send(Ping(nonce=1))
         error = client.recv_type("error")
         assert (error.code, error.fatal, _ref(error)) == ("handshake_required", True, ("ping", None))
-        assert _closed_with(client) == 1008
+        assert close_code(client) == 1008
 
 
 @pytest.mark.protocol("bad-hello")
@@ -346,11 +311,11 @@ def test_a_first_message_that_is_no_hello_is_fatal(server):
 )
 def test_a_bad_hello_answers_its_own_code(server, fields, code):
     with Client(server.url) as client:
-        client.send(_with("hello", token=None, **fields))
+        client.send(example_with("hello", token=None, **fields))
         error = client.recv_type("error")
         assert (error.code, error.fatal, _ref(error)) == (code, True, ("hello", None)), error.message
         assert error.message.startswith("hello.")
-        assert _closed_with(client) == 1008
+        assert close_code(client) == 1008
 
 
 @pytest.mark.protocol("already-greeted", "ping", "list-models")
@@ -391,7 +356,7 @@ def test_one_input_many_viewers_and_roles(server):
         second.send(Hello(role="input", session="roles"))
         error = second.recv_type("error")
         assert (error.code, error.fatal, _ref(error)) == ("session_busy", True, ("hello", None))
-        assert _closed_with(second) == 1008
+        assert close_code(second) == 1008
         viewers = [Client(server.url, "roles") for _ in range(2)]
         for viewer in viewers:
             viewer.hello("render", "roles")
@@ -575,12 +540,12 @@ def test_decode_errors_name_the_message_they_refuse(server):
     with Client(server.url, "refs") as headset:
         headset.hello("input", "refs")
         cases = [
-            (_with("hmd", seq=77, head=[0.0] * 6), ("wrong_length", ("hmd", 77))),
-            (_with("rgbd", seq=78, width=0), ("out_of_range", ("rgbd", 78))),
-            (_with("hmd", seq=79, valid="yes"), ("invalid_field", ("hmd", 79))),
-            (_pack({"type": "hmd", "seq": 80}), ("unsupported_version", ("hmd", 80))),
-            (_pack({"type": "dance", "v": 1, "seq": 81}), ("unknown_type", ("dance", 81))),
-            (_pack([1, 2]), ("not_a_map", None)),
+            (example_with("hmd", seq=77, head=[0.0] * 6), ("wrong_length", ("hmd", 77))),
+            (example_with("rgbd", seq=78, width=0), ("out_of_range", ("rgbd", 78))),
+            (example_with("hmd", seq=79, valid="yes"), ("invalid_field", ("hmd", 79))),
+            (pack({"type": "hmd", "seq": 80}), ("unsupported_version", ("hmd", 80))),
+            (pack({"type": "dance", "v": 1, "seq": 81}), ("unknown_type", ("dance", 81))),
+            (pack([1, 2]), ("not_a_map", None)),
         ]
         for frame, (code, ref) in cases:
             headset.send(frame)
@@ -628,23 +593,23 @@ EXPECTED = {
 NOT_A_JPEG = b"\xff\xd8\xff" + bytes(64)
 # code -> frames an input client of session "a" sends after joining (the last one is answered with the code)
 AS_INPUT = {
-    "too_large": [_with("rgbd", rgb=b"\xff\xd8\xff" + bytes(5000))],
+    "too_large": [example_with("rgbd", rgb=b"\xff\xd8\xff" + bytes(5000))],
     "malformed": [b"\xc1"],
-    "not_a_map": [_pack([1, 2, 3])],
-    "missing_type": [_pack({"v": 1, "seq": 3})],
-    "unknown_type": [_pack({"type": "dance", "v": 1, "seq": 3})],
-    "unsupported_version": [_pack({"type": "ping", "v": 2})],
-    "missing_field": [_with("hmd", head=None)],
-    "invalid_field": [_with("hmd", head="up")],
-    "wrong_length": [_with("hmd", head=[0.0] * 6)],
-    "non_finite": [_with("hmd", head=[0.0, math.nan, 0.0, 0.0, 0.0, 0.0, 1.0])],
-    "out_of_range": [_with("rgbd", width=0)],
-    "bad_quaternion": [_with("hmd", head=[0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 2.0])],
-    "bad_transform": [_with("rgbd", cam_from_head=[2.0, *[0.0] * 14, 1.0])],
-    "bad_image": [_with("rgbd", rgb=b"GIF89a")],
+    "not_a_map": [pack([1, 2, 3])],
+    "missing_type": [pack({"v": 1, "seq": 3})],
+    "unknown_type": [pack({"type": "dance", "v": 1, "seq": 3})],
+    "unsupported_version": [pack({"type": "ping", "v": 2})],
+    "missing_field": [example_with("hmd", head=None)],
+    "invalid_field": [example_with("hmd", head="up")],
+    "wrong_length": [example_with("hmd", head=[0.0] * 6)],
+    "non_finite": [example_with("hmd", head=[0.0, math.nan, 0.0, 0.0, 0.0, 0.0, 1.0])],
+    "out_of_range": [example_with("rgbd", width=0)],
+    "bad_quaternion": [example_with("hmd", head=[0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 2.0])],
+    "bad_transform": [example_with("rgbd", cam_from_head=[2.0, *[0.0] * 14, 1.0])],
+    "bad_image": [example_with("rgbd", rgb=b"GIF89a")],
     "already_greeted": [encode(Hello(role="input", session="a", token="s3cret"))],
     "unknown_model": [encode(SelectModel(model="nope"))],
-    "image_decode": [encode(EXAMPLES["hmd"]), _with("rgbd", rgb=NOT_A_JPEG)],
+    "image_decode": [encode(EXAMPLES["hmd"]), example_with("rgbd", rgb=NOT_A_JPEG)],
     "rate_limited": [encode(Ping()) for _ in range(30)],
     "unexpected_message": [encode(EXAMPLES["pose"])],
 }
@@ -659,7 +624,7 @@ def _check(error: Any, code: str, client: Client) -> None:
     assert (error.code, error.fatal, _ref(error)) == (code, fatal, ref), error
     assert error.message and len(error.message) <= 1024
     if close is not None:
-        assert _closed_with(client) == close
+        assert close_code(client) == close
     else:
         client.send(Ping(nonce=99))
         assert client.recv_type("pong", timeout=10).nonce == 99
@@ -721,12 +686,12 @@ def test_shutting_down_is_fatal_with_1001():
 def test_clients_ignore_unknown_message_types_and_fields():
     from egoposevr.protocol import decode_from_server
 
-    future = _pack({"type": "weather", "v": 1, "forecast": "sunny"})
+    future = pack({"type": "weather", "v": 1, "forecast": "sunny"})
     assert decode_from_server(future) is None
     with pytest.raises(Exception, match="malformed"):
         decode_from_server(b"\xc1")
     pose = EXAMPLES["pose"].model_dump(exclude_none=True) | {"a_field_from_v1_9": [1, 2, 3]}
-    assert decode_from_server(_pack(pose)) == EXAMPLES["pose"]
+    assert decode_from_server(pack(pose)) == EXAMPLES["pose"]
     golden = ROOT / "tests" / "protocol" / "golden"
     for path in golden.glob("*.msgpack"):  # every fixture still decodes: additions only
         assert decode(path.read_bytes()) == EXAMPLES[path.stem]
@@ -739,7 +704,7 @@ def test_the_python_clients_ignore_a_message_type_they_do_not_know(tmp_path):
     from egoposevr.server.hub import Hub
 
     publish = Hub.publish
-    future = _pack({"type": "weather", "v": 1, "forecast": "sunny"})
+    future = pack({"type": "weather", "v": 1, "forecast": "sunny"})
 
     def publish_with_news(hub: Hub, session: Any, result: Any) -> None:
         for member in session.clients:

@@ -10,17 +10,10 @@ import asyncio
 import os
 import socket
 import time
-import urllib.parse
 
 import psutil
 import pytest
-from loopback import Client, ServerThread, running_server
-from websockets.exceptions import ConnectionClosed
-from websockets.protocol import State
-from websockets.sync.client import ClientProtocol
-from websockets.uri import parse_uri
-
-from egoposevr.protocol import Hello, encode
+from loopback import Client, ServerThread, address, close_code, raw_client, running_server
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="counts open files through /proc")
 
@@ -53,29 +46,15 @@ def _settled(server: ServerThread, baseline: dict[str, int], timeout: float = 10
         time.sleep(0.1)
 
 
-def _close_code(client: Client) -> int:
-    """Read until the server closes the connection: its close code."""
-    try:
-        while True:
-            client.recv(timeout=5)
-    except ConnectionClosed as closed:
-        return closed.rcvd.code
-
-
-def _address(url: str) -> tuple[str, int]:
-    parts = urllib.parse.urlsplit(url)
-    return parts.hostname, parts.port
-
-
 @pytest.mark.protocol("hello-first")
 def test_silent_connections_and_tcp_that_never_upgrades_are_dropped_without_a_trace():
     with running_server(hello_timeout_s=0.5) as server:
         baseline = _footprint(server)
         silent = [Client(server.url, f"quiet-{k}") for k in range(20)]  # upgraded, never say hello
-        raw = [socket.create_connection(_address(server.url)) for _ in range(20)]  # TCP only
+        raw = [socket.create_connection(address(server.url)) for _ in range(20)]  # TCP only
         time.sleep(1.5)
         for client in silent:
-            assert _close_code(client) == 1008
+            assert close_code(client) == 1008
             client.close()
         for sock in raw:
             sock.settimeout(5)
@@ -88,23 +67,10 @@ def test_silent_connections_and_tcp_that_never_upgrades_are_dropped_without_a_tr
         assert after["files"] <= baseline["files"]
 
 
-def _vanishing_client(url: str, session: str) -> socket.socket:
-    """Joins, then neither reads nor answers pings: a peer gone without closing (half-open TCP)."""
-    protocol = ClientProtocol(parse_uri(url + f"?session={session}"))
-    sock = socket.create_connection(_address(url))
-    protocol.send_request(protocol.connect())
-    sock.sendall(b"".join(protocol.data_to_send()))
-    while protocol.state is State.CONNECTING:
-        protocol.receive_data(sock.recv(4096))
-    protocol.send_binary(encode(Hello(role="input", session=session)))
-    sock.sendall(b"".join(protocol.data_to_send()))
-    return sock
-
-
 def test_half_open_peers_are_dropped_by_the_keepalive_and_their_sessions_end():
     with running_server(ping_interval_s=0.2, ping_timeout_s=0.3) as server:
         baseline = _footprint(server)
-        gone = [_vanishing_client(server.url, f"gone-{k}") for k in range(10)]
+        gone = [raw_client(server.url, f"gone-{k}", role="input") for k in range(10)]
         time.sleep(0.3)
         assert len(server.server.hub.sessions) == 10
         after = _settled(server, baseline, timeout=10)

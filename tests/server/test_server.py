@@ -3,22 +3,17 @@
 from __future__ import annotations
 
 import shutil
-import socket
 import statistics
 import threading
 import time
-import urllib.parse
 
 import pytest
-from loopback import Client, recorded_messages, replay, running_server
-from websockets.client import ClientProtocol
-from websockets.protocol import State
+from loopback import Client, raw_client, recorded_messages, replay, running_server
 from websockets.sync.client import connect
-from websockets.uri import parse_uri
 
 from egoposevr.clients.bench import STAGES
 from egoposevr.model.weights import WEIGHTS_DIR
-from egoposevr.protocol import Hello, ListModels, Ping, SelectModel, decode, encode
+from egoposevr.protocol import ListModels, Ping, SelectModel, decode
 from egoposevr.recordings.egrec import KIND_CLIENT, read_header, read_records
 
 WALK = recorded_messages("walk-0000", limit=400)  # ~3.3 s: 300 hmd samples at 90 Hz + 100 frames
@@ -96,7 +91,7 @@ def _stalled_viewer_case(server):
     headset.collect()
     healthy.collect()
     baseline_ms = _median_latency_ms(headset, replay(headset, WALK[:120]))  # no stalled viewer yet
-    stalled = stalled_viewer(server.url, session)
+    stalled = raw_client(server.url, session, receive_buffer=4096)  # never reads
     dropped_before = server.metric("egoposevr_dropped_poses_total", role="render")
     headset.received.clear()
     sent = replay(headset, WALK[120:])
@@ -117,27 +112,6 @@ def _median_latency_ms(headset: Client, sent: dict[int, float]) -> float:
     return 1e3 * statistics.median(
         t - sent[m.seq] for t, m in headset.received if m.type == "pose" and m.seq in sent
     )
-
-
-def stalled_viewer(url: str, session: str) -> socket.socket:
-    """A render client that joins and then never reads: a raw socket with a 4 KiB window, driven by the
-    sans-I/O protocol for the handshake only, so nothing drains it in the background."""
-    protocol = ClientProtocol(parse_uri(url + f"?session={session}"))
-    sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connecting: it sets the TCP window
-    sock.connect(_address(url))
-    protocol.send_request(protocol.connect())
-    sock.sendall(b"".join(protocol.data_to_send()))
-    while protocol.state is State.CONNECTING:
-        protocol.receive_data(sock.recv(4096))
-    protocol.send_binary(encode(Hello(role="render", session=session)))
-    sock.sendall(b"".join(protocol.data_to_send()))
-    return sock
-
-
-def _address(url: str) -> tuple[str, int]:
-    parts = urllib.parse.urlsplit(url)
-    return parts.hostname, parts.port
 
 
 def test_model_switch_mid_session_resets_cleanly(server):
