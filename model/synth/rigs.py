@@ -265,6 +265,14 @@ def _pelvis_guess(tree: _Tree) -> int:
 
 def _anchors_by_structure(tree: _Tree) -> dict[str, int]:
     """Head, hands and feet from topology and rest geometry alone (names unknown)."""
+    pelvis, spine, legs = _trunk(tree)
+    up, left, (foot_l, foot_r) = _feet_and_frame(tree, pelvis, spine, legs)
+    head, (hand_l, hand_r) = _head_and_hands(tree, spine, up, left)
+    return {"head": head, "hand_L": hand_l, "hand_R": hand_r, "foot_L": foot_l, "foot_R": foot_r}
+
+
+def _trunk(tree: _Tree) -> tuple[int, int, list[int]]:
+    """(pelvis, the spine's first joint, the two legs' first joints): the pelvis's three largest branches."""
     pelvis = _pelvis_guess(tree)
     branches = sorted(tree.children[pelvis], key=lambda c: len(tree.descendants(c)), reverse=True)
     if len(branches) < 3:
@@ -272,30 +280,41 @@ def _anchors_by_structure(tree: _Tree) -> dict[str, int]:
             f"cannot find the legs and spine: the pelvis {tree.names[pelvis]!r} has "
             f"{len(branches)} branches (legs and spine need 3), and the joint names are not recognised"
         )
-    spine, legs = branches[0], branches[1:3]
+    return pelvis, branches[0], branches[1:3]
+
+
+def _feet_and_frame(
+    tree: _Tree, pelvis: int, spine: int, legs: list[int]
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """(up, left, (left ankle, right ankle)): up from the legs' tips to the spine, forward where the toes
+    point, left = up × forward."""
     rest = tree.rest - tree.rest[pelvis]
-    leg_tips = [max(tree.leaves(b), key=lambda k: np.linalg.norm(rest[k])) for b in legs]
-    up = _snap(rest[tree.descendants(spine)].mean(axis=0) - rest[leg_tips].mean(axis=0))
-    upper = tree.leaves(spine)
-    feet = [_ankle_on_path(tree, tree.path(pelvis, tip), up) for tip in leg_tips]
-    toe_dirs = [rest[tip] - rest[foot] for tip, foot in zip(leg_tips, feet, strict=True)]
-    forward = sum(toe_dirs)
-    forward = _snap(forward - (forward @ up) * up)
-    left = np.cross(up, forward)
+    tips = [max(tree.leaves(b), key=lambda k: np.linalg.norm(rest[k])) for b in legs]
+    up = _snap(rest[tree.descendants(spine)].mean(axis=0) - rest[tips].mean(axis=0))
+    feet = [_ankle_on_path(tree, tree.path(pelvis, tip), up) for tip in tips]
+    forward = sum(rest[tip] - rest[foot] for tip, foot in zip(tips, feet, strict=True))
+    left = np.cross(up, _snap(forward - (forward @ up) * up))
     foot_l, foot_r = sorted(feet, key=lambda k: -(rest[k] @ left))
-    hand_tips = (max(upper, key=lambda k: rest[k] @ left), min(upper, key=lambda k: rest[k] @ left))
-    chest = tree.common_ancestor(list(hand_tips))
-    top = max(upper, key=lambda k: rest[k] @ up)
+    return up, left, (foot_l, foot_r)
+
+
+def _head_and_hands(tree: _Tree, spine: int, up: np.ndarray, left: np.ndarray) -> tuple[int, tuple[int, int]]:
+    """The hands end the spine's most lateral leaf chains; the chest is where those chains meet; the head
+    sits below the leaves (eyes, jaw, an end site) of the chest's branch that holds the highest leaf."""
+    upper = tree.leaves(spine)
+    tips = (max(upper, key=lambda k: tree.rest[k] @ left), min(upper, key=lambda k: tree.rest[k] @ left))
+    chest = tree.common_ancestor(list(tips))
+    top = max(upper, key=lambda k: tree.rest[k] @ up)
     neck = next((c for c in tree.children[chest] if top in tree.descendants(c)), None)
-    if neck is None or hand_tips[0] == hand_tips[1] or chest in hand_tips:
+    if neck is None or tips[0] == tips[1] or chest in tips:
         raise RigError(
             "cannot find the left and right arm chains and the head: the spine branch does not split into "
             "two arms and a neck, and the joint names are not recognised"
         )
-    head = tree.common_ancestor(tree.leaves(neck))  # below the eyes, jaw or head-top end sites
+    head = tree.common_ancestor(tree.leaves(neck))
     head = int(tree.parents[head]) if tree.end_site[head] else head
-    hands = [_hand_on_path(tree, tree.path(spine, tip)) for tip in hand_tips]
-    return {"head": head, "hand_L": hands[0], "hand_R": hands[1], "foot_L": foot_l, "foot_R": foot_r}
+    hand_l, hand_r = (_hand_on_path(tree, tree.path(spine, tip)) for tip in tips)
+    return head, (hand_l, hand_r)
 
 
 def _ankle_on_path(tree: _Tree, path: list[int], up: np.ndarray) -> int:
