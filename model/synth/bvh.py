@@ -545,22 +545,7 @@ def retarget_bvh(clip: BvhClip, mapping: RigMapping | None = None, name: str = "
 
         rig = detect_rig(clip)
         mapping, world = rig.mapping, rig.world_from_file
-    pos, rot = bvh_fk(clip)
-    unit = mapping.metres_per_unit
-    pos_m, rot = pos @ world.T * unit, world @ rot
-    if mapping.tpose_frame is None:
-        index = {n: i for i, n in enumerate(clip.names)}
-        body = sorted(
-            {index[n] for src in mapping.joints.values() for n in (src.a, src.rotation, src.b) if n}
-        )
-        dropped = leading_reference_frames(clip, pos_m, body)
-        rest_rot = np.broadcast_to(world, rot.shape[1:])
-        tpose_pos, tpose_rot = tpose_reference(rest_positions(clip) @ world.T * unit, rest_rot, clip, mapping)
-        pos_m = np.concatenate([tpose_pos[None], pos_m[dropped:]])
-        rot = np.concatenate([tpose_rot[None], rot[dropped:]])
-        tpose = 0
-    else:
-        dropped, tpose = 1, mapping.tpose_frame
+    pos_m, rot, tpose, dropped = _posed(clip, mapping, world)
     index = {n: i for i, n in enumerate(clip.names)}
     drivers = [index.get(mapping.joints[j].rotation) for j in JOINT_NAMES]
     if None in drivers:
@@ -576,19 +561,35 @@ def retarget_bvh(clip: BvhClip, mapping: RigMapping | None = None, name: str = "
         raise BvhError(f"{name}: no frames besides the T-pose")
     fit_weight = np.array([mapping.joints[j].fit_weight for j in JOINT_NAMES])
     local_rot, root, scale = retarget(target, driver_rot, tpose_rot, fit_weight)
+    family = rig.family if rig is not None and rig.family else mapping.name
     motion = Motion(
-        name=name,
-        fps=1.0 / clip.frame_time_s,
-        local_rot=local_rot,
-        root_pos_m=root,
-        bone_scale=scale,
-        source=f"{rig.family if rig is not None and rig.family else mapping.name}:{name}",
-        licence=mapping.licence,
+        name, 1.0 / clip.frame_time_s, local_rot, root, scale, f"{family}:{name}", mapping.licence
     )
     error_m = np.linalg.norm(motion.joints() - target, axis=-1)
-    hubs = [i for i, j in enumerate(JOINT_NAMES) if mapping.joints[j].hub]
-    error_m[:, hubs] = np.nan
+    error_m[:, [i for i, j in enumerate(JOINT_NAMES) if mapping.joints[j].hub]] = np.nan
     return Retargeted(motion=ground(motion), rig=rig, dropped=dropped, error_m=error_m)
+
+
+def _posed(clip: BvhClip, mapping: RigMapping, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Every source joint in our axes, metres: (pos_m (F', S, 3), global rotations (F', S, 3, 3), the index of
+    the T-pose frame among them, leading frames dropped). A detected rig gets its rest pose turned into a
+    T-pose as frame 0 and its reference frames dropped; a pinned mapping names its own T-pose frame."""
+    pos, rot = bvh_fk(clip)
+    unit = mapping.metres_per_unit
+    pos_m, rot = pos @ world.T * unit, world @ rot
+    if mapping.tpose_frame is not None:
+        return pos_m, rot, mapping.tpose_frame, 1
+    index = {n: i for i, n in enumerate(clip.names)}
+    body = sorted({index[n] for src in mapping.joints.values() for n in (src.a, src.rotation, src.b) if n})
+    dropped = leading_reference_frames(clip, pos_m, body)
+    rest_rot = np.broadcast_to(world, rot.shape[1:])
+    tpose_pos, tpose_rot = tpose_reference(rest_positions(clip) @ world.T * unit, rest_rot, clip, mapping)
+    return (
+        np.concatenate([tpose_pos[None], pos_m[dropped:]]),
+        np.concatenate([tpose_rot[None], rot[dropped:]]),
+        0,
+        dropped,
+    )
 
 
 def bvh_to_motion(
