@@ -53,8 +53,8 @@ def test_a_two_minute_soak_keeps_memory_files_and_answers_steady(tmp_path, capsy
     samples, verdict = report["samples"], report["verdict"]
     assert len(samples) >= 5 and verdict["passed"] and verdict["memory_checked"]
     assert all(s["answered"] > 2 * 90 * 15 for s in samples[:-1])  # ~90 Hz per session in every interval
-    files = [s["open_files"] for s in samples[1:]]
-    assert max(files) - min(files) <= 2  # no file leaks while the sessions run
+    files = [s["open_files"] for s in samples]
+    assert max(files) <= files[0] + 2  # no file leaks (the last sample may come after the sessions closed)
     assert "| t (s) | server RSS (MiB)" in capsys.readouterr().out
 
 
