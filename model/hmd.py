@@ -99,8 +99,10 @@ def ignore_untracked(poses: np.ndarray, valid: np.ndarray) -> np.ndarray:
     A client may send anything for a device it does not track (PROTOCOL.md §5: zeros, NaN, its last pose);
     nothing downstream may read those numbers, and this keeps code that converts every row from failing.
     """
-    poses = np.array(poses, dtype=np.float64)
-    poses[~np.asarray(valid, dtype=bool)] = PLACEHOLDER_POSE
+    poses, valid = np.array(poses, dtype=np.float64), np.asarray(valid, dtype=bool)
+    if poses.shape != (3, 7) or valid.shape != (3,):
+        raise ValueError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
+    poses[~valid] = PLACEHOLDER_POSE
     return poses
 
 

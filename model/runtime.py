@@ -399,9 +399,9 @@ class Pipeline:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Update the stream state -> poses (3, 7), valid (3,), tracked joint positions (3, 3)."""
         valid = np.asarray(valid, dtype=bool)
-        if np.shape(poses) != (3, 7) or valid.shape != (3,):
-            raise ValueError(f"poses must be (3, 7) and valid (3,), got {np.shape(poses)} and {valid.shape}")
-        poses = ignore_untracked(poses, valid)  # an untracked device's numbers are never read
+        poses = ignore_untracked(
+            poses, valid
+        )  # checks the shapes; an untracked device's numbers are never read
         x = self.features.push(t_us, poses, valid)  # validates finiteness
         self._remember_head(t_us, poses[0], bool(valid[0]))
         self.hmd_window = (

@@ -32,7 +32,6 @@ _CODE_BY_PYDANTIC_TYPE: dict[str, ErrorCode] = {
     "less_than": ErrorCode.OUT_OF_RANGE,
     "less_than_equal": ErrorCode.OUT_OF_RANGE,
     "out_of_range": ErrorCode.OUT_OF_RANGE,
-    "wrong_length": ErrorCode.WRONG_LENGTH,
     "bad_quaternion": ErrorCode.BAD_QUATERNION,
     "bad_transform": ErrorCode.BAD_TRANSFORM,
     "bad_image": ErrorCode.BAD_IMAGE,

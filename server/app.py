@@ -37,13 +37,13 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from ..model.runtime import LoadedModel
-from ..protocol import Error, ErrorCode, Ref
+from ..protocol import Error, ErrorCode
 from .config import ConfigError, ServerConfig
 from .hub import CLOSE_NORMAL, Client, Hub
 from .metrics import CONTENT_TYPE, Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
-from .session import FrameResult, RunResult, Session, encode_received_frame
+from .session import FrameResult, RunResult, Session, encode_received_frame, error_about
 
 log = logging.getLogger("egoposevr.server")
 WS_PATH = "/ws"
@@ -326,12 +326,10 @@ class Server:
                         log.exception("inference failed in session %s", session.id)
                     failed = True
                     newest = job.samples[-1].msg if job.samples else None
-                    ref = Ref(type="hmd", seq=newest.seq) if newest is not None else None
-                    error = Error(
-                        code=ErrorCode.INTERNAL.value,
-                        message="server error while running the model; the session goes on",
-                        seq=None if ref is None else ref.seq,
-                        ref=ref,
+                    error = error_about(
+                        ErrorCode.INTERNAL,
+                        "server error while running the model; the session goes on",
+                        (newest.type, newest.seq) if newest is not None else (None, None),
                     )
                     result = RunResult(errors=[error])
                 self.hub.publish(session, result)

@@ -17,7 +17,6 @@ import time
 from collections.abc import Callable
 
 from ..protocol import (
-    Error,
     ErrorCode,
     Hello,
     Hmd,
@@ -27,7 +26,6 @@ from ..protocol import (
     Ping,
     Pong,
     ProtocolError,
-    Ref,
     Rgbd,
     SelectModel,
     SessionStatus,
@@ -40,7 +38,7 @@ from .config import ServerConfig
 from .metrics import Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
-from .session import Job, Received, RunResult, Session, TokenBucket
+from .session import Job, Received, RunResult, Session, TokenBucket, error_about
 
 CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_TOO_BIG, CLOSE_INTERNAL, CLOSE_TRY_LATER = (
     1000, 1001, 1008, 1009, 1011, 1013,
@@ -148,11 +146,7 @@ class Hub:
     ) -> None:
         """Send an ``error``; a fatal one closes the connection after it. ``about``: the (type, seq) of the
         client message that caused it, where known (PROTOCOL.md §6: ``ref``)."""
-        ref_type, seq = about
-        ref = Ref(type=ref_type, seq=seq) if ref_type is not None else None
-        client.outbox.put_control(
-            encode(Error(code=code.value, message=message[:1024], fatal=fatal, seq=seq, ref=ref))
-        )
+        client.outbox.put_control(encode(error_about(code, message, about, fatal)))
         self.metrics.errors.labels(code.value).inc()
         if fatal:
             client.outbox.close(CLOSE_CODES.get(code, CLOSE_POLICY), f"{code.value}: {message}")

@@ -321,10 +321,18 @@ def _decode_frame(msg: Rgbd) -> tuple[tuple[Any, ...] | None, Error | None, int]
     return (rgb, depth, np.asarray(msg.intrinsics), cam_from_head), None, image_us
 
 
-def _error(code: ErrorCode, message: str, about: Hmd | Rgbd) -> Error:
-    """An error about one client message: its type and seq go into ``ref`` (and ``seq``)."""
-    ref = Ref(type=about.type, seq=about.seq)
-    return Error(code=code.value, message=message[:1024], fatal=False, seq=about.seq, ref=ref)
+def error_about(
+    code: ErrorCode, message: str, about: tuple[str | None, int | None] = (None, None), fatal: bool = False
+) -> Error:
+    """An ``error`` reply; ``about`` is the (type, seq) of the client message that caused it, where known:
+    the type makes ``ref``, the seq goes into ``ref`` and ``seq`` (PROTOCOL.md §5)."""
+    ref_type, seq = about
+    ref = Ref(type=ref_type, seq=seq) if ref_type is not None else None
+    return Error(code=code.value, message=message[:1024], fatal=fatal, seq=seq, ref=ref)
+
+
+def _error(code: ErrorCode, message: str, msg: Hmd | Rgbd) -> Error:
+    return error_about(code, message, (msg.type, msg.seq))
 
 
 def encode_pose(pose: PoseResult, sample: Hmd, model: str, timing_us: dict[str, int], skipped: int) -> bytes:
