@@ -16,9 +16,9 @@ import msgpack
 import numpy as np
 
 from egoposevr.model import skeleton
-from egoposevr.model.filters import OneEuroFilter
 from egoposevr.model.hmd import HmdFeatureExtractor
 from egoposevr.model.rotations import axis_angle_to_matrix
+from egoposevr.model.runtime.filters import OneEuroFilter
 from egoposevr.protocol import Pose, decode, encode
 from egoposevr.protocol.examples import example_messages
 

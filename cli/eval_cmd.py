@@ -27,9 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..model.dataset import DatasetError
-    from ..model.evaluate import evaluate, markdown_table
-    from ..model.runtime import ModelError
+    from ..model.runtime.loading import ModelError
+    from ..model.training.dataset import DatasetError
+    from ..model.training.evaluate import evaluate, markdown_table
     from ..model.weights import WEIGHTS_DIR, model_files
 
     available = model_files(args.models_dir or WEIGHTS_DIR)

@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..model.export import PARITY_TOL, export_zoo
+    from ..model.training.export import PARITY_TOL, export_zoo
     from ..model.zoo import resolve
 
     try:

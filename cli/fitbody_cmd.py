@@ -6,7 +6,7 @@ heights from the headset), fits a regressor from the height and the measured hip
 every bone's length (one ridge expert per body family the training bodies show), and writes it beside the
 encoder (visual-rgbd.onnx -> visual-rgbd.body.json).
 With --check-split it reports the summed bone-length error there. Models load it with their encoder; a
-regressor fitted on another encoder is refused. See model/body.py.
+regressor fitted on another encoder is refused. See model/runtime/body.py.
 
 Example:
   egoposevr fit-body --data data/dev --weights model/weights
@@ -29,9 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..model.bodyfit import DEFAULT_RIDGE, fit_body_regressors
-    from ..model.dataset import DatasetError
-    from ..model.runtime import ModelError
+    from ..model.runtime.loading import ModelError
+    from ..model.training.bodyfit import DEFAULT_RIDGE, fit_body_regressors
+    from ..model.training.dataset import DatasetError
 
     def progress(name: str, done: int, total: int) -> None:
         if not args.no_progress:

@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..clients.render import frames_from_recording, frames_from_server, write_video
     from ..clients.replay import Recording, ReplayError
-    from ..model.runtime import LoadedModel, ModelError
+    from ..model.runtime.loading import LoadedModel, ModelError
     from ..model.weights import WEIGHTS_DIR, model_files
     from ..recordings.egrec import EgrecError
 

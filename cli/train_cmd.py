@@ -33,8 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..model.dataset import DatasetError
-    from ..model.train import PRESETS, train_zoo
+    from ..model.training.dataset import DatasetError
+    from ..model.training.train import PRESETS, train_zoo
     from ..model.zoo import resolve
 
     try:

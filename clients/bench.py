@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 
 from ..model.inputs import decode_rgbd
-from ..model.runtime import LoadedModel, Pipeline
+from ..model.runtime.loading import LoadedModel
+from ..model.runtime.pipeline import Pipeline
 from .replay import Recording, Replayer, ReplayStats
 
 FRAME_BUDGET_MS = 11.1  # one display frame at 90 Hz

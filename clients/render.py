@@ -23,7 +23,8 @@ import numpy as np
 from websockets.asyncio.client import connect
 
 from ..model.inputs import decode_rgbd
-from ..model.runtime import LoadedModel, Pipeline
+from ..model.runtime.loading import LoadedModel
+from ..model.runtime.pipeline import Pipeline
 from ..model.skeleton import JOINT_NAMES, LOWER_BODY, NUM_JOINTS, PARENTS, UPPER_BODY
 from ..protocol import Hello, decode_from_server, encode
 from . import session_url

@@ -28,7 +28,7 @@ from typing import Final
 
 import numpy as np
 
-from . import kernels
+from .runtime import kernels
 
 DEVICES: Final = ("head", "left", "right")
 FEATURE_DIM: Final = 72

@@ -18,9 +18,9 @@ from typing import Final
 import cv2
 import numpy as np
 
-from .filters import OneEuroFilter
 from .hmd import FEATURE_DIM
 from .rotations import quat_xyzw_to_matrix
+from .runtime.filters import OneEuroFilter
 from .skeleton import NUM_JOINTS
 
 VISUAL_TOKEN_DIM: Final = NUM_JOINTS * 4 + 2

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import kernels
+from .runtime import kernels
 
 
 def _check_last(x: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:

@@ -36,7 +36,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from ..model.runtime import LoadedModel
+from ..model.runtime.loading import LoadedModel
 from ..protocol import Error, ErrorCode
 from .config import ConfigError, ServerConfig
 from .hub import CLOSE_NORMAL, Client, Hub

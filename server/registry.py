@@ -17,7 +17,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from ..model.runtime import LoadedModel, ModelError
+from ..model.runtime.loading import LoadedModel, ModelError
 from ..model.weights import WEIGHTS_DIR, model_files
 from ..protocol import ModelInfo as WireModelInfo
 

@@ -28,7 +28,9 @@ from typing import Any
 import numpy as np
 
 from ..model.inputs import decode_rgbd
-from ..model.runtime import EncodedFrame, LoadedModel, Pipeline, PoseResult, encode_frame
+from ..model.runtime.frames import EncodedFrame, encode_frame
+from ..model.runtime.loading import LoadedModel
+from ..model.runtime.pipeline import Pipeline, PoseResult
 from ..protocol import Error, ErrorCode, Hmd, Pose, Ref, Rgbd, encode
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).

@@ -10,7 +10,17 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 # Folders that serving runs from: never torch. model/ is serving code too, except its training-only parts.
 SERVING = ["protocol", "server", "clients", "cli", "model"]
-TRAINING_ONLY = {"nets", "train", "export"}  # under model/: the nets/ package, train.py, export.py
+TORCH_ALLOWED = [
+    "model/training/nets",
+    "model/training/train.py",
+    "model/training/export.py",
+    "model/synth/anny_bodies.py",  # builds body banks with the anny body model; rendering reads the bank
+]
+# Which parts of model/ each layer may import (absolute names under egoposevr.model).
+MODEL_LAYERS = {
+    "runtime": {"runtime", "config", "skeleton", "rotations", "hmd", "inputs", "rig", "zoo", "weights"},
+    "shared": {"runtime", "config", "skeleton", "rotations", "hmd", "inputs", "rig", "zoo", "weights"},
+}
 PROTOCOL_FORBIDDEN = {
     "asyncio",
     "socket",
@@ -37,17 +47,53 @@ def imported_modules(path: Path) -> set[str]:
 
 
 def serving_files():
+    allowed = [ROOT / p for p in TORCH_ALLOWED]
     for folder in SERVING:
         for path in (ROOT / folder).rglob("*.py"):
-            parts = path.relative_to(ROOT / "model").with_suffix("").parts if folder == "model" else ()
-            if TRAINING_ONLY & set(parts):
-                continue
-            yield path
+            if not any(path == a or a in path.parents for a in allowed):
+                yield path
+
+
+def model_imports(path: Path) -> set[str]:
+    """The egoposevr.model submodules (first level: runtime, training, synth, skeleton...) a file imports,
+    relative imports resolved against the file's place in the package."""
+    package = ["egoposevr", *path.relative_to(ROOT).parent.parts]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            module = [*base, *(node.module.split(".") if node.module else [])]
+            targets = [[*module, a.name] for a in node.names] if not node.module else [module]
+        elif isinstance(node, ast.Import):
+            targets = [a.name.split(".") for a in node.names]
+        else:
+            continue
+        for t in targets:
+            if t[:2] == ["egoposevr", "model"] and len(t) > 2:
+                found.add(t[2])
+    return found
 
 
 def test_serving_code_never_imports_torch():
     offenders = [str(p.relative_to(ROOT)) for p in serving_files() if {"torch", "roma"} & imported_modules(p)]
     assert offenders == []
+
+
+def test_model_layers_point_one_way():
+    """runtime/ and the shared modules beside it never reach into training/ or synth/; training/ may use
+    the runtime (evaluation is what is served), never the other way round."""
+    shared = [p for p in (ROOT / "model").glob("*.py")]
+    runtime = list((ROOT / "model" / "runtime").rglob("*.py"))
+    offenders = {
+        str(p.relative_to(ROOT)): sorted(model_imports(p) - MODEL_LAYERS["runtime"]) for p in shared + runtime
+    }
+    assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def test_serving_never_imports_training_or_synthesis():
+    for folder in ("server", "clients"):
+        for path in (ROOT / folder).rglob("*.py"):
+            assert not {"training", "synth"} & model_imports(path), path
 
 
 def test_protocol_does_no_io():
@@ -61,8 +107,9 @@ def test_protocol_does_no_io():
 
 @pytest.mark.parametrize(
     "module",
-    ["egoposevr.protocol", "egoposevr.model.skeleton", "egoposevr.model.hmd", "egoposevr.model.filters",
-     "egoposevr.model.runtime", "egoposevr.model.evaluate", "egoposevr.model.kpo", "egoposevr.model.weights",
+    ["egoposevr.protocol", "egoposevr.model.skeleton", "egoposevr.model.hmd", "egoposevr.model.config",
+     "egoposevr.model.runtime.pipeline", "egoposevr.model.runtime.frames", "egoposevr.model.runtime.kpo",
+     "egoposevr.model.training.evaluate", "egoposevr.model.training.bodyfit", "egoposevr.model.weights",
      "egoposevr.cli.main", "egoposevr.server.app", "egoposevr.server.hub", "egoposevr.cli.serve_cmd"],
 )  # fmt: skip
 def test_importing_serving_modules_does_not_load_torch(module):

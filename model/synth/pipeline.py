@@ -21,9 +21,9 @@ import numpy as np
 
 from ...protocol import Hmd, Rgbd, encode
 from ...recordings.egrec import EgrecWriter
-from ..dataset import iter_shard_sequences, load_shard  # noqa: F401  (re-exported: the format's readers)
 from ..rotations import matrix_to_quat_xyzw
 from ..skeleton import forward_kinematics, local_rot_to_smpl
+from ..training.dataset import iter_shard_sequences, load_shard  # noqa: F401  (re-exported: the format's readers)
 from .headset import CameraModel, HeadsetRig, HeadsetTrack, device_poses, simulate_headset
 from .motion import Motion, sample_at
 from .render import JOINT_RADIUS_M, Appearance, Renderer, SensorNoise, body_capsules, random_appearance

@@ -69,7 +69,7 @@ def test_wrong_shapes_say_what_was_expected():
 def test_the_kernels_quaternion_product_matches_scipy_composition():
     from scipy.spatial.transform import Rotation
 
-    from egoposevr.model import kernels
+    from egoposevr.model.runtime import kernels
 
     a, b = Rotation.random(20, random_state=1), Rotation.random(20, random_state=2)
     product = np.stack([kernels._quat_multiply(p, q) for p, q in zip(a.as_quat(), b.as_quat(), strict=True)])

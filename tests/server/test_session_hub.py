@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from loopback import recorded_messages, server_config
 
-from egoposevr.model.runtime import Pipeline
+from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.protocol import Hello, Ping, SelectModel, decode, encode
 from egoposevr.protocol.examples import example_messages
 from egoposevr.server.hub import Hub

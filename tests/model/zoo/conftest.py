@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 
 from egoposevr.cli.main import main
-from egoposevr.model.train import PRESETS, train_zoo
+from egoposevr.model.training.train import PRESETS, train_zoo
 from egoposevr.model.zoo import ZOO
 
 

@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 
 from egoposevr.cli.main import main
-from egoposevr.model import runtime
-from egoposevr.model.dataset import load_split, split_camera
-from egoposevr.model.evaluate import METRIC_KEYS, replay_sequence
-from egoposevr.model.runtime import LoadedModel, ModelError, Pipeline
+from egoposevr.model.runtime import hands
+from egoposevr.model.runtime.loading import LoadedModel, ModelError
+from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.skeleton import rest_offsets
-from egoposevr.model.train import load_checkpoint
+from egoposevr.model.training.dataset import load_split, split_camera
+from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
+from egoposevr.model.training.train import load_checkpoint
 from egoposevr.model.weights import model_files
 from egoposevr.model.zoo import ZOO
 
@@ -177,7 +178,7 @@ def test_malformed_frames_are_refused_clearly(tiny_weights, rgb, depth, intrinsi
     pipeline = Pipeline(LoadedModel.load(tiny_weights / "hmd-rgbd.onnx"))
     with pytest.raises(ValueError, match=match):
         pipeline.push_rgbd(0, rgb, depth, intrinsics)
-    assert not pipeline.frames
+    assert not pipeline.cache.frames
 
 
 def test_fit_body_writes_a_regressor_its_models_load_and_a_new_encoder_retires_it(
@@ -215,8 +216,8 @@ def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(ti
     model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
 
     def wrist_track(hold_s: float) -> np.ndarray:
-        monkeypatch.setattr(runtime, "LOST_HAND_HOLD_S", hold_s)
-        monkeypatch.setattr(runtime, "LOST_HAND_FADE_S", 1e6)  # this network is far off: no fading here
+        monkeypatch.setattr(hands, "LOST_HAND_HOLD_S", hold_s)
+        monkeypatch.setattr(hands, "LOST_HAND_FADE_S", 1e6)  # this network is far off: no fading here
         pipeline, wrists = Pipeline(model), []
         for i in range(90):
             poses, valid = seq["hmd_poses"][min(i, 59)].copy(), np.ones(3, bool)
@@ -226,7 +227,7 @@ def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(ti
             wrists.append(pose.joints[20])
         return np.array(wrists)
 
-    handed_over, dropped = wrist_track(runtime.LOST_HAND_HOLD_S), wrist_track(0.0)
+    handed_over, dropped = wrist_track(hands.LOST_HAND_HOLD_S), wrist_track(0.0)
     jump_cm = 100 * np.linalg.norm(handed_over[60] - handed_over[59])
     assert jump_cm < 1.0
     assert 100 * np.linalg.norm(dropped[60] - dropped[59]) > 3 * jump_cm  # what the hold prevents

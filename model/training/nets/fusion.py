@@ -15,36 +15,14 @@ Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 jo
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import torch
 from torch import nn
 
-from ..hmd import FEATURE_DIM
-from ..inputs import VISUAL_TOKEN_DIM
-
-
-@dataclasses.dataclass(frozen=True)
-class FusionConfig:
-    window: int = 40  # T: HMD samples
-    visual_window: int = 8  # Tv: camera frames (1: single-frame model); ignored when fusion == "none"
-    fusion: str = "cross"  # "cross" | "concat" | "none"
-    d_model: int = 64  # frame-wise transformer width
-    joint_dim: int = 32  # S
-    heads: int = 4
-    frame_layers: int = 2
-    joint_layers: int = 2
-    dropout: float = 0.1
-    joints: int = 22
-
-    def __post_init__(self) -> None:
-        if self.fusion not in ("cross", "concat", "none"):
-            raise ValueError(f"fusion must be cross, concat or none, got {self.fusion!r}")
-
-    @property
-    def uses_camera(self) -> bool:
-        return self.fusion != "none"
+from ...config import FusionConfig
+from ...hmd import FEATURE_DIM
+from ...inputs import VISUAL_TOKEN_DIM
 
 
 class Attention(nn.Module):

@@ -5,8 +5,8 @@ import torch
 
 from egoposevr.model.hmd import FEATURE_DIM
 from egoposevr.model.inputs import VISUAL_TOKEN_DIM
-from egoposevr.model.nets.fusion import FusionConfig, FusionNet
-from egoposevr.model.nets.visual import KeypointNet, VisualConfig
+from egoposevr.model.training.nets.fusion import FusionConfig, FusionNet
+from egoposevr.model.training.nets.visual import KeypointNet, VisualConfig
 
 
 @pytest.mark.parametrize("channels", [3, 4])

@@ -10,25 +10,11 @@ Shape legend: ``B`` batch, ``C`` 3 (RGB) or 4 (RGB-D) channels, ``h``×``w`` inp
 
 from __future__ import annotations
 
-import dataclasses
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-
-@dataclasses.dataclass(frozen=True)
-class VisualConfig:
-    channels: int = 4  # 3: RGB, 4: RGB-D
-    width: int = 80
-    height: int = 64
-    widths: tuple[int, ...] = (16, 32, 64, 128)  # backbone stages, strides 2, 4, 8, 16
-    fpn_channels: int = 32
-    joints: int = 22
-
-    @property
-    def heatmap_wh(self) -> tuple[int, int]:
-        return self.width // 2, self.height // 2
+from ...config import VisualConfig
 
 
 class BasicBlock(nn.Module):

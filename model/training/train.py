@@ -25,9 +25,9 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .dataset import decode_frames, load_split, split_camera
-from .hmd import hmd_features
-from .inputs import (
+from ..config import FusionConfig, VisualConfig, parse, to_fields
+from ..hmd import hmd_features
+from ..inputs import (
     VisibilityFilter,
     camera_to_world,
     canonicalize_hmd,
@@ -40,13 +40,14 @@ from .inputs import (
     visual_tokens,
     visual_window,
 )
-from .nets.fusion import FusionConfig, FusionNet, set_input_statistics
+from ..rig import joints_from_devices
+from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
+from ..skeleton import HEAD, rest_offsets
+from ..zoo import ZOO
+from .dataset import decode_frames, load_split, split_camera
+from .nets.fusion import FusionNet, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
-from .nets.visual import KeypointNet, VisualConfig
-from .rig import joints_from_devices
-from .rotations import matrix_to_sixd, quat_xyzw_to_matrix
-from .skeleton import HEAD, rest_offsets
-from .zoo import ZOO
+from .nets.visual import KeypointNet
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,9 +114,9 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 def build_net(ckpt: dict[str, Any]) -> torch.nn.Module:
     """The net a checkpoint describes, with its weights, in eval mode."""
     if ckpt["kind"] == "visual":
-        net: torch.nn.Module = KeypointNet(VisualConfig(**_tuples(ckpt["config"])))
+        net: torch.nn.Module = KeypointNet(parse(VisualConfig, ckpt["config"]))
     else:
-        net = FusionNet(FusionConfig(**ckpt["config"]))
+        net = FusionNet(parse(FusionConfig, ckpt["config"]))
     net.load_state_dict(ckpt["state_dict"])
     return net.eval()
 
@@ -126,10 +127,6 @@ def _finished(path: Path) -> bool:
         return False
     ckpt = load_checkpoint(path)
     return ckpt["step"] >= ckpt["total_steps"]
-
-
-def _tuples(cfg: dict[str, Any]) -> dict[str, Any]:
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in cfg.items()}
 
 
 def _schedule(tc: TrainConfig, total: int) -> Callable[[int], float]:
@@ -294,7 +291,7 @@ def train_visual(
     camera = split_camera(data_dir, "train")
     seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
     data = load_visual_data(seqs, camera, (cfg.width, cfg.height))
-    meta = {"kind": "visual", "name": f"visual-{kind}", "config": dataclasses.asdict(cfg), "camera": camera,
+    meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
             "data": {"dir": str(data_dir), "frames": len(data.rgb), "sequences": len(seqs)}}  # fmt: skip
     _run_steps(net, visual_loss_fn(net, data, camera, tc), path, tc.visual_steps, tc, meta, resume, progress)
     return path
@@ -485,7 +482,7 @@ def train_fusion(
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, camera, rng, tc, visual, cache) for s in seqs]
     _set_statistics(net, prepared, tc, rng)
-    meta = {"kind": "fusion", "name": name, "config": dataclasses.asdict(cfg), "visual": entry.visual,
+    meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": str(data_dir), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)

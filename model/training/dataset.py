@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .inputs import decode_rgbd, resize_frame
+from ..inputs import decode_rgbd, resize_frame
 
 HMD_KEYS = ("hmd_t_us", "hmd_poses", "hmd_valid", "gt_local_quat", "gt_root_m", "gt_joints_m")
 CAMERA_KEYS = ("cam_t_us", "cam_head_pose", "joints_cam_m", "joints_uv_px", "visible", "occluded")

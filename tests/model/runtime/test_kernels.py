@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from egoposevr.model import kernels, kpo
 from egoposevr.model import rotations as r
 from egoposevr.model import skeleton as sk
-from egoposevr.model.runtime import LoadedModel, Pipeline
+from egoposevr.model.runtime import kernels, kpo
+from egoposevr.model.runtime.loading import LoadedModel
+from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.weights import WEIGHTS_DIR
 
 RNG = np.random.default_rng(11)

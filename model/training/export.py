@@ -2,14 +2,14 @@
 
 Per zoo entry one **model file** ``<name>.onnx`` (the fusion net over the windows) and, shared by every model
 of a modality, one **visual encoder** ``visual-<rgb|rgbd>.onnx`` (per frame, dynamic batch). Each graph
-carries what the runtime needs in its metadata (``egoposevr.*`` keys: kind, name, config, joint order, units,
-its visual encoder's file, KPO, training record), so a models folder is self-describing. Every export is
-checked against torch on random inputs: the graphs must agree within ``PARITY_TOL``.
+carries what the runtime needs in its metadata (``egoposevr.*`` keys, typed in :mod:`egoposevr.model.config`:
+kind, name, config, joint order, units, its visual encoder's file, KPO, training record), so a models folder
+is self-describing. Every export is checked against torch on random inputs: the graphs must agree within
+``PARITY_TOL``.
 """
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import Any
@@ -19,15 +19,15 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from .body import regressor_path
-from .hmd import FEATURE_DIM
-from .inputs import VISUAL_TOKEN_DIM
-from .rig import DEFAULT_OFFSETS_M
-from .skeleton import JOINT_NAMES
+from ..config import FORMAT_VERSION, CameraInfo, EncoderMetadata, ModelMetadata, parse, to_properties
+from ..hmd import FEATURE_DIM
+from ..inputs import VISUAL_TOKEN_DIM
+from ..rig import DEFAULT_OFFSETS_M
+from ..runtime.body import regressor_path
+from ..skeleton import JOINT_NAMES
+from ..zoo import ZOO
 from .train import build_net, load_checkpoint
-from .zoo import ZOO
 
-FORMAT_VERSION = "1"
 PARITY_TOL = 1e-4
 OPSET = 18
 
@@ -56,13 +56,13 @@ def _export(
     program.save(str(path))
 
 
-def _set_metadata(path: Path, meta: dict[str, Any]) -> None:
+def _set_metadata(path: Path, metadata: ModelMetadata | EncoderMetadata) -> None:
     model = onnx.load(str(path))
     del model.metadata_props[:]
-    for key, value in meta.items():
+    for key, value in to_properties(metadata).items():
         prop = model.metadata_props.add()
         prop.key = f"egoposevr.{key}"
-        prop.value = value if isinstance(value, str) else json.dumps(value, sort_keys=True)
+        prop.value = value
     onnx.save(model, str(path))
 
 
@@ -94,12 +94,12 @@ def export_visual(ckpt_path: Path, out_path: Path) -> float:
     example = torch.zeros(2, cfg.channels, cfg.height, cfg.width)
     batch = torch.export.Dim("batch", min=1, max=64)
     _export(module, (example,), out_path, (["image"], ["uv", "depth_m", "zeta"]), {"image": {0: batch}})
-    _set_metadata(out_path, {
-        "format": FORMAT_VERSION, "kind": "visual", "name": ckpt["name"], "config": ckpt["config"],
-        "joint_names": list(JOINT_NAMES), "camera": ckpt["camera"], "training": _training_record(ckpt),
-        "units": "image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
-                 "depth_m metres along the optical axis; zeta probability in view",
-    })  # fmt: skip
+    _set_metadata(out_path, EncoderMetadata(
+        format=FORMAT_VERSION, kind="visual", name=ckpt["name"], config=cfg,
+        camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES, training=_training_record(ckpt),
+        units="image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
+              "depth_m metres along the optical axis; zeta probability in view",
+    ))  # fmt: skip
     # A body regressor fitted on the encoder this replaces would describe another network's keypoints.
     regressor_path(out_path).unlink(missing_ok=True)
     rng = np.random.default_rng(0)
@@ -119,16 +119,16 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
         inputs["visual"] = rng.normal(size=(1, cfg.visual_window, VISUAL_TOKEN_DIM)).astype(np.float32)
     example = tuple(torch.from_numpy(v) for v in inputs.values())
     _export(net, example, out_path, (list(inputs), ["rot6d"]), None)
-    _set_metadata(out_path, {
-        "format": FORMAT_VERSION, "kind": "model", "name": name, "description": entry.description,
-        "inputs": entry.inputs, "config": ckpt["config"], "kpo": "true" if entry.kpo else "false",
-        "visual_encoder": f"visual-{entry.visual}.onnx" if entry.visual else "",
-        "joint_names": list(JOINT_NAMES), "rig_offsets_m": DEFAULT_OFFSETS_M.tolist(),
-        "training": _training_record(ckpt),
-        "units": "hmd: 72-d features (model/hmd.py) in the heading frame; visual: tokens (model/inputs.py); "
-                 "rot6d (1, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
-                 "rows 1.. local rotations",
-    })  # fmt: skip
+    _set_metadata(out_path, ModelMetadata(
+        format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
+        inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
+        visual_encoder=f"visual-{entry.visual}.onnx" if entry.visual else "",
+        joint_names=JOINT_NAMES, rig_offsets_m=tuple(map(tuple, DEFAULT_OFFSETS_M.tolist())),
+        training=_training_record(ckpt),
+        units="hmd: 72-d features (model/hmd.py) in the heading frame; visual: tokens (model/inputs.py); "
+              "rot6d (1, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
+              "rows 1.. local rotations",
+    ))  # fmt: skip
     return _parity(net, out_path, inputs)
 
 

@@ -1,6 +1,6 @@
 """Fitting each visual encoder's body regressor (body.py) on a dataset split: ``egoposevr fit-body``.
 
-For every sequence, the serving code's own :class:`~egoposevr.model.body.BodyCalibrator` is fed what a
+For every sequence, the serving code's own :class:`~egoposevr.model.runtime.body.BodyCalibrator` is fed what a
 session would feed it, in arrival order — every camera frame through the encoder and Alg. 1's visibility
 filter, every headset sample's head joint. Each moment its evidence changes (height scale, measured bone
 medians) is one training row, with the sequence's true bone scales as the target. A second split, when
@@ -19,14 +19,15 @@ from typing import Any
 
 import numpy as np
 
-from .body import REGRESSOR_SUFFIX, BodyCalibrator, BodyRegressor, file_sha256, regressor_path
+from ..inputs import VisibilityFilter, decode_rgbd
+from ..rig import joints_from_devices
+from ..runtime.body import REGRESSOR_SUFFIX, BodyCalibrator, BodyRegressor, file_sha256, regressor_path
+from ..runtime.frames import encode_frame
+from ..runtime.loading import LoadedModel
+from ..skeleton import NUM_JOINTS, rest_offsets
+from ..weights import model_files
 from .dataset import load_split, split_camera
 from .evaluate import CAMERA_LATENCY_US
-from .inputs import VisibilityFilter, decode_rgbd
-from .rig import joints_from_devices
-from .runtime import LoadedModel, encode_frame
-from .skeleton import NUM_JOINTS, rest_offsets
-from .weights import model_files
 
 # Chosen on the validation split's summed bone error, one ridge map for all bodies: 0.3 -> 16.6, 1 -> 16.2,
 # 10 -> 19.9 cm.

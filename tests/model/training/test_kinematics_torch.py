@@ -6,7 +6,7 @@ import pytest
 torch = pytest.importorskip("torch")
 from egoposevr.model import rotations as r  # noqa: E402
 from egoposevr.model import skeleton as sk  # noqa: E402
-from egoposevr.model.nets import kinematics as tk  # noqa: E402
+from egoposevr.model.training.nets import kinematics as tk  # noqa: E402
 
 RNG = np.random.default_rng(11)
 

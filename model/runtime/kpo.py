@@ -24,8 +24,8 @@ from typing import Final
 
 import numpy as np
 
+from ..skeleton import NUM_JOINTS, PARENTS, forward_kinematics
 from . import kernels
-from .skeleton import NUM_JOINTS, PARENTS, forward_kinematics
 
 CHILDREN: Final = tuple(tuple(int(c) for c in np.flatnonzero(j == PARENTS)) for j in range(NUM_JOINTS))
 # Links (child, parent): the 21 bones, plus the pairs of siblings under a multi-child joint (hips and spine1

@@ -24,11 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from ..inputs import decode_rgbd
+from ..rotations import geodesic_angle, quat_xyzw_to_matrix
+from ..runtime.loading import LoadedModel
+from ..runtime.pipeline import Pipeline
+from ..skeleton import LOWER_BODY, UPPER_BODY
 from .dataset import load_split, split_camera
-from .inputs import decode_rgbd
-from .rotations import geodesic_angle, quat_xyzw_to_matrix
-from .runtime import LoadedModel, Pipeline
-from .skeleton import LOWER_BODY, UPPER_BODY
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
 FPS_SAMPLES = 200

@@ -50,7 +50,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from .skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOINTS_M, rest_offsets
+from ..skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOINTS_M, rest_offsets
 
 # The head joint of the mean SMPL body standing straight, above the floor (left foot joint at 3.5 cm).
 STANDING_HEAD_HEIGHT_M: Final = float(REST_JOINTS_M[HEAD, 1] - REST_JOINTS_M[10, 1] + FOOT_JOINT_HEIGHT_M)

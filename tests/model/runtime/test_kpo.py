@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from egoposevr.model.kpo import INCIDENCE, KpoWeights, kpo_energy, rederive_rotations, solve_kpo
 from egoposevr.model.rig import TRACKED_JOINTS
+from egoposevr.model.runtime.kpo import INCIDENCE, KpoWeights, kpo_energy, rederive_rotations, solve_kpo
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 
 OFFSETS = rest_offsets()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from egoposevr.model.filters import OneEuroFilter, smoothing_factor
+from egoposevr.model.runtime.filters import OneEuroFilter, smoothing_factor
 
 DT_US = 10_000  # 100 Hz
 

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from egoposevr.model.body import (
+from egoposevr.model.runtime.body import (
     MIN_VISUAL_SAMPLES,
     SCALE_RANGE,
     STANDING_HEAD_HEIGHT_M,

@@ -9,7 +9,7 @@ from __future__ import annotations
 import roma
 import torch
 
-from ..skeleton import NUM_JOINTS, PARENTS, rest_offsets
+from ...skeleton import NUM_JOINTS, PARENTS, rest_offsets
 
 
 def sixd_to_matrix(sixd: torch.Tensor) -> torch.Tensor:

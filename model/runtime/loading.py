@@ -1,0 +1,139 @@
+"""Loading servable models: a fusion graph ``<name>.onnx`` plus the visual encoder its metadata names, with
+their metadata read into typed dataclasses (:mod:`egoposevr.model.config`) and the encoder's body regressor.
+
+Shape legend: ``B`` batch, ``C`` channels, ``h``×``w`` encoder input, ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from ..config import CameraInfo, EncoderMetadata, FusionConfig, ModelMetadata, VisualConfig, from_properties
+from . import kernels
+from .body import BodyRegressor, load_regressor_for
+
+RGBD_CHANNELS = 4  # RGB + depth: the encoder input that measures bone lengths
+
+
+class ModelError(Exception):
+    """A model file that cannot be served: unreadable, not an EgoPoseVR graph, or missing its encoder."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelInfo:
+    """One servable model: its files, its metadata and its encoder's (None for HMD-only models)."""
+
+    path: Path
+    metadata: ModelMetadata
+    visual_path: Path | None
+    encoder: EncoderMetadata | None
+    body_regressor: BodyRegressor | None = None  # fitted on the visual encoder's keypoints (body.py)
+
+    @property
+    def name(self) -> str:
+        return self.metadata.name
+
+    @property
+    def description(self) -> str:
+        return self.metadata.description
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return self.metadata.inputs
+
+    @property
+    def kpo(self) -> bool:
+        return self.metadata.kpo
+
+    @property
+    def config(self) -> FusionConfig:
+        return self.metadata.config
+
+    @property
+    def visual_config(self) -> VisualConfig | None:
+        return self.encoder.config if self.encoder else None
+
+    @property
+    def camera(self) -> CameraInfo | None:
+        """The camera the encoder was trained with."""
+        return self.encoder.camera if self.encoder else None
+
+    @property
+    def rig_offsets_m(self) -> np.ndarray:
+        """(3, 3) device -> joint offsets, rows head / left / right."""
+        return np.asarray(self.metadata.rig_offsets_m, dtype=np.float64)
+
+
+def _properties(session: ort.InferenceSession) -> dict[str, str]:
+    meta = session.get_modelmeta().custom_metadata_map
+    return {k.removeprefix("egoposevr."): v for k, v in meta.items() if k.startswith("egoposevr.")}
+
+
+def _session(path: Path, threads: int) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # do not burn idle cores
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types for bad files
+        raise ModelError(f"{path}: cannot load ({exc})") from exc
+
+
+def _metadata(path: Path, session: ort.InferenceSession, cls: type, kind: str) -> Any:
+    properties = _properties(session)
+    if properties.get("kind") != kind:
+        raise ModelError(f"{path}: not an EgoPoseVR {kind} (metadata kind {properties.get('kind')!r})")
+    try:
+        return from_properties(cls, properties)
+    except ValueError as exc:
+        raise ModelError(f"{path}: unusable EgoPoseVR metadata ({exc})") from exc
+
+
+class LoadedModel:
+    """ONNX sessions of one servable model; visual encoders are shared between models via ``shared``."""
+
+    def __init__(self, info: ModelInfo, fusion: ort.InferenceSession, visual: ort.InferenceSession | None):
+        self.info, self.fusion, self.visual = info, fusion, visual
+
+    @classmethod
+    def load(cls, path: str | Path, threads: int = 1, shared: dict[Path, Any] | None = None) -> LoadedModel:
+        path = Path(path)
+        kernels.warm_up()  # compiled (or loaded from numba's cache) before the first pose, not during it
+        fusion = _session(path, threads)
+        metadata = _metadata(path, fusion, ModelMetadata, "model")
+        visual_path = path.parent / metadata.visual_encoder if metadata.visual_encoder else None
+        visual, encoder, regressor = None, None, None
+        if visual_path is not None:
+            shared = {} if shared is None else shared
+            if visual_path not in shared:
+                if not visual_path.exists():
+                    raise ModelError(f"{path}: its visual encoder {visual_path.name} is missing")
+                shared[visual_path] = _session(visual_path, threads)
+            visual = shared[visual_path]
+            encoder = _metadata(visual_path, visual, EncoderMetadata, "visual")
+            try:
+                regressor = load_regressor_for(visual_path)
+            except ValueError as exc:
+                raise ModelError(f"{path}: {exc}") from exc
+        info = ModelInfo(path, metadata, visual_path, encoder, regressor)
+        return cls(info, fusion, visual)
+
+    @property
+    def measures_body(self) -> bool:
+        """Whether its visual encoder sees depth, so that its keypoints measure bone lengths (body.py).
+        RGB-only keypoints guess their depth: a body regressor fitted on visual-rgb's lengths made validation
+        worse (hmd-rgb upper body 3.70 -> 4.68 cm, lower 9.61 -> 11.74 cm) although its summed bone error
+        was lower (34 against 41 cm), so RGB models keep the height-scaled body."""
+        vc = self.info.visual_config
+        return self.visual is not None and vc is not None and vc.channels == RGBD_CHANNELS
+
+    def encode_frames(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(B, C, h, w) -> uv (B, J, 2), depth_m (B, J), zeta (B, J)."""
+        uv, depth_m, zeta = self.visual.run(None, {"image": images})
+        return uv, depth_m, zeta

@@ -1,0 +1,250 @@
+"""The serving pipeline: one :class:`Pipeline` per session, numpy + onnxruntime, no torch.
+
+    push_rgbd(frame)   visual encoder once per NEW frame -> keypoint cache (frames.KeypointCache)
+    push_hmd(sample)   -> x_t into the HMD window -> heading frame -> visual tokens from the cache (Alg. 1)
+                       -> fusion net -> FK anchored at the headset's head joint -> One Euro on positions
+                       -> KPO (if the model has it; lost controllers: hands.LostHandPolicy)
+                       -> rotations re-derived from the positions -> PoseResult
+
+When the camera is missing (no frame yet, or none newer than ``MAX_FRAME_AGE_S``) the model runs with an
+empty visual window — trained for with camera dropout — and the result says ``camera = False``.
+
+Shape legend: ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from ..hmd import HmdFeatureExtractor, ignore_untracked
+from ..inputs import canonicalize_hmd, heading_frame
+from ..rig import TRACKED_JOINTS, joints_from_devices
+from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
+from . import kernels
+from .body import BodyCalibrator
+from .filters import OneEuroFilter
+from .frames import (
+    CachedFrame,
+    EncodedFrame,
+    KeypointCache,
+    check_frame,
+    encode_frame,
+    encoder_input,
+    head_from_cam,
+)
+from .hands import LostHandPolicy
+from .kpo import KpoWeights, rederive_rotations, solve_kpo
+from .loading import LoadedModel
+
+# One Euro on joint positions (paper Eq. 8). Chosen on 4 val clips: (4 Hz, 2) costs 0.2-0.3 cm MPJPE against no
+# filter and cuts jitter 4.5x; (2 Hz, 1) halves jitter again but lags by 0.6 cm upper body.
+POSITION_MIN_CUTOFF_HZ = 4.0
+POSITION_BETA = 2.0
+_PARENTS = PARENTS.astype(np.int64)
+_TRACKED = np.array(TRACKED_JOINTS)
+_ORIGIN = np.zeros(3)
+
+
+@dataclasses.dataclass
+class PoseResult:
+    """One answer. Positions in metres (world), rotations local (row 0: pelvis global)."""
+
+    t_us: int
+    model: str
+    global_orient: np.ndarray  # (3,) axis-angle
+    body_pose: np.ndarray  # (63,)
+    transl: np.ndarray  # (3,) pelvis position
+    joints: np.ndarray  # (J, 3)
+    local_rot: np.ndarray  # (J, 3, 3)
+    camera: bool | None  # None: the model reads no camera; False: it had no usable frame
+    timing_us: dict[str, int]
+
+
+class Pipeline:
+    """Per-session state machine around one :class:`LoadedModel`. Not thread-safe: one caller at a time.
+
+    Body size: with ``bone_scale`` (J,) given, the skeleton is that body's. Otherwise a
+    :class:`~egoposevr.model.runtime.body.BodyCalibrator` estimates it from the session's headset (height) and, for
+    RGB-D models, the camera (measured hip, spine and leg lengths, through the encoder's body regressor),
+    assuming a stage reference space (floor at y = 0).
+    """
+
+    def __init__(
+        self,
+        model: LoadedModel,
+        naive: bool = False,
+        bone_scale: np.ndarray | None = None,
+        kpo_weights: KpoWeights | None = None,
+    ) -> None:
+        self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
+        info = model.info
+        self.window = info.config.window
+        self.visual_window = info.config.visual_window if model.visual is not None else 0
+        self.fixed_body = bone_scale is not None
+        self.bone_scale = (
+            np.ones(NUM_JOINTS) if bone_scale is None else np.asarray(bone_scale, dtype=np.float64)
+        )
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (a new session, a model switch, a long pause)."""
+        self.features = HmdFeatureExtractor()
+        self.offsets = rest_offsets(self.bone_scale)
+        self.body = BodyCalibrator(self.model.info.body_regressor)
+        self.hmd_window: np.ndarray | None = None  # (T, 72)
+        self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
+        self.cache = KeypointCache(self.visual_window, self.naive)
+        self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
+        self.hands = LostHandPolicy()
+        self._pending_visual_us = 0
+
+    @property
+    def frames_encoded(self) -> int:
+        """Encoder runs so far (the naive baseline counts every re-encoded frame)."""
+        return self.cache.frames_encoded
+
+    # ------------------------------------------------------------------------------------------ camera
+    def push_rgbd(
+        self,
+        t_us: int,
+        rgb: np.ndarray,
+        depth_mm: np.ndarray,
+        intrinsics: np.ndarray,
+        cam_from_head: np.ndarray | None = None,
+    ) -> bool:
+        """A decoded frame: rgb (H, W, 3) uint8, depth (H, W) uint16 mm, intrinsics (fx, fy, cx, cy) of
+        that W×H image, cam_from_head (4, 4) or None for the training camera's.
+
+        Returns False, doing nothing, when the model reads no camera or the frame is not newer than the
+        newest cached one (the cache is ordered by capture time); the caller counts those. Raises
+        ValueError for malformed frames.
+        """
+        check_frame(rgb, depth_mm, intrinsics, cam_from_head)
+        if self.model.visual is None or not self.cache.takes(t_us):
+            return False
+        if not self.naive:
+            return self.add_frame(encode_frame(self.model, t_us, rgb, depth_mm, intrinsics, cam_from_head))
+        started = time.perf_counter()
+        frame = CachedFrame(
+            t_us=int(t_us),
+            size_wh=(rgb.shape[1], rgb.shape[0]),
+            intrinsics=np.asarray(intrinsics, dtype=np.float64),
+            head_from_cam=head_from_cam(self.model, cam_from_head),
+        )
+        kp_cam, confidence = self.cache.add_raw(self.model, frame, encoder_input(self.model, rgb, depth_mm))
+        self._measure_body(kp_cam, confidence)
+        self._pending_visual_us += int((time.perf_counter() - started) * 1e6)
+        return True
+
+    def add_frame(self, frame: EncodedFrame) -> bool:
+        """An already encoded frame (:func:`~egoposevr.model.runtime.frames.encode_frame`, possibly run in
+        another thread) into the cache: Alg. 1's filter, then the keypoint cache. Returns False, doing
+        nothing, for a model without a camera, a frame from another model's encoder (a model switch happened
+        meanwhile) or a frame not newer than the newest cached one."""
+        if self.model.visual is None or frame.encoder != self.model.info.visual_path:
+            return False
+        if not self.cache.takes(frame.t_us):
+            return False
+        self._measure_body(frame.kp_cam, self.cache.add(frame))
+        self._pending_visual_us += frame.encode_us
+        return True
+
+    def _measure_body(self, kp_cam: np.ndarray, confidence: np.ndarray) -> None:
+        """Bone lengths from a new frame's keypoints where Alg. 1 keeps both ends (body.py), through the
+        encoder's body regressor when it has one. Only with a depth channel: RGB-only keypoints guess their
+        depth; raw lengths from them made hmd-rgb's lower-body MPJPE worse (9.61 -> 9.81 cm), and so did a
+        regressor fitted on them (LoadedModel.measures_body)."""
+        if self.fixed_body or not self.model.measures_body:
+            return
+        if self.body.push_visual(kp_cam, confidence > 0.0):
+            self.offsets = rest_offsets(self.body.bone_scale)
+
+    # ------------------------------------------------------------------------------------------ headset
+    def observe_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> None:
+        """A sample that gets no pose (the server skipped it to catch up): it still feeds the HMD window,
+        the velocities and the body estimate, so the next answered sample sees an unbroken stream."""
+        self._ingest(int(t_us), poses, valid)
+
+    def _ingest(
+        self, t_us: int, poses: np.ndarray, valid: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Update the stream state -> poses (3, 7), valid (3,), tracked joint positions (3, 3)."""
+        valid = np.asarray(valid, dtype=bool)
+        poses = ignore_untracked(
+            poses, valid
+        )  # checks the shapes; an untracked device's numbers are never read
+        x = self.features.push(t_us, poses, valid)  # validates finiteness
+        if valid[0]:
+            self.last_head_pose = poses[0].copy()
+            self.cache.remember_head(t_us, self.last_head_pose)
+        self.hmd_window = (
+            np.tile(x, (self.window, 1)) if self.hmd_window is None else np.roll(self.hmd_window, -1, 0)
+        )
+        self.hmd_window[-1] = x
+        device_poses = poses.copy()
+        device_poses[0] = self.last_head_pose  # the newest tracked headset pose
+        tracked_pos, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
+        if not self.fixed_body and self.body.push(tracked_pos, valid):
+            self.offsets = rest_offsets(self.body.bone_scale)
+        return poses, valid, tracked_pos
+
+    def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
+        """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
+        timing: dict[str, int] = {}
+        clock = time.perf_counter()
+
+        def lap(stage: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timing[stage] = int((now - clock) * 1e6)
+            clock = now
+
+        t_us = int(t_us)
+        poses, valid, tracked_pos = self._ingest(t_us, poses, valid)
+        rot, origin = heading_frame(self.last_head_pose)
+        inputs = {"hmd": canonicalize_hmd(self.hmd_window, rot, origin)[None]}
+        lap("features")
+        camera: bool | None = None
+        if self.model.visual is not None:
+            if self.naive:
+                self.cache.reencode(self.model)
+            tokens, camera = self.cache.tokens(t_us, rot, origin)
+            inputs["visual"] = tokens[None]
+            timing["visual"] = self._pending_visual_us + int((time.perf_counter() - clock) * 1e6)
+            self._pending_visual_us = 0
+            clock = time.perf_counter()
+        sixd = self.model.fusion.run(None, inputs)[0][0]  # (J, 6)
+        lap("fusion")
+        local = kernels.sixd_to_matrices(sixd.astype(np.float64))
+        local[0] = rot @ local[0]  # pelvis: heading frame -> world
+        joints, glob_pred = kernels.forward_kinematics_one(local, _ORIGIN, self.offsets, _PARENTS)
+        joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
+        lap("fk_filter")
+        if self.model.info.kpo:
+            targets = np.zeros((NUM_JOINTS, 3))
+            observed = np.zeros(NUM_JOINTS, dtype=bool)
+            targets[_TRACKED] = tracked_pos
+            observed[_TRACKED] = valid
+            self.hands.targets(t_us, joints, valid, tracked_pos, targets, observed)
+            joints = solve_kpo(joints, targets, observed, self.kpo_weights)
+            lap("kpo")
+        local = rederive_rotations(local, joints, self.offsets, glob_pred)
+        # The served joints are FK of the served rotations, so the two always agree exactly.
+        joints, _ = kernels.forward_kinematics_one(local, joints[0].copy(), self.offsets, _PARENTS)
+        axis_angle = kernels.matrices_to_rotvecs(local)
+        global_orient, body_pose = axis_angle[0], axis_angle[1:].reshape(-1)
+        lap("rotations")
+        return PoseResult(
+            t_us=t_us,
+            model=self.model.info.name,
+            global_orient=global_orient,
+            body_pose=body_pose,
+            transl=joints[0].copy(),
+            joints=joints,
+            local_rot=local,
+            camera=camera,
+            timing_us=timing,
+        )
