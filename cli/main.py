@@ -12,6 +12,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import (
     bench_cmd,
+    bodies_cmd,
     bridge_cmd,
     decode_cmd,
     demo_cmd,
@@ -38,6 +39,7 @@ SUBCOMMANDS = (
     ("bench", bench_cmd),
     ("decode", decode_cmd),
     ("motion", motion_cmd),
+    ("bodies", bodies_cmd),
     ("synth", synth_cmd),
     ("train", train_cmd),
     ("export", export_cmd),

@@ -77,6 +77,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--blur", type=int, default=1, metavar="N", help="motion blur: renders averaged per frame"
     )
     parser.add_argument("--jpeg-quality", type=int, default=90, metavar="Q")
+    parser.add_argument(
+        "--bodies",
+        type=Path,
+        metavar="FILE",
+        help="a body bank (.npz from `egoposevr bodies`): mesh bodies instead of capsules",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -118,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..model.synth.amass import AmassError, load_amass_motion
+    from ..model.synth.bodies import BodyBank, BodyBankError
     from ..model.synth.bvh import BvhError, load_bvh_motion
     from ..model.synth.headset import CameraModel
     from ..model.synth.pipeline import (
@@ -131,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         update_manifest,
         write_session,
     )
-    from ..model.synth.procedural import FAMILIES, generate
+    from ..model.synth.procedural import FAMILIES, Body, generate
     from ..model.synth.render import Renderer
 
     try:
@@ -149,6 +156,11 @@ def run(args: argparse.Namespace) -> int:
     if not files and args.procedural <= 0:
         print("egoposevr synth: nothing to do: give --motion files and/or --procedural N", file=sys.stderr)
         return 2
+    try:
+        bank = BodyBank.load(args.bodies) if args.bodies else None
+    except BodyBankError as error:
+        print(f"egoposevr synth: {error}", file=sys.stderr)
+        return 2
     hmd_rate = args.hmd_rate or (90.0 if args.sessions else 60.0)
     width, height = args.resolution
     cfg = SynthConfig(
@@ -157,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
         camera=CameraModel(width=width, height=height),
         blur_samples=args.blur,
         jpeg_quality=args.jpeg_quality,
+        bodies=bank,
     )
     renderer = Renderer(cfg.camera)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -172,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=len(jobs), unit="clip", disable=args.no_progress, dynamic_ncols=True)
     for index, (kind, what) in enumerate(jobs):
         rng = np.random.default_rng([args.seed, index])
+        body = int(rng.integers(bank.count)) if bank is not None else None
         try:
             if kind == "file":
                 path = what.path
@@ -181,7 +195,8 @@ def run(args: argparse.Namespace) -> int:
                 elif not motion.licence:
                     motion = motion.replace(licence=_default_licence(motion.source))
             else:
-                motion = generate(str(what), args.seconds, 60.0, rng)
+                on = Body.from_scale(bank.bone_scale(body)) if bank is not None else None
+                motion = generate(str(what), args.seconds, 60.0, rng, on)
                 motion = motion.replace(name=f"{what}-{index:04d}")
         except (BvhError, AmassError) as error:
             failures.append(f"{what.path}: {error}" if kind == "file" else str(error))
@@ -197,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
                 if start == 0 and chunk >= motion.num_frames
                 else f"{motion.name}-{start // chunk:02d}"
             )
-            seq = synthesize_sequence(piece, cfg, rng, renderer, name=name)
+            seq = synthesize_sequence(piece, cfg, rng, renderer, name=name, body=body)
             frames += len(seq.frames.t_us)
             if writer is None:
                 write_session(seq, args.out / f"{name}.egrec", cfg)
@@ -210,6 +225,7 @@ def run(args: argparse.Namespace) -> int:
                     "seconds": round(piece.duration_s, 3),
                     "licence": piece.licence,
                 }
+                | ({"body": seq.body} if bank is not None else {})
                 | ({"file": str(what.path), "subject": what.subject} if kind == "file" else {})
             )
         bar.update(1)
@@ -239,6 +255,7 @@ def run(args: argparse.Namespace) -> int:
             "procedural_families": families if args.procedural else [],
             "skipped": failures,
             "motion_library": library_record,
+            "bodies": _bank_record(args.bodies, bank) if bank is not None else None,
         }
         manifest = update_manifest(args.out, args.split, entry)
         if writer.shards:
@@ -247,6 +264,17 @@ def run(args: argparse.Namespace) -> int:
             contact_sheet(list(iter_shard_sequences(shard)), preview)
             print(f"wrote {manifest} and {preview}")
     return 0 if sources else 1
+
+
+def _bank_record(path: Path, bank) -> dict:
+    """The manifest's record of a body bank: file, source, and each body's shape parameters."""
+    return {
+        "file": str(path),
+        "source": bank.source,
+        "count": bank.count,
+        "phenotype_names": list(bank.phenotype_names),
+        "phenotype": [[round(float(v), 4) for v in row] for row in bank.phenotype],
+    }
 
 
 def _default_licence(source: str) -> str:

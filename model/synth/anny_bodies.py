@@ -147,7 +147,7 @@ def face_regions(
     """(F,) REGION_* per triangle: segmentation first (head, hands, feet), the moving joint for the rest."""
     dominant = skin_joint[faces, 0]  # (F, 3) each corner's strongest joint
     corner_regions = np.vectorize(JOINT_REGION.get)(dominant)
-    region = np.array([np.bincount(r, minlength=11).argmax() for r in corner_regions], dtype=np.uint8)
+    region = np.array([np.bincount(r, minlength=12).argmax() for r in corner_regions], dtype=np.uint8)
     head = np.zeros(len(faces), dtype=bool)
     for part, mask in parts.items():
         if part.startswith(("head", "eye", "mouth", "tongue")):
@@ -157,6 +157,8 @@ def face_regions(
     behind = centre[:, 2] < joints[15, 2] - 0.02
     scalp = head & ((centre[:, 1] > eyes_m[1] + 0.035) | (behind & (centre[:, 1] > eyes_m[1] - 0.04)))
     region[scalp] = bodies.REGION_SCALP
+    for part in ("mouth_cavity", "tongue", "eye_cavity.L", "eye_cavity.R", "eye_back.L", "eye_back.R"):
+        region[parts[part]] = bodies.REGION_INNER
     region[parts.get("hand.L", 0) | parts.get("hand.R", 0)] = bodies.REGION_HAND
     region[parts.get("foot.L", 0) | parts.get("foot.R", 0)] = bodies.REGION_FOOT
     return region

@@ -34,12 +34,13 @@ from .motion import ANKLE_JOINT_HEIGHT_M, Motion, ground
 
 SKIN_SLOTS: Final = 4
 # Regions of the surface (one per triangle): what clothing can cover it.
+# REGION_INNER: the inside of the mouth and the eye sockets (shells inside the head).
 (
     REGION_TORSO, REGION_UPPER_ARM, REGION_FOREARM, REGION_HAND, REGION_HIPS, REGION_THIGH, REGION_SHIN,
-    REGION_FOOT, REGION_NECK, REGION_FACE, REGION_SCALP,
-) = range(11)  # fmt: skip
+    REGION_FOOT, REGION_NECK, REGION_FACE, REGION_SCALP, REGION_INNER,
+) = range(12)  # fmt: skip
 REGION_NAMES: Final = (
-    "torso", "upper_arm", "forearm", "hand", "hips", "thigh", "shin", "foot", "neck", "face", "scalp",
+    "torso", "upper_arm", "forearm", "hand", "hips", "thigh", "shin", "foot", "neck", "face", "scalp", "inner",
 )  # fmt: skip
 BANK_FORMAT: Final = 1
 LEG_CHAIN: Final = (1, 4, 7)  # hip, knee, ankle: the pelvis's height above the floor scales with these
@@ -98,6 +99,12 @@ class BodyBank:
         """(J,) this body's bone lengths against SMPL's rest skeleton (the pelvis row is 1)."""
         return body_bone_scale(self.rest_joints[body])
 
+    def head_offset_m(self, body: int) -> tuple[float, float, float]:
+        """Between the eyes (where OpenXR's view pose is) in the head joint's frame, metres."""
+        head = 15
+        offset = self.align[body, head] @ (self.eyes_m[body] - self.rest_joints[body, head])
+        return (float(offset[0]), float(offset[1]), float(offset[2]))
+
     def height_m(self, body: int) -> float:
         return float(self.rest_vertices[body, :, 1].max() - self.rest_vertices[body, :, 1].min())
 
@@ -124,7 +131,10 @@ class BodyBank:
     def load(cls, path: str | Path) -> BodyBank:
         """Raises BodyBankError for anything that is not a complete bank of this format."""
         try:
-            with np.load(path, allow_pickle=False) as data:
+            with (
+                open(path, "rb") as handle,
+                np.load(handle, allow_pickle=False) as data,
+            ):  # np.load leaks on a bad zip
                 arrays = {key: data[key] for key in data.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
             raise BodyBankError(f"{path}: not a readable body bank ({exc})") from exc

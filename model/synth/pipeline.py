@@ -24,9 +24,20 @@ from ...recordings.egrec import EgrecWriter
 from ..rotations import matrix_to_quat_xyzw
 from ..skeleton import forward_kinematics, local_rot_to_smpl
 from ..training.dataset import iter_shard_sequences, load_shard  # noqa: F401  (re-exported: the format's readers)
+from .bodies import BodyBank, fit_motion_to_body, pose_vertices
 from .headset import CameraModel, HeadsetRig, HeadsetTrack, device_poses, simulate_headset
 from .motion import Motion, sample_at
-from .render import JOINT_RADIUS_M, Appearance, Renderer, SensorNoise, body_capsules, random_appearance
+from .render import (
+    JOINT_RADIUS_M,
+    Appearance,
+    MeshBody,
+    Renderer,
+    SensorNoise,
+    body_capsules,
+    controller_capsules,
+    prepare_mesh_body,
+    random_appearance,
+)
 
 FORMAT_VERSION = 1
 
@@ -43,6 +54,7 @@ class SynthConfig:
     jpeg_quality: int = 90
     camera_latency_us: int = 25_000  # capture -> sent, for recorded sessions
     hmd_latency_us: int = 1_000
+    bodies: BodyBank | None = None  # mesh bodies (bodies.py); None: capsule bodies
 
 
 @dataclasses.dataclass
@@ -71,6 +83,7 @@ class Sequence:
     track: HeadsetTrack
     frames: CameraFrames
     appearance: Appearance
+    body: int = -1  # the body bank's body, -1 for a capsule body
 
 
 def encode_images(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int) -> tuple[bytes, bytes]:
@@ -91,8 +104,10 @@ def render_frames(
     cfg: SynthConfig,
     renderer: Renderer,
     rng: np.random.Generator,
+    body: MeshBody | None = None,
 ) -> CameraFrames:
-    """Render the camera frames of one sequence at ``cfg.camera_rate_hz`` with their labels."""
+    """Render the camera frames of one sequence at ``cfg.camera_rate_hz`` with their labels; a mesh body
+    when ``body`` is given (posed by the motion, which must be on that body's bones), capsules otherwise."""
     cam = cfg.camera
     count = max(1, int(np.floor(motion.duration_s * cfg.camera_rate_hz)))
     t_s = np.arange(count) / cfg.camera_rate_hz
@@ -104,6 +119,7 @@ def render_frames(
     devices = device_poses(joints, global_rot, cfg.rig)
     joints = joints.reshape(count, blur, 22, 3)
     devices = devices.reshape(count, blur, 3, 7)
+    global_rot = global_rot.reshape(count, blur, 22, 3, 3)
     centre = blur // 2
 
     out_t = track.t_us[0] + np.round((t_s - track.motion_t_s[0]) * 1e6).astype(np.int64)
@@ -122,8 +138,13 @@ def render_frames(
         rgb_sum, depth = None, None
         for b in range(blur):
             world_from_cam = cam.world_from_camera(devices[k, b, 0])
-            caps = body_capsules(joints[k, b], motion.bone_scale, look.girth, devices[k, b, 1:])
-            rgb, d = renderer.render_clean(world_from_cam, caps, look)
+            if body is None:
+                caps = body_capsules(joints[k, b], motion.bone_scale, look.girth, devices[k, b, 1:])
+                rgb, d = renderer.render_clean(world_from_cam, caps, look)
+            else:
+                vertices = pose_vertices(body.bank, body.index, global_rot[k, b], joints[k, b])
+                props = controller_capsules(devices[k, b, 1:])
+                rgb, d = renderer.render_mesh_clean(world_from_cam, body, vertices, props, look)
             rgb_sum = rgb if rgb_sum is None else rgb_sum + rgb
             if b == centre:
                 depth = d
@@ -144,12 +165,26 @@ def render_frames(
 
 
 def synthesize_sequence(
-    motion: Motion, cfg: SynthConfig, rng: np.random.Generator, renderer: Renderer, name: str | None = None
+    motion: Motion,
+    cfg: SynthConfig,
+    rng: np.random.Generator,
+    renderer: Renderer,
+    name: str | None = None,
+    body: int | None = None,
 ) -> Sequence:
-    track = simulate_headset(motion, cfg.hmd_rate_hz, rng, cfg.rig)
+    """One sequence: with a body bank in ``cfg``, a mesh body (``body``, or a random one) that the motion is
+    fitted to unless it is on that body's bones already (procedural motion made for it); capsules without."""
+    mesh, rig = None, cfg.rig
+    if cfg.bodies is not None:
+        body = int(rng.integers(cfg.bodies.count)) if body is None else body
+        mesh = prepare_mesh_body(cfg.bodies, body)
+        if not np.allclose(motion.bone_scale, cfg.bodies.bone_scale(body)):
+            motion = fit_motion_to_body(motion, cfg.bodies.rest_joints[body])
+        rig = dataclasses.replace(rig, head_offset_m=cfg.bodies.head_offset_m(body))
+    track = simulate_headset(motion, cfg.hmd_rate_hz, rng, rig)
     look = random_appearance(rng, motion.root_pos_m[0, [0, 2]])
-    frames = render_frames(motion, track, look, cfg, renderer, rng)
-    return Sequence(name or motion.name, motion, track, frames, look)
+    frames = render_frames(motion, track, look, dataclasses.replace(cfg, rig=rig), renderer, rng, mesh)
+    return Sequence(name or motion.name, motion, track, frames, look, -1 if mesh is None else body)
 
 
 # ------------------------------------------------------------------------------------------ datasets
@@ -184,6 +219,7 @@ def sequence_arrays(seqs: list[Sequence]) -> dict[str, np.ndarray]:
         "seq_name": np.array([s.name for s in seqs]),
         "seq_source": np.array([s.motion.source for s in seqs]),
         "bone_scale": np.stack([s.motion.bone_scale for s in seqs]).astype(np.float32),
+        "body": np.array([s.body for s in seqs], dtype=np.int32),
         "hmd_start": hmd_start.astype(np.int64),
         "cam_start": cam_start.astype(np.int64),
         "hmd_t_us": cat([s.track.t_us for s in seqs]),

@@ -16,12 +16,31 @@ Shape legend: ``H``×``W`` image, ``C`` capsules, ``M`` materials, ``J`` = 22 jo
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Final
 
 import numpy as np
 from numba import njit, prange
 from scipy.spatial.transform import Rotation
 
+from ..skeleton import forward_kinematics, rest_offsets
+from . import raster
+from .bodies import (
+    REGION_FACE,
+    REGION_FOOT,
+    REGION_FOREARM,
+    REGION_HAND,
+    REGION_HIPS,
+    REGION_INNER,
+    REGION_NECK,
+    REGION_SCALP,
+    REGION_SHIN,
+    REGION_THIGH,
+    REGION_TORSO,
+    REGION_UPPER_ARM,
+    BodyBank,
+    pose_vertices,
+)  # fmt: skip
 from .headset import CameraModel
 
 # --------------------------------------------------------------------------------------- body model
@@ -60,8 +79,33 @@ for _a, _b, _r, _m, _e in SEGMENTS:
         JOINT_RADIUS_M[_b] = max(JOINT_RADIUS_M[_b], _r)
 JOINT_RADIUS_M.flags.writeable = False
 HEAD_LIFT_M: Final = 0.07  # the head sphere's centre above the SMPL head joint (the joint sits low)
-PATTERN_PLAIN, PATTERN_STRIPES, PATTERN_CHECKER, PATTERN_MOTTLE = 0, 1, 2, 3
+(
+    PATTERN_PLAIN,
+    PATTERN_STRIPES,
+    PATTERN_CHECKER,
+    PATTERN_MOTTLE,
+    PATTERN_DENIM,
+    PATTERN_KNIT,
+    PATTERN_PRINT,
+) = range(7)
 MATERIAL_FIELDS: Final = 8  # r, g, b, r2, g2, b2 (0..1), pattern, pattern scale (m)
+TOP_PATTERNS: Final = (
+    PATTERN_PLAIN,
+    PATTERN_STRIPES,
+    PATTERN_CHECKER,
+    PATTERN_MOTTLE,
+    PATTERN_PRINT,
+    PATTERN_KNIT,
+)
+# From very light to very dark (sRGB 0..1): the renderer draws any tone between neighbours.
+SKIN_TONES: Final = np.array(
+    [[0.97, 0.84, 0.75], [0.92, 0.74, 0.62], [0.80, 0.60, 0.46], [0.65, 0.45, 0.31], [0.47, 0.31, 0.21],
+     [0.30, 0.19, 0.13]]
+)  # fmt: skip
+HAIR_COLOURS: Final = np.array(
+    [[0.05, 0.04, 0.04], [0.17, 0.10, 0.06], [0.35, 0.22, 0.12], [0.70, 0.55, 0.32], [0.55, 0.25, 0.12],
+     [0.62, 0.62, 0.60]]
+)  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,21 +127,37 @@ def _colour(rng: np.random.Generator, lo: float = 0.05, hi: float = 0.95) -> np.
     return rng.uniform(lo, hi, 3)
 
 
+def _skin(rng: np.random.Generator) -> np.ndarray:
+    """A skin colour from the whole range of human skin tones (interpolated between SKIN_TONES)."""
+    x = rng.uniform(0, len(SKIN_TONES) - 1)
+    k = min(int(x), len(SKIN_TONES) - 2)
+    return SKIN_TONES[k] + (x - k) * (SKIN_TONES[k + 1] - SKIN_TONES[k])
+
+
+def _garment(rng: np.random.Generator, patterns: tuple[int, ...], weights: tuple[float, ...]) -> np.ndarray:
+    pattern = rng.choice(patterns, p=np.asarray(weights) / sum(weights))
+    return np.array([*_colour(rng), *_colour(rng), pattern, rng.uniform(0.02, 0.12)])
+
+
 def random_appearance(rng: np.random.Generator, centre_xz: np.ndarray) -> Appearance:
-    """Random clothing, skin, shoes, room and lighting."""
-    skin_tone = rng.uniform(0.25, 1.0)
-    skin = np.array([0.95, 0.75, 0.6]) * skin_tone + np.array([0.05, 0.03, 0.02])
+    """Random clothing, skin, shoes, hair, room and lighting."""
+    skin = _skin(rng)
     mats = np.zeros((8, MATERIAL_FIELDS))
-    for slot in (0, 1, 3):
-        pattern = rng.choice(
-            [PATTERN_PLAIN, PATTERN_STRIPES, PATTERN_CHECKER, PATTERN_MOTTLE], p=[0.4, 0.25, 0.15, 0.2]
+    mats[0] = _garment(rng, TOP_PATTERNS, (0.35, 0.2, 0.1, 0.1, 0.15, 0.1))
+    if rng.random() < 0.45:  # jeans
+        blue = rng.uniform([0.08, 0.12, 0.25], [0.3, 0.38, 0.65])
+        mats[1] = [*blue, *(blue * 0.8), PATTERN_DENIM, rng.uniform(0.04, 0.08)]
+    else:
+        mats[1] = _garment(
+            rng, (PATTERN_PLAIN, PATTERN_MOTTLE, PATTERN_CHECKER, PATTERN_KNIT), (0.55, 0.2, 0.1, 0.15)
         )
-        mats[slot] = [*_colour(rng), *_colour(rng), pattern, rng.uniform(0.02, 0.12)]
+    mats[3] = _garment(rng, (PATTERN_PLAIN, PATTERN_STRIPES), (0.8, 0.2))
     mats[2] = [*skin, *(skin * 0.85), PATTERN_MOTTLE, 0.03]
     mats[4] = mats[0] if rng.random() < 0.6 else mats[2]  # long or short sleeves
     mats[5] = mats[1] if rng.random() < 0.75 else mats[2]  # trousers or shorts
     mats[6] = [0.08, 0.08, 0.09, 0.25, 0.25, 0.27, PATTERN_STRIPES, 0.05]
-    mats[7] = [*_colour(rng, 0.02, 0.5), 0, 0, 0, PATTERN_PLAIN, 0.05]
+    hair = HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))] * rng.uniform(0.8, 1.2)
+    mats[7] = [*hair, *(hair * 0.8), PATTERN_KNIT, 0.03] if rng.random() > 0.08 else mats[2]  # or bald
     floor_pattern = rng.choice([PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_MOTTLE])
     floor = np.array(
         [*_colour(rng, 0.15, 0.85), *_colour(rng, 0.15, 0.85), floor_pattern, rng.uniform(0.1, 0.6)]
@@ -160,17 +220,18 @@ def body_capsules(
         scale = size if material in (0, 1) else float(np.mean(bone_scale[1:]))
         rows.append([*pa, *pb, radius * scale, material])
     if controllers is not None:
-        forward = Rotation.from_quat(controllers[:, 3:]).apply([0.0, 0.0, -1.0])
-        for k in range(2):
-            rows.append(
-                [
-                    *(controllers[k, :3] - 0.03 * forward[k]),
-                    *(controllers[k, :3] + 0.07 * forward[k]),
-                    0.025,
-                    6,
-                ]
-            )
+        rows += controller_capsules(controllers).tolist()
     return np.array(rows, dtype=np.float64)
+
+
+def controller_capsules(controllers: np.ndarray) -> np.ndarray:
+    """(2, 8) capsules of the two hand controllers held at device poses controllers (2, 7): short dark
+    handles along the device's -z."""
+    forward = Rotation.from_quat(controllers[:, 3:]).apply([0.0, 0.0, -1.0])
+    return np.array(
+        [[*(controllers[k, :3] - 0.03 * forward[k]), *(controllers[k, :3] + 0.07 * forward[k]), 0.025, 6]
+         for k in range(2)]
+    )  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------- kernel
@@ -192,9 +253,22 @@ def _pattern(
         second = np.sin(s / scale * np.pi) > 0.0
     elif kind == 2:
         second = (int(np.floor(s / scale)) + int(np.floor(q / scale))) % 2 == 0
+    elif kind == 6:  # print: a dot in some cells of a grid on the surface
+        cs, cq = np.floor(s / scale), np.floor(q / scale)
+        if _hash3(cs, cq, 7.0) < 0.35:
+            ds, dq = s / scale - cs - 0.5, q / scale - cq - 0.5
+            second = ds * ds + dq * dq < 0.09
     shade = 1.0
     if kind == 3:
         shade = 0.85 + 0.3 * _hash3(np.floor(px / scale), np.floor(py / scale), np.floor(pz / scale))
+    elif kind == 4:  # denim: diagonal twill ridges and thread-level speckle
+        shade = (
+            0.88
+            + 0.12 * np.sin((s + q) / (scale * 0.08))
+            + 0.08 * (_hash3(np.floor(s * 400), np.floor(q * 400), 1.0) - 0.5)
+        )
+    elif kind == 5:  # knit: ribs along the body and a fine row texture
+        shade = 0.85 + 0.15 * abs(np.sin(q / (scale * 0.15))) + 0.05 * np.sin(s / (scale * 0.05))
     if second:
         return mat[3] * shade, mat[4] * shade, mat[5] * shade
     return mat[0] * shade, mat[1] * shade, mat[2] * shade
@@ -355,6 +429,95 @@ def _render_kernel(
             depth_out[v, u] = best * depth_scale[v, u] if kind >= 0 else 0.0
 
 
+# ---------------------------------------------------------------------------------------- mesh bodies
+# Material slot of each body region; SPLIT_SLOT: the far part of a limb region (beyond SPLIT_FRACTION of its
+# bone) takes the second slot, so short sleeves and shorts end half way down the limb.
+REGION_SLOT: Final = {
+    REGION_TORSO: 0, REGION_UPPER_ARM: 0, REGION_FOREARM: 4, REGION_HAND: 2, REGION_HIPS: 1, REGION_THIGH: 1,
+    REGION_SHIN: 5, REGION_FOOT: 3, REGION_NECK: 2, REGION_FACE: 2, REGION_SCALP: 7, REGION_INNER: 2,
+}  # fmt: skip
+SPLIT_SLOT: Final = {REGION_UPPER_ARM: ((16, 18), (17, 19), 4, 0.5), REGION_THIGH: ((1, 4), (2, 5), 5, 0.45)}
+SHADOW_MAP_TEXELS = 256
+SHADOW_MAP_M = 3.2  # the square the shadow map covers around the body
+SHADOW_STRENGTH = 0.8  # how much of the direct light a shadow takes away
+SHADOW_BIAS_M = 0.03  # a surface does not shadow itself within this distance along the light
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshBody:
+    """One body of a bank, prepared for rendering a sequence.
+
+    rest_m (V, 3): rest vertices (float64); face_slot (F,) material slot per triangle; surface_m (V, 2):
+    texture coordinates in metres (height along the body, distance around the vertex's own bone), so that
+    patterns stick to the clothes while the body moves."""
+
+    bank: BodyBank
+    index: int
+    rest_m: np.ndarray
+    face_slot: np.ndarray
+    surface_m: np.ndarray
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.bank.faces
+
+
+def prepare_mesh_body(bank: BodyBank, index: int) -> MeshBody:
+    rest = bank.rest_vertices[index].astype(np.float64)
+    joints = bank.rest_joints[index]
+    centre = rest[bank.faces].mean(axis=1)
+    slot = np.array([REGION_SLOT[r] for r in bank.region], dtype=np.int64)
+    for region, (left, right, far_slot, fraction) in SPLIT_SLOT.items():
+        for start, end in (left, right):
+            side = np.sign(joints[start, 0])
+            mask = (bank.region == region) & (np.sign(centre[:, 0]) == side)
+            bone = joints[end] - joints[start]
+            t = (centre[mask] - joints[start]) @ bone / (bone @ bone)
+            slot[np.flatnonzero(mask)[t > fraction]] = far_slot
+    own = joints[bank.skin_joint[:, 0]]
+    around = np.arctan2(rest[:, 0] - own[:, 0], rest[:, 2] - own[:, 2]) * 0.12
+    return MeshBody(bank, index, rest, slot, np.stack([rest[:, 1], around], axis=-1))
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def _shade_body(
+    zbuf, face_id, bary, faces, face_slot, normals, surface, rest, materials, light, ambient, rgb, depth
+):
+    """Composite the rasterised body over the room render: where the body is nearer, its shaded colour."""
+    h, w = zbuf.shape
+    for v in prange(h):
+        for u in range(w):
+            f = face_id[v, u]
+            if f < 0 or (depth[v, u] > 0.0 and depth[v, u] <= zbuf[v, u]):
+                continue
+            nx, ny, nz = raster.interpolate(normals, faces, face_id, bary, v, u)
+            px, py, pz = raster.interpolate(rest, faces, face_id, bary, v, u)
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            wb, wc = bary[v, u, 0], bary[v, u, 1]
+            wa = 1.0 - wb - wc
+            s = wa * surface[a, 0] + wb * surface[b, 0] + wc * surface[c, 0]
+            q = wa * surface[a, 1] + wb * surface[b, 1] + wc * surface[c, 1]
+            r, g, b_ = _pattern(materials[face_slot[f]], s, q, px, py, pz)
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz) + 1e-12
+            lambert = abs(nx * light[0] + ny * light[1] + nz * light[2]) / norm  # drawn from both sides
+            shade = ambient + (1.0 - ambient) * lambert
+            rgb[v, u, 0] = min(255.0, r * shade * light[3] * 255.0)
+            rgb[v, u, 1] = min(255.0, g * shade * light[4] * 255.0)
+            rgb[v, u, 2] = min(255.0, b_ * shade * light[5] * 255.0)
+            depth[v, u] = zbuf[v, u]
+
+
+def light_frame(light_dir: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(4, 4) world -> light frame: z along the light's travel, origin at centre (3,)."""
+    z = -light_dir / np.linalg.norm(light_dir)
+    x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    out = np.eye(4)
+    out[:3, :3] = np.stack([x, np.cross(z, x), z])
+    out[:3, 3] = -out[:3, :3] @ centre
+    return out
+
+
 # ------------------------------------------------------------------------------------------ driver
 @dataclasses.dataclass(frozen=True)
 class SensorNoise:
@@ -431,6 +594,47 @@ class Renderer:
         )
         return rgb, depth
 
+    def render_mesh_clean(
+        self,
+        world_from_camera: np.ndarray,
+        body: MeshBody,
+        vertices_m: np.ndarray,
+        props: np.ndarray,
+        look: Appearance,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free frame of a mesh body (posed vertices (V, 3) world) with capsule props (controllers,
+        (C, 8) as :func:`body_capsules`) in the room, the body's shadow on everything -> as render_clean."""
+        cam = self.camera
+        rgb, depth = self.render_clean(world_from_camera, props, look)
+        cam_from_world = np.linalg.inv(world_from_camera)
+        verts_cam = vertices_m @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        zbuf = np.full((cam.height, cam.width), np.inf)
+        face_id = np.full((cam.height, cam.width), -1, dtype=np.int32)
+        bary = np.zeros((cam.height, cam.width, 2), dtype=np.float32)
+        raster.rasterize(verts_cam, body.faces, *cam.intrinsics(), zbuf, face_id, bary)
+        normals = np.empty_like(vertices_m)
+        raster.vertex_normals(vertices_m, body.faces, normals)
+        light = np.concatenate([look.light_dir, look.light_rgb])
+        _shade_body(zbuf, face_id, bary, body.faces, body.face_slot, normals, body.surface_m, body.rest_m,
+                    look.materials, light, look.ambient, rgb, depth)  # fmt: skip
+        self._shadow(world_from_camera, vertices_m, body.faces, look, rgb, depth)
+        return rgb, depth
+
+    def _shadow(
+        self, world_from_camera: np.ndarray, vertices_m: np.ndarray, faces: np.ndarray, look: Appearance,
+        rgb: np.ndarray, depth: np.ndarray,
+    ) -> None:  # fmt: skip
+        """Darken, in place, what the body hides from the light (a shadow map along the light)."""
+        light_from_world = light_frame(look.light_dir, vertices_m.mean(axis=0))
+        texel_m = SHADOW_MAP_M / SHADOW_MAP_TEXELS
+        in_light = vertices_m @ light_from_world[:3, :3].T + light_from_world[:3, 3]
+        in_light[:, :2] = in_light[:, :2] / texel_m + SHADOW_MAP_TEXELS / 2
+        zmap = np.full((SHADOW_MAP_TEXELS, SHADOW_MAP_TEXELS), np.inf)
+        raster.shadow_map(in_light, faces, SHADOW_MAP_TEXELS, zmap)
+        strength = SHADOW_STRENGTH * (1.0 - look.ambient)
+        raster.darken_shadowed(depth, self._rays_cam, self._depth_scale, world_from_camera, light_from_world,
+                               texel_m, zmap, SHADOW_BIAS_M, strength, rgb)  # fmt: skip
+
     def add_noise(
         self, rgb: np.ndarray, depth_m: np.ndarray, rng: np.random.Generator
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -451,3 +655,36 @@ class Renderer:
         holes |= (depth_m < cam.min_depth_m) | (depth_m > cam.max_depth_m)
         depth_mm = np.where(holes, 0.0, np.round(depth * 1000.0))
         return np.clip(rgb, 0, 255).astype(np.uint8), np.clip(depth_mm, 0, 65535).astype(np.uint16)
+
+
+def bank_preview(bank: BodyBank, path: str | Path, columns: int = 8, limit: int = 32) -> None:
+    """A PNG of the bank's bodies in SMPL's T-pose, seen from the front, with their SMPL-22 joints in red."""
+    import cv2
+
+    camera = CameraModel(width=160, height=320, hfov_deg=34.0, min_depth_m=0.1, max_depth_m=20.0)
+    renderer = Renderer(camera)
+    rng = np.random.default_rng(0)
+    look = dataclasses.replace(
+        random_appearance(rng, np.zeros(2)),
+        boxes=np.zeros((0, 9)),
+        room=np.array([-9.0, 9.0, -9.0, 9.0, 9.0]),
+    )
+    world_from_camera = np.eye(4)
+    world_from_camera[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking along -z at a body facing +z
+    world_from_camera[:3, 3] = [0.0, 0.95, 3.2]
+    tiles = []
+    for index in range(min(bank.count, limit)):
+        joints = forward_kinematics(np.eye(3)[None].repeat(22, 0), bank.rest_joints[index, 0], rest_offsets(bank.bone_scale(index)))[0]  # fmt: skip
+        joints[:, 1] += bank.rest_joints[index, 0, 1] - joints[0, 1]
+        vertices = pose_vertices(bank, index, np.broadcast_to(np.eye(3), (22, 3, 3)), joints)
+        rgb, _ = renderer.render_mesh_clean(world_from_camera, prepare_mesh_body(bank, index), vertices, np.zeros((0, 8)), look)  # fmt: skip
+        bgr = cv2.cvtColor(np.clip(rgb, 0, 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
+        cam_from_world = np.linalg.inv(world_from_camera)
+        for u, v in camera.project(joints @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]):
+            cv2.circle(bgr, (round(u), round(v)), 2, (0, 0, 255), -1)
+        cv2.putText(bgr, f"{index}: {bank.height_m(index):.2f} m", (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1)  # fmt: skip
+        tiles.append(bgr)
+    while len(tiles) % columns:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.concatenate(tiles[i : i + columns], axis=1) for i in range(0, len(tiles), columns)]
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0))

@@ -41,6 +41,7 @@ def iter_shard_sequences(shard: dict[str, np.ndarray]) -> Iterator[dict[str, Any
             "name": str(name),
             "source": str(shard["seq_source"][i]),
             "bone_scale": shard["bone_scale"][i],
+            "body": int(shard["body"][i]) if "body" in shard else -1,  # mesh body of the bank, -1: capsules
         }
         for key in HMD_KEYS:
             out[key] = shard[key][h0:h1]
