@@ -5,7 +5,7 @@ What the protocol's three device poses are, in OpenXR's terms:
 - ``head``: the VIEW reference space (between the eyes, looking along −Z, +Y up) located in the app's STAGE or
   LOCAL_FLOOR space, as it is.
 - ``left``/``right``: ``/user/hand/<hand>/input/grip/pose`` located in the same space, its orientation turned
-  a quarter turn about its own Z axis (left −90°, right +90°), so that +Y leaves the back of the hand. The
+  a quarter turn about its own Z axis (left +90°, right −90°), so that +Y leaves the back of the hand. The
   grip's own −Z (little finger to thumb) and its position (the palm) are kept.
 - ``valid``: a device's POSITION_VALID and ORIENTATION_VALID bits both set (TRACKED is not needed: the
   runtime's inferred pose beats none). Orientation-only tracking (no POSITION_VALID) counts as untracked.
@@ -27,8 +27,10 @@ ORIENTATION_TRACKED: Final = 0x4
 POSITION_TRACKED: Final = 0x8
 
 _HALF: Final = math.sqrt(0.5)
-# grip frame -> the protocol's controller frame: a quarter turn about the grip's Z axis.
-GRIP_TO_CONTROLLER: Final = {"left": (0.0, 0.0, -_HALF, _HALF), "right": (0.0, 0.0, _HALF, _HALF)}
+# grip frame -> the protocol's controller frame: a quarter turn about the grip's Z axis. The grip's +X leaves
+# the palm of the left hand and the back of the right (OpenXR, WebXR), so the turn takes -X (left) and +X
+# (right) onto +Y: out of the back of the hand.
+GRIP_TO_CONTROLLER: Final = {"left": (0.0, 0.0, _HALF, _HALF), "right": (0.0, 0.0, -_HALF, _HALF)}
 UNTRACKED_POSE: Final = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)  # what to send for an untracked device (ignored)
 
 

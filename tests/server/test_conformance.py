@@ -277,8 +277,8 @@ def test_a_turned_grip_pose_is_the_controller_frame_the_models_were_trained_on()
     joints, rotations = forward_kinematics(local, np.array([[0.0, 1.0, 0.0]]))
     synth = device_poses(joints, rotations, HeadsetRig())[0]
     thumb = np.array([0.0, 0.0, -1.0])  # palms down, thumbs forward
-    for index, hand, palm_normal_x in ((1, "left", [0.0, 1.0, 0.0]), (2, "right", [0.0, -1.0, 0.0])):
-        x = np.array(palm_normal_x)  # OpenXR grip +X: out of the back of the left hand, into the right palm
+    for index, hand, palm_normal_x in ((1, "left", [0.0, -1.0, 0.0]), (2, "right", [0.0, 1.0, 0.0])):
+        x = np.array(palm_normal_x)  # OpenXR grip +X: out of the left palm, out of the back of the right hand
         z = -thumb  # grip -Z: little finger to thumb
         grip = np.stack([x, np.cross(z, x), z], axis=1)
         from scipy.spatial.transform import Rotation
