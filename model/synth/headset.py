@@ -37,6 +37,14 @@ class HeadsetRig:
     dropouts_per_min: float = 3.0
     dropout_s: tuple[float, float] = (0.1, 1.0)
     behind_head_m: float = 0.05  # a controller this far behind the headset's plane is lost
+    view_tilt_deg: tuple[float, float] = (0.0, 0.0)  # pitch, roll of the view pose on the head (the fit)
+    grip_tilt_deg: tuple[float, float] = (0.0, 0.0)  # left, right handle angle in the palm (about its normal)
+    # Inside-out tracking: a controller further than this from the headset's forward axis is out of its
+    # cameras' view, and one hidden behind the other (within occlusion_deg as the headset sees them, farther
+    # away) is occluded; either is lost once it lasts longer than tracking_grace_s (the IMU bridges that long).
+    tracking_cone_deg: float = 180.0
+    occlusion_deg: float = 0.0
+    tracking_grace_s: float = 0.25
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,9 +65,20 @@ class HeadsetTrack:
     motion_t_s: np.ndarray
 
 
+def device_tilts(rig: HeadsetRig) -> np.ndarray:
+    """(3, 3, 3) each device's rotation on its joint beyond DEVICE_FROM_JOINT: the headset's fit (pitch about
+    the view's X, roll about its Z) and each controller's handle angle (about the palm's normal, which is the
+    protocol controller frame's Y)."""
+    head = Rotation.from_euler("xz", rig.view_tilt_deg, degrees=True).as_matrix()
+    left, right = (Rotation.from_euler("y", a, degrees=True).as_matrix() for a in rig.grip_tilt_deg)
+    return np.stack([head, left, right])
+
+
 def device_poses(joints_m: np.ndarray, global_rot: np.ndarray, rig: HeadsetRig) -> np.ndarray:
-    """Noise-free device poses (N, 3, 7) from joint positions (N, J, 3) and global rotations (N, J, 3, 3)."""
+    """Noise-free device poses (N, 3, 7) from joint positions (N, J, 3) and global rotations (N, J, 3, 3):
+    the head's view pose and the controllers in the protocol's frame (PROTOCOL.md §3.3)."""
     poses = np.empty((len(joints_m), 3, 7))
+    tilts = device_tilts(rig)
     for k, (joint, offset) in enumerate(
         (
             (HEAD, rig.head_offset_m),
@@ -69,8 +88,35 @@ def device_poses(joints_m: np.ndarray, global_rot: np.ndarray, rig: HeadsetRig) 
     ):
         rot = global_rot[:, joint]
         poses[:, k, :3] = joints_m[:, joint] + rot @ np.asarray(offset)
-        poses[:, k, 3:] = Rotation.from_matrix(rot @ DEVICE_FROM_JOINT).as_quat()
+        poses[:, k, 3:] = Rotation.from_matrix(rot @ DEVICE_FROM_JOINT @ tilts[k]).as_quat()
     return poses
+
+
+def _grace(lost: np.ndarray, t_s: np.ndarray, grace_s: float) -> np.ndarray:
+    """(N,) bool: True where ``lost`` has lasted longer than grace_s (the runtime's inertial bridge)."""
+    out = np.zeros_like(lost)
+    start = None
+    for i, now in enumerate(lost):
+        start = (t_s[i] if start is None else start) if now else None
+        out[i] = now and t_s[i] - start > grace_s
+    return out
+
+
+def out_of_view(poses: np.ndarray, t_s: np.ndarray, rig: HeadsetRig) -> np.ndarray:
+    """(N, 2) bool: controllers the headset's cameras cannot see (outside the cone, or occluded by the other
+    controller), after the grace period. poses (N, 3, 7) noise-free."""
+    head_rot = Rotation.from_quat(poses[:, 0, 3:])
+    rel = np.stack([head_rot.inv().apply(poses[:, k, :3] - poses[:, 0, :3]) for k in (1, 2)], axis=1)
+    dist = np.linalg.norm(rel, axis=-1)
+    direction = rel / np.maximum(dist, 1e-9)[..., None]
+    off_axis = np.degrees(np.arccos(np.clip(-direction[..., 2], -1.0, 1.0)))  # from the view's -Z
+    lost = off_axis > rig.tracking_cone_deg
+    if rig.occlusion_deg > 0:
+        apart = np.degrees(np.arccos(np.clip((direction[:, 0] * direction[:, 1]).sum(-1), -1.0, 1.0)))
+        behind = apart < rig.occlusion_deg
+        lost[:, 0] |= behind & (dist[:, 0] > dist[:, 1] + 0.05)
+        lost[:, 1] |= behind & (dist[:, 1] > dist[:, 0] + 0.05)
+    return np.stack([_grace(lost[:, k], t_s, rig.tracking_grace_s) for k in range(2)], axis=1)
 
 
 def _drift(rng: np.random.Generator, n: int, rate_hz: float, scale_m: float) -> np.ndarray:
@@ -109,6 +155,7 @@ def simulate_headset(
     local_rot, root = sample_at(motion, motion_t_s)
     joints, global_rot = forward_kinematics(local_rot, root, motion.offsets_m())
     poses = device_poses(joints, global_rot, rig)
+    unseen = out_of_view(poses, motion_t_s, rig)
 
     noise_m = np.array([rig.head_noise_m, rig.hand_noise_m, rig.hand_noise_m])
     noise_deg = np.array([rig.head_noise_deg, rig.hand_noise_deg, rig.hand_noise_deg])
@@ -122,7 +169,7 @@ def simulate_headset(
     for k in (1, 2):
         in_head = head_rot.inv().apply(poses[:, k, :3] - poses[:, 0, :3])
         behind = in_head[:, 2] > rig.behind_head_m  # device +z points backwards
-        valid[:, k] = ~(behind | _dropouts(rng, motion_t_s, rig))
+        valid[:, k] = ~(behind | unseen[:, k - 1] | _dropouts(rng, motion_t_s, rig))
         for i in range(1, count):  # a lost controller reports its last tracked pose, as runtimes do
             if not valid[i, k]:
                 poses[i, k] = poses[i - 1, k]
@@ -148,6 +195,8 @@ class CameraModel:
     height: int = 256
     hfov_deg: float = 90.0
     pitch_down_deg: float = 78.0
+    yaw_deg: float = 0.0  # turned about the headset's up axis, towards its -x for positive angles
+    roll_deg: float = 0.0  # about the optical axis
     position_m: tuple[float, float, float] = (0.0, -0.05, -0.07)
     min_depth_m: float = 0.1
     max_depth_m: float = 6.0
@@ -164,8 +213,10 @@ class CameraModel:
         """(4, 4): camera coordinates -> headset device coordinates."""
         axes = np.diag([1.0, -1.0, -1.0])  # OpenCV axes looking along the headset's forward
         tilt = Rotation.from_euler("x", -self.pitch_down_deg, degrees=True).as_matrix()
+        yaw = Rotation.from_euler("y", self.yaw_deg, degrees=True).as_matrix()
+        roll = Rotation.from_euler("z", self.roll_deg, degrees=True).as_matrix()
         out = np.eye(4)
-        out[:3, :3] = tilt @ axes
+        out[:3, :3] = yaw @ tilt @ axes @ roll
         out[:3, 3] = self.position_m
         return out
 

@@ -88,6 +88,10 @@ HEAD_LIFT_M: Final = 0.07  # the head sphere's centre above the SMPL head joint 
     PATTERN_KNIT,
     PATTERN_PRINT,
 ) = range(7)
+PATTERN_WOOD, PATTERN_TILES, PATTERN_CARPET, PATTERN_CONCRETE = range(7, 11)  # floors
+FLOOR_PATTERNS: Final = (
+    PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_MOTTLE, PATTERN_WOOD, PATTERN_TILES, PATTERN_CARPET, PATTERN_CONCRETE,
+)  # fmt: skip
 MATERIAL_FIELDS: Final = 8  # r, g, b, r2, g2, b2 (0..1), pattern, pattern scale (m)
 TOP_PATTERNS: Final = (
     PATTERN_PLAIN,
@@ -139,8 +143,76 @@ def _garment(rng: np.random.Generator, patterns: tuple[int, ...], weights: tuple
     return np.array([*_colour(rng), *_colour(rng), pattern, rng.uniform(0.02, 0.12)])
 
 
-def random_appearance(rng: np.random.Generator, centre_xz: np.ndarray) -> Appearance:
-    """Random clothing, skin, shoes, hair, room and lighting."""
+FLOOR_LOOKS: Final = {  # colour ranges (low, high) and pattern scale (m) of each floor kind
+    PATTERN_WOOD: ((0.35, 0.2, 0.1), (0.8, 0.6, 0.4), (0.08, 0.2)),
+    PATTERN_TILES: ((0.4, 0.4, 0.4), (0.95, 0.95, 0.92), (0.2, 0.6)),
+    PATTERN_CARPET: ((0.1, 0.1, 0.1), (0.7, 0.6, 0.6), (0.05, 0.1)),
+    PATTERN_CONCRETE: ((0.35, 0.35, 0.33), (0.7, 0.7, 0.68), (0.5, 1.0)),
+}
+
+
+def random_floor(rng: np.random.Generator, kinds: tuple[int, ...]) -> np.ndarray:
+    """A floor material (MATERIAL_FIELDS,) of one of ``kinds``: realistic colours for wood, tiles, carpet and
+    concrete, any colours for the abstract patterns."""
+    kind = int(rng.choice(kinds))
+    if kind not in FLOOR_LOOKS:
+        return np.array([*_colour(rng, 0.15, 0.85), *_colour(rng, 0.15, 0.85), kind, rng.uniform(0.1, 0.6)])
+    low, high, scale = FLOOR_LOOKS[kind]
+    base = rng.uniform(low, high)
+    second = base * 0.6 if kind != PATTERN_TILES else rng.uniform(0.2, 0.9, 3)
+    return np.array([*base, *second, kind, rng.uniform(*scale)])
+
+
+def _box(corner: np.ndarray, size: np.ndarray, colour: np.ndarray) -> list[float]:
+    return [*corner, *(corner + size), *colour]
+
+
+def _piece(rng: np.random.Generator, kind: str, x: float, z: float) -> list[list[float]]:
+    """One piece of furniture as axis-aligned boxes [min xyz, max xyz, rgb] standing on the floor at (x, z)."""
+    colour = rng.uniform(0.15, 0.85, 3)
+    if kind == "table":
+        w, d, h = rng.uniform([0.6, 0.6, 0.7], [1.6, 1.0, 0.8])
+        leg = 0.05
+        out = [_box(np.array([x, h - 0.04, z]), np.array([w, 0.04, d]), colour)]
+        for lx, lz in ((0, 0), (w - leg, 0), (0, d - leg), (w - leg, d - leg)):
+            out.append(_box(np.array([x + lx, 0.0, z + lz]), np.array([leg, h - 0.04, leg]), colour * 0.8))
+        return out
+    if kind == "chair":
+        w, h = rng.uniform(0.4, 0.5), rng.uniform(0.42, 0.48)
+        out = [_box(np.array([x, h - 0.05, z]), np.array([w, 0.05, w]), colour),
+               _box(np.array([x, h, z + w - 0.05]), np.array([w, rng.uniform(0.35, 0.5), 0.05]), colour)]  # fmt: skip
+        for lx, lz in ((0, 0), (w - 0.04, 0), (0, w - 0.04), (w - 0.04, w - 0.04)):
+            out.append(_box(np.array([x + lx, 0.0, z + lz]), np.array([0.04, h - 0.05, 0.04]), colour * 0.7))
+        return out
+    if kind == "sofa":
+        w, d = rng.uniform(1.4, 2.2), rng.uniform(0.8, 1.0)
+        return [_box(np.array([x, 0.0, z]), np.array([w, 0.42, d]), colour),
+                _box(np.array([x, 0.42, z + d - 0.2]), np.array([w, 0.4, 0.2]), colour * 0.9),
+                _box(np.array([x, 0.42, z]), np.array([0.18, 0.2, d]), colour * 0.9),
+                _box(np.array([x + w - 0.18, 0.42, z]), np.array([0.18, 0.2, d]), colour * 0.9)]  # fmt: skip
+    size = rng.uniform([0.4, 0.8, 0.3], [1.2, 2.0, 0.6])  # a cabinet or shelf
+    return [_box(np.array([x, 0.0, z]), size, colour)]
+
+
+def random_furniture(rng: np.random.Generator, room: np.ndarray, centre_xz: np.ndarray) -> np.ndarray:
+    """(K, 9) boxes: 0-5 tables, chairs, sofas and cabinets in the room, none within 0.7 m of where the
+    person starts (they stand among it)."""
+    boxes: list[list[float]] = []
+    for _ in range(rng.integers(0, 6)):
+        kind = str(rng.choice(["table", "chair", "sofa", "cabinet"], p=[0.3, 0.35, 0.15, 0.2]))
+        x, z = rng.uniform(room[0] + 0.1, room[1] - 2.3), rng.uniform(room[2] + 0.1, room[3] - 1.1)
+        piece = np.array(_piece(rng, kind, x, z))
+        lo, hi = piece[:, [0, 2]].min(axis=0), piece[:, [3, 5]].max(axis=0)
+        gap = np.maximum(np.maximum(lo - centre_xz, centre_xz - hi), 0.0)
+        if np.hypot(*gap) > 0.7:
+            boxes += piece.tolist()
+    return np.array(boxes, dtype=np.float64).reshape(-1, 9)
+
+
+def random_appearance(
+    rng: np.random.Generator, centre_xz: np.ndarray, floors: tuple[int, ...] = FLOOR_PATTERNS[:3]
+) -> Appearance:
+    """Random clothing, skin, shoes, hair, room (a floor of one of ``floors``, furniture) and lighting."""
     skin = _skin(rng)
     mats = np.zeros((8, MATERIAL_FIELDS))
     mats[0] = _garment(rng, TOP_PATTERNS, (0.35, 0.2, 0.1, 0.1, 0.15, 0.1))
@@ -158,10 +230,7 @@ def random_appearance(rng: np.random.Generator, centre_xz: np.ndarray) -> Appear
     mats[6] = [0.08, 0.08, 0.09, 0.25, 0.25, 0.27, PATTERN_STRIPES, 0.05]
     hair = HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))] * rng.uniform(0.8, 1.2)
     mats[7] = [*hair, *(hair * 0.8), PATTERN_KNIT, 0.03] if rng.random() > 0.08 else mats[2]  # or bald
-    floor_pattern = rng.choice([PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_MOTTLE])
-    floor = np.array(
-        [*_colour(rng, 0.15, 0.85), *_colour(rng, 0.15, 0.85), floor_pattern, rng.uniform(0.1, 0.6)]
-    )
+    floor = random_floor(rng, floors)
     half = rng.uniform(2.5, 5.0, size=4)
     room = np.array(
         [
@@ -172,14 +241,7 @@ def random_appearance(rng: np.random.Generator, centre_xz: np.ndarray) -> Appear
             rng.uniform(2.4, 3.2),
         ]
     )
-    boxes = []
-    for _ in range(rng.integers(0, 4)):
-        size = rng.uniform([0.3, 0.3, 0.3], [1.2, 1.0, 1.2])
-        corner = np.array(
-            [rng.uniform(room[0], room[1] - size[0]), 0.0, rng.uniform(room[2], room[3] - size[2])]
-        )
-        if np.hypot(*(corner[[0, 2]] + size[[0, 2]] / 2 - centre_xz)) > 1.2:  # keep clear of the start
-            boxes.append([*corner, *(corner + size), *_colour(rng)])
+    boxes = random_furniture(rng, room, np.asarray(centre_xz, dtype=np.float64))
     light = np.array([rng.uniform(-0.6, 0.6), 1.0, rng.uniform(-0.6, 0.6)])
     return Appearance(
         materials=mats,
@@ -187,7 +249,7 @@ def random_appearance(rng: np.random.Generator, centre_xz: np.ndarray) -> Appear
         floor=floor,
         walls=rng.uniform(0.3, 0.95, (4, 3)),
         room=room,
-        boxes=np.array(boxes, dtype=np.float64).reshape(-1, 9),
+        boxes=boxes,
         light_dir=light / np.linalg.norm(light),
         light_rgb=rng.uniform(0.8, 1.1, 3),
         ambient=float(rng.uniform(0.25, 0.5)),
@@ -258,9 +320,30 @@ def _pattern(
         if _hash3(cs, cq, 7.0) < 0.35:
             ds, dq = s / scale - cs - 0.5, q / scale - cq - 0.5
             second = ds * ds + dq * dq < 0.09
+    elif kind == 8:  # tiles: square tiles of the first colour, grout lines of the second
+        fs, fq = s / scale - np.floor(s / scale), q / scale - np.floor(q / scale)
+        second = fs < 0.04 or fq < 0.04
     shade = 1.0
     if kind == 3:
         shade = 0.85 + 0.3 * _hash3(np.floor(px / scale), np.floor(py / scale), np.floor(pz / scale))
+    elif kind == 7:  # wood: planks across q, each of its own shade, staggered joints, grain along s
+        plank = np.floor(q / scale)
+        piece = np.floor(s / (scale * 6.0) + _hash3(plank, 3.0, 1.0))
+        shade = (0.75 + 0.4 * _hash3(plank, piece, 2.0)) * (
+            0.93 + 0.07 * np.sin(s * 40.0 + 9.0 * _hash3(plank, 1.0, 1.0))
+        )
+        if q / scale - plank < 0.03:
+            shade *= 0.6
+    elif kind == 8:
+        shade = 0.92 + 0.12 * _hash3(np.floor(s / scale), np.floor(q / scale), 5.0)
+    elif kind == 9:  # carpet: fine fibre noise
+        shade = 0.75 + 0.4 * _hash3(np.floor(px * 300.0), np.floor(pz * 300.0), np.floor(py * 300.0))
+    elif kind == 10:  # concrete: fine speckle over slow blotches
+        shade = (
+            0.88
+            + 0.08 * _hash3(np.floor(px * 120.0), np.floor(pz * 120.0), 3.0)
+            + 0.06 * np.sin(px * 2.3 + 1.7 * np.sin(pz * 1.9))
+        )
     elif kind == 4:  # denim: diagonal twill ridges and thread-level speckle
         shade = (
             0.88
@@ -518,17 +601,68 @@ def light_frame(light_dir: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return out
 
 
+# ------------------------------------------------------------------------------------------ sensor
+def _edge_neighbour(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
+    """(H, W): where a 4-neighbour's depth differs by more than jump_m, that neighbour's depth (the other
+    side of the edge); 0 elsewhere."""
+    out = np.zeros_like(depth_m)
+    for axis in (0, 1):
+        for shift in (1, -1):
+            other = np.roll(depth_m, shift, axis=axis)
+            edge = np.abs(other - depth_m) > jump_m
+            if shift == 1:
+                edge[(slice(None), 0) if axis else (0, slice(None))] = False
+            else:
+                edge[(slice(None), -1) if axis else (-1, slice(None))] = False
+            out = np.where(edge & (out == 0), other, out)
+    return out
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def ir_shadow(depth_m, focal_baseline_px_m):
+    """(H, W) bool: pixels the projector cannot light. The projector sits to the camera's left by baseline b
+    (focal_baseline_px_m = f·b in pixel·metres): a point at depth z in column u is hidden when a nearer point
+    z' in a column u' < u covers it, u - u' < f·b·(1/z' - 1/z)."""
+    h, w = depth_m.shape
+    out = np.zeros((h, w), dtype=np.bool_)
+    for v in prange(h):
+        for u in range(w):
+            z = depth_m[v, u]
+            if z <= 0.0:
+                continue
+            reach = int(focal_baseline_px_m / 0.1)  # the nearest anything can be
+            for k in range(1, min(reach, u) + 1):
+                z2 = depth_m[v, u - k]
+                if 0.0 < z2 < z and k < focal_baseline_px_m * (1.0 / z2 - 1.0 / z):
+                    out[v, u] = True
+                    break
+    return out
+
+
 # ------------------------------------------------------------------------------------------ driver
 @dataclasses.dataclass(frozen=True)
 class SensorNoise:
-    """Depth and colour sensor imperfections (a structured-light / stereo RGB-D camera)."""
+    """Depth and colour sensor imperfections of an active-stereo / structured-light RGB-D camera (Intel
+    RealSense D4xx, Orbbec, Azure Kinect class).
+
+    Depth: noise with a standard deviation growing with the square of the distance (stereo disparity noise:
+    sigma_z = z² sigma_d / (f b)); on depth edges, holes and flying pixels (a mix of the two sides); no
+    reading beyond range or on dark surfaces (they return too little infrared); and, with ``ir_baseline_m``
+    > 0, the IR shadow: background the projector beside the camera cannot see next to a nearer object's edge.
+    Colour: exposure and white balance, vignetting, noise; JPEG artefacts come from the encoder's quality."""
 
     depth_sigma_at_1m: float = 0.0015  # grows with the square of the distance
     edge_hole_prob: float = 0.5  # chance a pixel on a depth edge returns nothing
+    flying_pixel_prob: float = 0.0  # chance a pixel on a depth edge returns a mix of both sides
     edge_jump_m: float = 0.08
     dropout_prob: float = 0.004
+    dark_albedo: float = 0.0  # surfaces whose clean rendered brightness is below this (0..1) ...
+    dark_hole_prob: float = 0.7  # ... return nothing with this chance
+    ir_baseline_m: float = 0.0  # projector to the camera's left by this much (0: no IR shadow)
     rgb_sigma: float = 2.0  # grey levels
     vignetting: float = 0.25
+    exposure: float = 1.0  # gain on the image
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)  # gain per channel
 
 
 class Renderer:
@@ -636,22 +770,40 @@ class Renderer:
                                texel_m, zmap, SHADOW_BIAS_M, strength, rgb)  # fmt: skip
 
     def add_noise(
-        self, rgb: np.ndarray, depth_m: np.ndarray, rng: np.random.Generator
+        self,
+        rgb: np.ndarray,
+        depth_m: np.ndarray,
+        rng: np.random.Generator,
+        noise: SensorNoise | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Sensor model: -> (rgb (H, W, 3) uint8, depth (H, W) uint16 millimetres, 0 = no reading)."""
-        noise, cam = self.noise, self.camera
+        """Sensor model (``noise``, or the renderer's): clean rgb (H, W, 3) 0..255 and depth (H, W) m ->
+        (rgb uint8, depth uint16 millimetres, 0 = no reading)."""
+        noise, cam = noise or self.noise, self.camera
+        brightness = rgb.mean(axis=-1) / 255.0
+        gain = noise.exposure * np.asarray(noise.white_balance, dtype=np.float32)
         # float32 draws: the noise is half of a frame's cost in float64.
         rgb = (
-            rgb * self._vignette[..., None]
+            rgb * (self._vignette[..., None] * gain)
             + rng.standard_normal(rgb.shape, dtype=np.float32) * noise.rgb_sigma
         )
         sigma = noise.depth_sigma_at_1m * depth_m * depth_m
         depth = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * sigma
-        jump = np.zeros(depth_m.shape, dtype=bool)
-        jump[:, 1:] |= np.abs(np.diff(depth_m, axis=1)) > noise.edge_jump_m
-        jump[1:, :] |= np.abs(np.diff(depth_m, axis=0)) > noise.edge_jump_m
-        draw = rng.random(depth_m.shape, dtype=np.float32)  # low values: edge holes, high values: dropouts
+        nearer = _edge_neighbour(depth_m, noise.edge_jump_m)
+        jump = nearer > 0
+        draw = rng.random(depth_m.shape, dtype=np.float32)  # low: edge holes, middle: flying, high: dropouts
         holes = (jump & (draw < noise.edge_hole_prob)) | (draw > 1.0 - noise.dropout_prob)
+        flying = (
+            jump & (draw >= noise.edge_hole_prob) & (draw < noise.edge_hole_prob + noise.flying_pixel_prob)
+        )
+        if flying.any():
+            mix = rng.random(int(flying.sum()), dtype=np.float32)
+            depth[flying] = mix * depth_m[flying] + (1 - mix) * nearer[flying]
+        if noise.dark_albedo > 0:
+            holes |= (brightness < noise.dark_albedo) & (
+                rng.random(depth_m.shape, dtype=np.float32) < noise.dark_hole_prob
+            )
+        if noise.ir_baseline_m > 0:
+            holes |= ir_shadow(depth_m, self.camera.fx * noise.ir_baseline_m)
         holes |= (depth_m < cam.min_depth_m) | (depth_m > cam.max_depth_m)
         depth_mm = np.where(holes, 0.0, np.round(depth * 1000.0))
         return np.clip(rgb, 0, 255).astype(np.uint8), np.clip(depth_mm, 0, 65535).astype(np.uint16)
