@@ -83,6 +83,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="a body bank (.npz from `egoposevr bodies`): mesh bodies instead of capsules",
     )
+    parser.add_argument(
+        "--rig-pool",
+        choices=["train", "heldout"],
+        help="draw each sequence's camera mount and lens, headset fit, grips, tracking, rate, sensor, floor and "
+        "body from this pool (heldout: rigs and bodies the train pool never uses); without it one fixed rig",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -140,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..model.synth.procedural import FAMILIES, Body, generate
     from ..model.synth.render import Renderer
+    from ..model.synth.variation import POOLS, pool_bodies
 
     try:
         files, library_record = _select(args) if args.motion else ([], {})
@@ -170,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
         blur_samples=args.blur,
         jpeg_quality=args.jpeg_quality,
         bodies=bank,
+        rig_pool=args.rig_pool,
     )
     renderer = Renderer(cfg.camera)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -185,7 +193,11 @@ def run(args: argparse.Namespace) -> int:
     bar = tqdm(total=len(jobs), unit="clip", disable=args.no_progress, dynamic_ncols=True)
     for index, (kind, what) in enumerate(jobs):
         rng = np.random.default_rng([args.seed, index])
-        body = int(rng.integers(bank.count)) if bank is not None else None
+        body = None
+        if bank is not None:  # drawn before the motion: procedural motion is made on this body's bones
+            body = int(
+                rng.choice(pool_bodies(bank.count, POOLS[args.rig_pool]) if args.rig_pool else bank.count)
+            )
         try:
             if kind == "file":
                 path = what.path
@@ -226,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
                     "licence": piece.licence,
                 }
                 | ({"body": seq.body} if bank is not None else {})
+                | ({"rig": seq.rig} if seq.rig is not None else {})
                 | ({"file": str(what.path), "subject": what.subject} if kind == "file" else {})
             )
         bar.update(1)
@@ -256,6 +269,7 @@ def run(args: argparse.Namespace) -> int:
             "skipped": failures,
             "motion_library": library_record,
             "bodies": _bank_record(args.bodies, bank) if bank is not None else None,
+            "rig_pool": args.rig_pool,
         }
         manifest = update_manifest(args.out, args.split, entry)
         if writer.shards:

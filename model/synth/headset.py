@@ -205,6 +205,10 @@ class CameraModel:
     def fx(self) -> float:
         return self.width / 2 / np.tan(np.deg2rad(self.hfov_deg) / 2)
 
+    @property
+    def width_height(self) -> tuple[int, int]:
+        return self.width, self.height
+
     def intrinsics(self) -> tuple[float, float, float, float]:
         """(fx, fy, cx, cy) in pixels, square pixels, centre of the top-left pixel at (0, 0)."""
         return self.fx, self.fx, (self.width - 1) / 2, (self.height - 1) / 2

@@ -10,11 +10,12 @@ Shape legend: ``N`` headset samples, ``K`` camera frames, ``J`` = 22 joints, ``H
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import json
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import cv2
 import numpy as np
@@ -22,12 +23,13 @@ import numpy as np
 from ...protocol import Hmd, Rgbd, encode
 from ...recordings.egrec import EgrecWriter
 from ..rotations import matrix_to_quat_xyzw
-from ..skeleton import forward_kinematics, local_rot_to_smpl
+from ..skeleton import PARENTS, forward_kinematics, local_rot_to_smpl
 from ..training.dataset import iter_shard_sequences, load_shard  # noqa: F401  (re-exported: the format's readers)
 from .bodies import BodyBank, fit_motion_to_body, pose_vertices
 from .headset import CameraModel, HeadsetRig, HeadsetTrack, device_poses, simulate_headset
 from .motion import Motion, sample_at
 from .render import (
+    FLOOR_PATTERNS,
     JOINT_RADIUS_M,
     Appearance,
     MeshBody,
@@ -38,8 +40,23 @@ from .render import (
     prepare_mesh_body,
     random_appearance,
 )
+from .variation import POOLS, pool_bodies, random_rig, record
 
 FORMAT_VERSION = 1
+TORSO: Final = (0, 3, 6, 9, 12, 13, 14)
+
+
+def _own_surface() -> np.ndarray:
+    """(J, J) bool: joint a's own surface includes the body moved by joint b (itself, its parent, its
+    children; the whole torso for torso joints): seeing it there means the joint is not occluded."""
+    own = np.eye(22, dtype=bool)
+    for child in range(1, 22):
+        own[child, PARENTS[child]] = own[PARENTS[child], child] = True
+    own[np.ix_(TORSO, TORSO)] = True
+    return own
+
+
+OWN_SURFACE: Final = _own_surface()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +72,7 @@ class SynthConfig:
     camera_latency_us: int = 25_000  # capture -> sent, for recorded sessions
     hmd_latency_us: int = 1_000
     bodies: BodyBank | None = None  # mesh bodies (bodies.py); None: capsule bodies
+    rig_pool: str | None = None  # draw camera, headset, sensor and rate per sequence (variation.POOLS)
 
 
 @dataclasses.dataclass
@@ -84,6 +102,8 @@ class Sequence:
     frames: CameraFrames
     appearance: Appearance
     body: int = -1  # the body bank's body, -1 for a capsule body
+    config: SynthConfig | None = None  # this sequence's camera, rig, sensor and rates (drawn or fixed)
+    rig: dict[str, Any] | None = None  # what was drawn (variation.record), None for the fixed rig
 
 
 def encode_images(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int) -> tuple[bytes, bytes]:
@@ -149,7 +169,8 @@ def render_frames(
             if b == centre:
                 depth = d
                 cam_from_world = np.linalg.inv(world_from_cam)
-        rgb8, depth_mm = renderer.add_noise(rgb_sum / blur, depth, rng)
+                body_face = renderer.last_body_face if body is not None else None
+        rgb8, depth_mm = renderer.add_noise(rgb_sum / blur, depth, rng, cfg.noise)
         jpeg, png = encode_images(rgb8, depth_mm, cfg.jpeg_quality)
         frames.rgb_jpeg.append(jpeg)
         frames.depth_png.append(png)
@@ -159,8 +180,14 @@ def render_frames(
         frames.joints_cam_m[k], frames.joints_uv_px[k], frames.visible[k] = joints_cam, uv, visible
         px = np.clip(np.round(uv).astype(int), 0, [cam.width - 1, cam.height - 1])
         surface = depth[px[:, 1], px[:, 0]]
-        # Something lies in front of the joint's own surface (its radius plus 3 cm of slack).
-        frames.occluded[k] = visible & (surface < joints_cam[:, 2] - JOINT_RADIUS_M * look.girth * 1.3 - 0.03)
+        if body_face is None:  # capsules: something lies in front of the joint's own (radius + 3 cm of slack)
+            hidden = surface < joints_cam[:, 2] - JOINT_RADIUS_M * look.girth * 1.3 - 0.03
+        else:  # mesh: what is seen there is not the joint's own part of the body (nor next to it)
+            face = body_face[px[:, 1], px[:, 0]]
+            seen = np.where(face >= 0, body.bank.skin_joint[body.faces[np.maximum(face, 0), 0], 0], -1)
+            own = (face >= 0) & OWN_SURFACE[np.arange(22), np.maximum(seen, 0)]
+            hidden = ~own & (surface < joints_cam[:, 2] - 0.03)
+        frames.occluded[k] = visible & hidden
     return frames
 
 
@@ -168,23 +195,46 @@ def synthesize_sequence(
     motion: Motion,
     cfg: SynthConfig,
     rng: np.random.Generator,
-    renderer: Renderer,
+    renderer: Renderer | None = None,
     name: str | None = None,
     body: int | None = None,
 ) -> Sequence:
-    """One sequence: with a body bank in ``cfg``, a mesh body (``body``, or a random one) that the motion is
-    fitted to unless it is on that body's bones already (procedural motion made for it); capsules without."""
-    mesh, rig = None, cfg.rig
+    """One sequence. With a body bank in ``cfg``, a mesh body (``body``, or a random one of the pool's) that
+    the motion is fitted to unless it is on that body's bones already (procedural motion made for it);
+    capsules without. With ``cfg.rig_pool``, this sequence's camera, headset, sensor and rate are drawn from
+    that pool; otherwise ``cfg``'s are used (and ``renderer``, when given, must be for ``cfg.camera``)."""
+    mesh, head_offset = None, cfg.rig.head_offset_m
+    pool = POOLS[cfg.rig_pool] if cfg.rig_pool else None
     if cfg.bodies is not None:
-        body = int(rng.integers(cfg.bodies.count)) if body is None else body
+        if body is None:
+            choices = pool_bodies(cfg.bodies.count, pool) if pool else range(cfg.bodies.count)
+            body = int(rng.choice(list(choices)))
         mesh = prepare_mesh_body(cfg.bodies, body)
         if not np.allclose(motion.bone_scale, cfg.bodies.bone_scale(body)):
             motion = fit_motion_to_body(motion, cfg.bodies.rest_joints[body])
-        rig = dataclasses.replace(rig, head_offset_m=cfg.bodies.head_offset_m(body))
-    track = simulate_headset(motion, cfg.hmd_rate_hz, rng, rig)
-    look = random_appearance(rng, motion.root_pos_m[0, [0, 2]])
-    frames = render_frames(motion, track, look, dataclasses.replace(cfg, rig=rig), renderer, rng, mesh)
-    return Sequence(name or motion.name, motion, track, frames, look, -1 if mesh is None else body)
+        head_offset = cfg.bodies.head_offset_m(body)
+    drawn = random_rig(rng, pool, head_offset) if pool else None
+    if drawn is not None:
+        cfg = dataclasses.replace(
+            cfg, camera=drawn.camera, rig=drawn.headset, noise=drawn.sensor, hmd_rate_hz=drawn.hmd_rate_hz,
+            jpeg_quality=drawn.jpeg_quality,
+        )  # fmt: skip
+        renderer = None
+    else:
+        cfg = dataclasses.replace(cfg, rig=dataclasses.replace(cfg.rig, head_offset_m=head_offset))
+    renderer = renderer or renderer_for(cfg.camera)
+    track = simulate_headset(motion, cfg.hmd_rate_hz, rng, cfg.rig)
+    floors = pool.floors if pool else FLOOR_PATTERNS[:3]
+    look = random_appearance(rng, motion.root_pos_m[0, [0, 2]], floors)
+    frames = render_frames(motion, track, look, cfg, renderer, rng, mesh)
+    rig = record(drawn) if drawn is not None else None
+    return Sequence(name or motion.name, motion, track, frames, look, -1 if mesh is None else body, cfg, rig)
+
+
+@functools.lru_cache(maxsize=16)
+def renderer_for(camera: CameraModel) -> Renderer:
+    """A renderer (its ray grid) per camera model, kept for the cameras a run draws again."""
+    return Renderer(camera)
 
 
 # ------------------------------------------------------------------------------------------ datasets
@@ -208,6 +258,12 @@ def _blob(chunks: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
     return np.frombuffer(b"".join(chunks), dtype=np.uint8), offsets
 
 
+def _camera(seq: Sequence) -> CameraModel:
+    if seq.config is None:
+        raise ValueError(f"sequence {seq.name} has no configuration (made outside synthesize_sequence)")
+    return seq.config.camera
+
+
 def sequence_arrays(seqs: list[Sequence]) -> dict[str, np.ndarray]:
     """The arrays of one shard (several sequences concatenated; ``*_start`` index them)."""
     hmd_start = np.cumsum([0] + [len(s.track.t_us) for s in seqs])
@@ -220,6 +276,9 @@ def sequence_arrays(seqs: list[Sequence]) -> dict[str, np.ndarray]:
         "seq_source": np.array([s.motion.source for s in seqs]),
         "bone_scale": np.stack([s.motion.bone_scale for s in seqs]).astype(np.float32),
         "body": np.array([s.body for s in seqs], dtype=np.int32),
+        "cam_size": np.array([_camera(s).width_height for s in seqs], dtype=np.int32).reshape(-1, 2),
+        "cam_intrinsics": np.array([_camera(s).intrinsics() for s in seqs], dtype=np.float64).reshape(-1, 4),
+        "cam_from_head": np.array([_camera(s).cam_from_head().ravel() for s in seqs]).reshape(-1, 16),
         "hmd_start": hmd_start.astype(np.int64),
         "cam_start": cam_start.astype(np.int64),
         "hmd_t_us": cat([s.track.t_us for s in seqs]),
@@ -313,7 +372,9 @@ def smpl_truths(track: HeadsetTrack) -> list[dict[str, Any]]:
 
 
 def write_session(seq: Sequence, path: Path, cfg: SynthConfig) -> int:
-    """Write one sequence as an .egrec recording (hmd + rgbd messages, ground truth per hmd); -> bytes."""
+    """Write one sequence as an .egrec recording (hmd + rgbd messages, ground truth per hmd); -> bytes.
+    The sequence's own camera and rates (drawn per sequence with a rig pool) win over ``cfg``'s."""
+    cfg = seq.config or cfg
     cam = cfg.camera
     track, frames = seq.track, seq.frames
     start = int(min(track.t_us[0], frames.t_us[0]))
@@ -364,6 +425,20 @@ def write_session(seq: Sequence, path: Path, cfg: SynthConfig) -> int:
 
 
 # ------------------------------------------------------------------------------------------- preview
+PREVIEW_WH: Final = (320, 256)
+
+
+def _letterbox(image: np.ndarray, size_wh: tuple[int, int] = PREVIEW_WH) -> np.ndarray:
+    """Scale an image to fit size_wh, keeping its aspect, on black (cameras of several sizes in one sheet)."""
+    h, w = image.shape[:2]
+    scale = min(size_wh[0] / w, size_wh[1] / h)
+    resized = cv2.resize(image, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+    out = np.zeros((size_wh[1], size_wh[0], 3), dtype=np.uint8)
+    y0, x0 = (size_wh[1] - resized.shape[0]) // 2, (size_wh[0] - resized.shape[1]) // 2
+    out[y0 : y0 + resized.shape[0], x0 : x0 + resized.shape[1]] = resized
+    return out
+
+
 def contact_sheet(seqs: list[dict[str, Any]], path: Path, tiles: int = 12, columns: int = 4) -> None:
     """A PNG grid of RGB frames with their 2D labels (green: visible, red: occluded) and depth beside."""
     picks = []
@@ -384,7 +459,7 @@ def contact_sheet(seqs: list[dict[str, Any]], path: Path, tiles: int = 12, colum
         for (u, v), vis, occ in zip(s["joints_uv_px"][k], s["visible"][k], s["occluded"][k], strict=True):
             if vis:
                 cv2.circle(bgr, (round(u), round(v)), 3, (0, 0, 255) if occ else (0, 255, 0), -1)
-        tile = np.concatenate([bgr, colour], axis=1)
+        tile = np.concatenate([_letterbox(bgr), _letterbox(colour)], axis=1)
         cv2.putText(
             tile, s["name"][:40], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA
         )

@@ -602,20 +602,38 @@ def light_frame(light_dir: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------ sensor
-def _edge_neighbour(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
-    """(H, W): where a 4-neighbour's depth differs by more than jump_m, that neighbour's depth (the other
-    side of the edge); 0 elsewhere."""
-    out = np.zeros_like(depth_m)
-    for axis in (0, 1):
-        for shift in (1, -1):
-            other = np.roll(depth_m, shift, axis=axis)
-            edge = np.abs(other - depth_m) > jump_m
-            if shift == 1:
-                edge[(slice(None), 0) if axis else (0, slice(None))] = False
-            else:
-                edge[(slice(None), -1) if axis else (-1, slice(None))] = False
-            out = np.where(edge & (out == 0), other, out)
-    return out
+@njit(cache=True, fastmath=True)
+def _sensor_kernel(rgb, depth_m, vignette, gain, params, rng, rgb_out, depth_out):
+    """SensorNoise applied to one clean frame (params: rgb_sigma, depth_sigma_at_1m, edge_jump_m,
+    edge_hole_prob, flying_pixel_prob, dropout_prob, dark_albedo, dark_hole_prob, min_depth_m, max_depth_m).
+    Serial, drawing from the sequence's generator ``rng``: the same seed gives the same frame."""
+    rgb_sigma, sigma_1m, jump_m, hole_p, fly_p, drop_p, dark, dark_p, near_m, far_m = params
+    h, w = depth_m.shape
+    for v in range(h):
+        for u in range(w):
+            brightness = (rgb[v, u, 0] + rgb[v, u, 1] + rgb[v, u, 2]) / (3.0 * 255.0)
+            for c in range(3):
+                x = rgb[v, u, c] * vignette[v, u] * gain[c] + rng.standard_normal() * rgb_sigma
+                rgb_out[v, u, c] = np.uint8(min(max(x + 0.5, 0.0), 255.0))
+            d = depth_m[v, u]
+            other = 0.0  # a neighbour's depth across an edge
+            for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                vv, uu = v + dv, u + du
+                if 0 <= vv < h and 0 <= uu < w and abs(depth_m[vv, uu] - d) > jump_m:
+                    other = depth_m[vv, uu]
+                    break
+            noisy = d + rng.standard_normal() * sigma_1m * d * d
+            draw = rng.random()
+            hole = draw > 1.0 - drop_p or d < near_m or d > far_m
+            if other > 0.0:
+                if draw < hole_p:
+                    hole = True
+                elif draw < hole_p + fly_p:
+                    mix = rng.random()
+                    noisy = mix * d + (1.0 - mix) * other
+            if dark > 0.0 and brightness < dark and rng.random() < dark_p:
+                hole = True
+            depth_out[v, u] = 0 if hole else np.uint16(min(max(noisy * 1000.0 + 0.5, 0.0), 65535.0))
 
 
 @njit(cache=True, parallel=True, fastmath=True)
@@ -671,6 +689,7 @@ class Renderer:
     def __init__(self, camera: CameraModel, noise: SensorNoise | None = None) -> None:
         self.camera = camera
         self.noise = noise or SensorNoise()
+        self.last_body_face: np.ndarray | None = None  # (H, W) of the last mesh render
         fx, fy, cx, cy = camera.intrinsics()
         u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
         rays = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u, dtype=np.float64)], axis=-1)
@@ -752,6 +771,8 @@ class Renderer:
         _shade_body(zbuf, face_id, bary, body.faces, body.face_slot, normals, body.surface_m, body.rest_m,
                     look.materials, light, look.ambient, rgb, depth)  # fmt: skip
         self._shadow(world_from_camera, vertices_m, body.faces, look, rgb, depth)
+        # the body's triangle at each pixel where the body is what the camera sees, -1 elsewhere (labels)
+        self.last_body_face = np.where((face_id >= 0) & (depth == zbuf), face_id, -1)
         return rgb, depth
 
     def _shadow(
@@ -779,34 +800,18 @@ class Renderer:
         """Sensor model (``noise``, or the renderer's): clean rgb (H, W, 3) 0..255 and depth (H, W) m ->
         (rgb uint8, depth uint16 millimetres, 0 = no reading)."""
         noise, cam = noise or self.noise, self.camera
-        brightness = rgb.mean(axis=-1) / 255.0
-        gain = noise.exposure * np.asarray(noise.white_balance, dtype=np.float32)
-        # float32 draws: the noise is half of a frame's cost in float64.
-        rgb = (
-            rgb * (self._vignette[..., None] * gain)
-            + rng.standard_normal(rgb.shape, dtype=np.float32) * noise.rgb_sigma
-        )
-        sigma = noise.depth_sigma_at_1m * depth_m * depth_m
-        depth = depth_m + rng.standard_normal(depth_m.shape, dtype=np.float32) * sigma
-        nearer = _edge_neighbour(depth_m, noise.edge_jump_m)
-        jump = nearer > 0
-        draw = rng.random(depth_m.shape, dtype=np.float32)  # low: edge holes, middle: flying, high: dropouts
-        holes = (jump & (draw < noise.edge_hole_prob)) | (draw > 1.0 - noise.dropout_prob)
-        flying = (
-            jump & (draw >= noise.edge_hole_prob) & (draw < noise.edge_hole_prob + noise.flying_pixel_prob)
-        )
-        if flying.any():
-            mix = rng.random(int(flying.sum()), dtype=np.float32)
-            depth[flying] = mix * depth_m[flying] + (1 - mix) * nearer[flying]
-        if noise.dark_albedo > 0:
-            holes |= (brightness < noise.dark_albedo) & (
-                rng.random(depth_m.shape, dtype=np.float32) < noise.dark_hole_prob
-            )
+        h, w = depth_m.shape
+        rgb8, depth_mm = np.empty((h, w, 3), dtype=np.uint8), np.empty((h, w), dtype=np.uint16)
+        gain = noise.exposure * np.asarray(noise.white_balance, dtype=np.float64)
+        params = np.array([
+            noise.rgb_sigma, noise.depth_sigma_at_1m, noise.edge_jump_m, noise.edge_hole_prob,
+            noise.flying_pixel_prob, noise.dropout_prob, noise.dark_albedo, noise.dark_hole_prob,
+            cam.min_depth_m, cam.max_depth_m,
+        ])  # fmt: skip
+        _sensor_kernel(rgb, depth_m, self._vignette, gain, params, rng, rgb8, depth_mm)
         if noise.ir_baseline_m > 0:
-            holes |= ir_shadow(depth_m, self.camera.fx * noise.ir_baseline_m)
-        holes |= (depth_m < cam.min_depth_m) | (depth_m > cam.max_depth_m)
-        depth_mm = np.where(holes, 0.0, np.round(depth * 1000.0))
-        return np.clip(rgb, 0, 255).astype(np.uint8), np.clip(depth_mm, 0, 65535).astype(np.uint16)
+            depth_mm[ir_shadow(depth_m, self.camera.fx * noise.ir_baseline_m)] = 0
+        return rgb8, depth_mm
 
 
 def bank_preview(bank: BodyBank, path: str | Path, columns: int = 8, limit: int = 32) -> None:

@@ -26,7 +26,7 @@ from ..runtime.frames import encode_frame
 from ..runtime.loading import LoadedModel
 from ..skeleton import NUM_JOINTS, rest_offsets
 from ..weights import model_files
-from .dataset import load_split, split_camera
+from .dataset import load_split
 from .evaluate import CAMERA_LATENCY_US
 
 # Chosen on the validation split's summed bone error, one ridge map for all bodies: 0.3 -> 16.6, 1 -> 16.2,
@@ -37,15 +37,14 @@ Progress = Callable[[str, int, int], None]
 Snapshot = tuple[float, dict[int, float]]  # (height scale, {bone: measured scale}) at one moment
 
 
-def observe_body(
-    model: LoadedModel, seq: dict[str, Any], camera: dict[str, Any]
-) -> tuple[BodyCalibrator, list[Snapshot]]:
+def observe_body(model: LoadedModel, seq: dict[str, Any]) -> tuple[BodyCalibrator, list[Snapshot]]:
     """A calibrator without a regressor, fed one sequence in arrival order (head heights, and frames
     ``CAMERA_LATENCY_US`` after capture), and a snapshot of its evidence whenever that changed. The
     snapshots are the regressor's training rows: a session starts with some bones measured and others not,
     and a regressor fitted on whole sequences only mistakes that for an unusual body."""
     body = BodyCalibrator()
     visibility = VisibilityFilter()
+    camera = seq["camera"]
     cam_from_head = np.asarray(camera["cam_from_head"], dtype=np.float64).reshape(4, 4)
     snapshots: list[Snapshot] = []
     heads = iter(zip(seq["hmd_t_us"], seq["hmd_poses"], seq["hmd_valid"], strict=True))
@@ -74,10 +73,9 @@ def _observe_split(
 ) -> tuple[list[BodyCalibrator], list[list[Snapshot]], np.ndarray]:
     """Per sequence of the split: its calibrator at the end, its snapshots; true scales (N, J)."""
     seqs = load_split(data_dir, split)
-    camera = split_camera(data_dir, split)
     bodies, snapshots = [], []
     for i, seq in enumerate(seqs):
-        body, seen = observe_body(model, seq, camera)
+        body, seen = observe_body(model, seq)
         bodies.append(body)
         snapshots.append(seen)
         if progress:

@@ -43,6 +43,14 @@ def iter_shard_sequences(shard: dict[str, np.ndarray]) -> Iterator[dict[str, Any
             "bone_scale": shard["bone_scale"][i],
             "body": int(shard["body"][i]) if "body" in shard else -1,  # mesh body of the bank, -1: capsules
         }
+        if "cam_size" in shard:  # the sequence's own camera (rigs drawn per sequence)
+            width, height = (int(v) for v in shard["cam_size"][i])
+            out["camera"] = {
+                "width": width,
+                "height": height,
+                "intrinsics": [float(v) for v in shard["cam_intrinsics"][i]],
+                "cam_from_head": [float(v) for v in shard["cam_from_head"][i]],
+            }
         for key in HMD_KEYS:
             out[key] = shard[key][h0:h1]
         for key in CAMERA_KEYS:
@@ -64,7 +72,8 @@ def split_camera(data_dir: str | Path, split: str) -> dict[str, Any]:
 
 
 def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> list[dict[str, Any]]:
-    """All sequences of a split (images still encoded), at most ``limit``."""
+    """All sequences of a split (images still encoded), at most ``limit``; each with its ``camera`` (width,
+    height, intrinsics, cam_from_head (16)): its own, or the split's for shards that carry none."""
     shards = sorted((Path(data_dir) / split).glob("shard-*.npz"))
     if not shards:
         raise DatasetError(f"no shards in {Path(data_dir) / split}")
@@ -72,7 +81,12 @@ def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> li
     for path in shards:
         seqs += iter_shard_sequences(load_shard(path))
         if limit is not None and len(seqs) >= limit:
-            return seqs[:limit]
+            seqs = seqs[:limit]
+            break
+    if any("camera" not in s for s in seqs):  # shards made before cameras were drawn per sequence
+        camera = split_camera(data_dir, split)
+        for seq in seqs:
+            seq.setdefault("camera", camera)
     return seqs
 
 

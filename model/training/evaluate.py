@@ -29,7 +29,7 @@ from ..rotations import geodesic_angle, quat_xyzw_to_matrix
 from ..runtime.loading import LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..skeleton import LOWER_BODY, UPPER_BODY
-from .dataset import load_split, split_camera
+from .dataset import load_split
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
 FPS_SAMPLES = 200
@@ -42,9 +42,11 @@ WRISTS = np.array([20, 21])
 
 
 def replay_sequence(
-    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any]
+    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence."""
+    """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence, its frames sent with
+    its own camera (or ``camera``)."""
+    camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
     uses_camera = pipeline.model.visual is not None
@@ -107,7 +109,7 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
 
 
 def measure_fps(
-    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any], samples: int = FPS_SAMPLES
+    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any] | None = None, samples: int = FPS_SAMPLES
 ) -> float:
     """Headset samples per second with a new RGB-D frame decoded and pushed before each one (median run)."""
     n = min(samples, len(seq["hmd_t_us"]))
@@ -120,7 +122,7 @@ def measure_fps(
             t_us = int(seq["hmd_t_us"][i])
             if pipeline.model.visual is not None and frames:
                 rgb, depth = decode_rgbd(seq["rgb_jpeg"][i % frames], seq["depth_png"][i % frames])
-                pipeline.push_rgbd(t_us - 1, rgb, depth, camera["intrinsics"])
+                pipeline.push_rgbd(t_us - 1, rgb, depth, (camera or seq["camera"])["intrinsics"])
             pipeline.push_hmd(t_us, seq["hmd_poses"][i], seq["hmd_valid"][i])
         rates.append(n / (time.perf_counter() - started))
     return statistics.median(rates)
@@ -135,17 +137,16 @@ def evaluate(
 ) -> dict[str, dict[str, float]]:
     """{model name: metrics} over a split for each model file given as {name: path}."""
     seqs = load_split(data_dir, split, limit)
-    camera = split_camera(data_dir, split)
     shared: dict[Path, Any] = {}
     results = {}
     for name, path in models.items():
         pipeline = Pipeline(LoadedModel.load(path, shared=shared))
         errors = []
         for i, seq in enumerate(seqs):
-            errors.append(sequence_errors(*replay_sequence(pipeline, seq, camera), seq))
+            errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
-        results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0], camera)}
+        results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0])}
     return results
 
 

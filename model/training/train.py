@@ -213,41 +213,50 @@ class VisualData:
     rgb: np.ndarray  # (K, h, w, 3) uint8
     depth: np.ndarray  # (K, h, w) uint16 mm
     uv: np.ndarray  # (K, J, 2) normalised
+    intrinsics: np.ndarray  # (K, 4) fx, fy, cx, cy of each frame's own camera, pixels
+    size_wh: np.ndarray  # (K, 2) that camera's image size
     joints_cam_m: np.ndarray  # (K, J, 3)
     visible: np.ndarray  # (K, J) bool
 
 
-def load_visual_data(
-    seqs: list[dict[str, Any]], camera: dict[str, Any], size_wh: tuple[int, int]
-) -> VisualData:
+def _camera_wh(seq: dict[str, Any]) -> tuple[int, int]:
+    return seq["camera"]["width"], seq["camera"]["height"]
+
+
+def load_visual_data(seqs: list[dict[str, Any]], size_wh: tuple[int, int]) -> VisualData:
+    """Frames resized to size_wh with labels; each sequence's labels are in its own camera (``seq["camera"]``)."""
     frames = [decode_frames(s, size_wh) for s in seqs]
-    cam_wh = (camera["width"], camera["height"])
+    per_frame = [np.ones((len(s["cam_t_us"]), 1)) for s in seqs]
     return VisualData(
         rgb=np.concatenate([f[0] for f in frames]),
         depth=np.concatenate([f[1] for f in frames]),
-        uv=np.concatenate([normalise_uv(s["joints_uv_px"], cam_wh) for s in seqs]).astype(np.float32),
+        uv=np.concatenate([normalise_uv(s["joints_uv_px"], _camera_wh(s)) for s in seqs]).astype(np.float32),
+        intrinsics=np.concatenate(
+            [n * np.asarray(s["camera"]["intrinsics"]) for n, s in zip(per_frame, seqs, strict=True)]
+        ),
+        size_wh=np.concatenate([n * np.asarray(_camera_wh(s)) for n, s in zip(per_frame, seqs, strict=True)]),
         joints_cam_m=np.concatenate([s["joints_cam_m"] for s in seqs]),
         visible=np.concatenate([s["visible"] for s in seqs]),
     )
 
 
 def lift_torch(
-    uv: torch.Tensor, depth_m: torch.Tensor, intrinsics: list[float], cam_wh: tuple[int, int]
+    uv: torch.Tensor, depth_m: torch.Tensor, intrinsics: torch.Tensor, cam_wh: torch.Tensor
 ) -> torch.Tensor:
-    """Torch twin of :func:`egoposevr.model.inputs.lift_keypoints`."""
-    fx, fy, cx, cy = intrinsics
-    u = uv[..., 0] * cam_wh[0] - 0.5
-    v = uv[..., 1] * cam_wh[1] - 0.5
+    """Torch twin of :func:`egoposevr.model.inputs.lift_keypoints`: uv (B, J, 2), depth_m (B, J) with each
+    sample's intrinsics (B, 4) and image size (B, 2) -> (B, J, 3)."""
+    fx, fy, cx, cy = (intrinsics[:, k, None] for k in range(4))
+    u = uv[..., 0] * cam_wh[:, 0, None] - 0.5
+    v = uv[..., 1] * cam_wh[:, 1, None] - 0.5
     return torch.stack([(u - cx) / fx * depth_m, (v - cy) / fy * depth_m, depth_m], dim=-1)
 
 
-def visual_loss_fn(net: KeypointNet, data: VisualData, camera: dict[str, Any], tc: TrainConfig):
+def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
     cfg = net.cfg
     hw, hh = cfg.heatmap_wh
     gu = (torch.arange(hw) + 0.5) / hw
     gv = (torch.arange(hh) + 0.5) / hh
     sigma_u, sigma_v = tc.heatmap_sigma_cells / hw, tc.heatmap_sigma_cells / hh
-    cam_wh = (camera["width"], camera["height"])
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
         idx = rng.integers(0, len(data.rgb), tc.batch)
@@ -263,7 +272,8 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, camera: dict[str, Any], t
         log_p = torch.log_softmax(logits.flatten(2), -1).view_as(logits)
         n_vis = vis.sum().clamp_min(1.0)
         heat = -((target * log_p).flatten(2).sum(-1) * vis).sum() / n_vis
-        xyz = lift_torch(uv, depth_m, camera["intrinsics"], cam_wh)
+        intrinsics = torch.from_numpy(data.intrinsics[idx]).float()
+        xyz = lift_torch(uv, depth_m, intrinsics, torch.from_numpy(data.size_wh[idx]).float())
         joints = torch.from_numpy(data.joints_cam_m[idx])
         pos = ((xyz - joints).abs().sum(-1) * vis).sum() / n_vis
         bce = F.binary_cross_entropy(zeta.clamp(1e-6, 1 - 1e-6), vis)
@@ -290,10 +300,10 @@ def train_visual(
     net = KeypointNet(cfg)
     camera = split_camera(data_dir, "train")
     seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
-    data = load_visual_data(seqs, camera, (cfg.width, cfg.height))
+    data = load_visual_data(seqs, (cfg.width, cfg.height))
     meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
             "data": {"dir": str(data_dir), "frames": len(data.rgb), "sequences": len(seqs)}}  # fmt: skip
-    _run_steps(net, visual_loss_fn(net, data, camera, tc), path, tc.visual_steps, tc, meta, resume, progress)
+    _run_steps(net, visual_loss_fn(net, data, tc), path, tc.visual_steps, tc, meta, resume, progress)
     return path
 
 
@@ -365,7 +375,6 @@ def _cached(cache: dict[Any, Any] | None, key: Any, compute: Callable[[], Any]) 
 
 def prepare_fusion_sequence(
     seq: dict[str, Any],
-    camera: dict[str, Any],
     rng: np.random.Generator,
     tc: TrainConfig,
     visual: KeypointNet | None,
@@ -386,7 +395,7 @@ def prepare_fusion_sequence(
             (visual.cfg.channels, seq["name"]),
             lambda: predict_keypoints(visual, *decode_frames(seq, size)),
         )
-        kp_world, conf = frame_keypoints(uv, depth_m, zeta, seq["cam_t_us"], camera, t_us, poses[:, 0])
+        kp_world, conf = frame_keypoints(uv, depth_m, zeta, seq["cam_t_us"], seq["camera"], t_us, poses[:, 0])
     latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
     return FusionSequence(
         hmd=_cached(
@@ -477,10 +486,9 @@ def train_fusion(
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
-    camera = split_camera(data_dir, "train")
     seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
     rng = np.random.default_rng([tc.seed, 7])
-    prepared = [prepare_fusion_sequence(s, camera, rng, tc, visual, cache) for s in seqs]
+    prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in seqs]
     _set_statistics(net, prepared, tc, rng)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": str(data_dir), "sequences": len(seqs),
