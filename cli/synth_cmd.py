@@ -16,6 +16,7 @@ Example (the development set; DATA.md has the full recipe):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -69,7 +70,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--hmd-rate", type=_positive, default=None, metavar="HZ", help="default 60 (90 with --sessions)"
     )
     parser.add_argument("--camera-rate", type=_positive, default=30.0, metavar="HZ")
-    parser.add_argument("--resolution", type=_resolution, default=(320, 256), metavar="WxH")
+    parser.add_argument(
+        "--resolution",
+        type=_resolution,
+        metavar="WxH",
+        help="default 320x256; with --rig-pool, the only one drawn",
+    )
     parser.add_argument(
         "--seconds", type=_positive, default=10.0, metavar="S", help="clip length; longer captures are cut"
     )
@@ -88,6 +94,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["train", "heldout"],
         help="draw each sequence's camera mount and lens, headset fit, grips, tracking, rate, sensor, floor and "
         "body from this pool (heldout: rigs and bodies the train pool never uses); without it one fixed rig",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="processes rendering clips in parallel (default 1)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -126,12 +139,9 @@ def _select(args: argparse.Namespace) -> tuple[list, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
     from tqdm import tqdm
 
-    from ..model.synth.amass import AmassError, load_amass_motion
     from ..model.synth.bodies import BodyBank, BodyBankError
-    from ..model.synth.bvh import BvhError, load_bvh_motion
     from ..model.synth.headset import CameraModel
     from ..model.synth.pipeline import (
         DatasetWriter,
@@ -140,13 +150,11 @@ def run(args: argparse.Namespace) -> int:
         contact_sheet,
         iter_shard_sequences,
         load_shard,
-        synthesize_sequence,
         update_manifest,
         write_session,
     )
-    from ..model.synth.procedural import FAMILIES, Body, generate
-    from ..model.synth.render import Renderer
-    from ..model.synth.variation import POOLS, pool_bodies
+    from ..model.synth.procedural import FAMILIES
+    from ..model.synth.variation import POOLS
 
     try:
         files, library_record = _select(args) if args.motion else ([], {})
@@ -169,7 +177,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"egoposevr synth: {error}", file=sys.stderr)
         return 2
     hmd_rate = args.hmd_rate or (90.0 if args.sessions else 60.0)
-    width, height = args.resolution
+    width, height = args.resolution or (320, 256)
+    pool = None
+    if args.rig_pool:
+        pool = POOLS[args.rig_pool]
+        pool = dataclasses.replace(pool, resolutions=(args.resolution,)) if args.resolution else pool
     cfg = SynthConfig(
         hmd_rate_hz=hmd_rate,
         camera_rate_hz=args.camera_rate,
@@ -177,70 +189,30 @@ def run(args: argparse.Namespace) -> int:
         blur_samples=args.blur,
         jpeg_quality=args.jpeg_quality,
         bodies=bank,
-        rig_pool=args.rig_pool,
+        rig_pool=pool,
     )
-    renderer = Renderer(cfg.camera)
     args.out.mkdir(parents=True, exist_ok=True)
 
-    # Jobs in a fixed order; each gets its own generator seeded by (seed, job index): deterministic.
-    jobs: list[tuple[str, object]] = [("file", f) for f in files]
-    jobs += [("procedural", families[i % len(families)]) for i in range(args.procedural)]
+    # Jobs in a fixed order; each gets its own generator seeded by (seed, job index): deterministic, and the
+    # results are written in job order whichever worker made them.
+    jobs: list[tuple[int, str, object]] = [(i, "file", f) for i, f in enumerate(files)]
+    jobs += [(len(files) + i, "procedural", families[i % len(families)]) for i in range(args.procedural)]
     writer = None if args.sessions else DatasetWriter(args.out, args.split)
     sources: list[dict] = []
     failures: list[str] = []
     frames = 0
     started = time.perf_counter()
     bar = tqdm(total=len(jobs), unit="clip", disable=args.no_progress, dynamic_ncols=True)
-    for index, (kind, what) in enumerate(jobs):
-        rng = np.random.default_rng([args.seed, index])
-        body = None
-        if bank is not None:  # drawn before the motion: procedural motion is made on this body's bones
-            body = int(
-                rng.choice(pool_bodies(bank.count, POOLS[args.rig_pool]) if args.rig_pool else bank.count)
-            )
-        try:
-            if kind == "file":
-                path = what.path
-                motion = load_amass_motion(path) if path.suffix.lower() == ".npz" else load_bvh_motion(path)
-                if args.licence:
-                    motion = motion.replace(licence=args.licence)
-                elif not motion.licence:
-                    motion = motion.replace(licence=_default_licence(motion.source))
-            else:
-                on = Body.from_scale(bank.bone_scale(body)) if bank is not None else None
-                motion = generate(str(what), args.seconds, 60.0, rng, on)
-                motion = motion.replace(name=f"{what}-{index:04d}")
-        except (BvhError, AmassError) as error:
-            failures.append(f"{what.path}: {error}" if kind == "file" else str(error))
-            bar.update(1)
-            continue
-        chunk = max(2, round(args.seconds * motion.fps))
-        for start in range(0, motion.num_frames, chunk):
-            piece = motion.slice(start, start + chunk)
-            if piece.duration_s < min(2.0, args.seconds):
-                continue
-            name = (
-                motion.name
-                if start == 0 and chunk >= motion.num_frames
-                else f"{motion.name}-{start // chunk:02d}"
-            )
-            seq = synthesize_sequence(piece, cfg, rng, renderer, name=name, body=body)
+    for seqs, job_sources, failure in _run_jobs(jobs, args, cfg):
+        if failure:
+            failures.append(failure)
+        for seq, source in zip(seqs, job_sources, strict=True):
             frames += len(seq.frames.t_us)
             if writer is None:
-                write_session(seq, args.out / f"{name}.egrec", cfg)
+                write_session(seq, args.out / f"{seq.name}.egrec", cfg)
             else:
                 writer.add(seq)
-            sources.append(
-                {
-                    "name": name,
-                    "source": piece.source,
-                    "seconds": round(piece.duration_s, 3),
-                    "licence": piece.licence,
-                }
-                | ({"body": seq.body} if bank is not None else {})
-                | ({"rig": seq.rig} if seq.rig is not None else {})
-                | ({"file": str(what.path), "subject": what.subject} if kind == "file" else {})
-            )
+            sources.append(source)
         bar.update(1)
         bar.set_postfix(fps=f"{frames / (time.perf_counter() - started):.1f}")
     bar.close()
@@ -278,6 +250,88 @@ def run(args: argparse.Namespace) -> int:
             contact_sheet(list(iter_shard_sequences(shard)), preview)
             print(f"wrote {manifest} and {preview}")
     return 0 if sources else 1
+
+
+_JOB_CONTEXT: dict = {}  # args and config of the run, set once per process (workers: by the initializer)
+
+
+def _set_context(args: argparse.Namespace, cfg) -> None:
+    _JOB_CONTEXT.update(args=args, cfg=cfg)
+
+
+def _run_jobs(jobs: list, args: argparse.Namespace, cfg):
+    """Each job's (sequences, their manifest sources, failure or None), in job order; in --workers processes
+    when asked."""
+    if args.workers <= 1:
+        _set_context(args, cfg)
+        yield from map(_job, jobs)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds numba's threads
+    with ProcessPoolExecutor(
+        args.workers, mp_context=context, initializer=_set_context, initargs=(args, cfg)
+    ) as pool:
+        yield from pool.map(_job, jobs)
+
+
+def _job(job: tuple[int, str, object]) -> tuple[list, list[dict], str | None]:
+    """One motion source -> its sequences (cut into --seconds pieces) with their manifest entries."""
+    import numpy as np
+
+    from ..model.synth.amass import AmassError, load_amass_motion
+    from ..model.synth.bvh import BvhError, load_bvh_motion
+    from ..model.synth.pipeline import synthesize_sequence
+    from ..model.synth.procedural import Body, generate
+    from ..model.synth.variation import pool_bodies
+
+    index, kind, what = job
+    args, cfg = _JOB_CONTEXT["args"], _JOB_CONTEXT["cfg"]
+    bank = cfg.bodies
+    rng = np.random.default_rng([args.seed, index])
+    body = None
+    if bank is not None:  # drawn before the motion: procedural motion is made on this body's bones
+        body = int(rng.choice(pool_bodies(bank.count, cfg.rig_pool) if cfg.rig_pool else bank.count))
+    try:
+        if kind == "file":
+            path = what.path
+            motion = load_amass_motion(path) if path.suffix.lower() == ".npz" else load_bvh_motion(path)
+            if args.licence:
+                motion = motion.replace(licence=args.licence)
+            elif not motion.licence:
+                motion = motion.replace(licence=_default_licence(motion.source))
+        else:
+            on = Body.from_scale(bank.bone_scale(body)) if bank is not None else None
+            motion = generate(str(what), args.seconds, 60.0, rng, on)
+            motion = motion.replace(name=f"{what}-{index:04d}")
+    except (BvhError, AmassError) as error:
+        return [], [], f"{what.path}: {error}" if kind == "file" else str(error)
+    seqs, sources = [], []
+    chunk = max(2, round(args.seconds * motion.fps))
+    for start in range(0, motion.num_frames, chunk):
+        piece = motion.slice(start, start + chunk)
+        if piece.duration_s < min(2.0, args.seconds):
+            continue
+        name = (
+            motion.name
+            if start == 0 and chunk >= motion.num_frames
+            else f"{motion.name}-{start // chunk:02d}"
+        )
+        seq = synthesize_sequence(piece, cfg, rng, name=name, body=body)
+        seqs.append(seq)
+        sources.append(
+            {
+                "name": name,
+                "source": piece.source,
+                "seconds": round(piece.duration_s, 3),
+                "licence": piece.licence,
+            }
+            | ({"body": seq.body} if bank is not None else {})
+            | ({"rig": seq.rig} if seq.rig is not None else {})
+            | ({"file": str(what.path), "subject": what.subject} if kind == "file" else {})
+        )
+    return seqs, sources, None
 
 
 def _bank_record(path: Path, bank) -> dict:

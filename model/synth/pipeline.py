@@ -40,7 +40,7 @@ from .render import (
     prepare_mesh_body,
     random_appearance,
 )
-from .variation import POOLS, pool_bodies, random_rig, record
+from .variation import RigPool, pool_bodies, random_rig, record
 
 FORMAT_VERSION = 1
 TORSO: Final = (0, 3, 6, 9, 12, 13, 14)
@@ -72,7 +72,7 @@ class SynthConfig:
     camera_latency_us: int = 25_000  # capture -> sent, for recorded sessions
     hmd_latency_us: int = 1_000
     bodies: BodyBank | None = None  # mesh bodies (bodies.py); None: capsule bodies
-    rig_pool: str | None = None  # draw camera, headset, sensor and rate per sequence (variation.POOLS)
+    rig_pool: RigPool | None = None  # draw camera, headset, sensor and rate per sequence (variation.POOLS)
 
 
 @dataclasses.dataclass
@@ -204,7 +204,7 @@ def synthesize_sequence(
     capsules without. With ``cfg.rig_pool``, this sequence's camera, headset, sensor and rate are drawn from
     that pool; otherwise ``cfg``'s are used (and ``renderer``, when given, must be for ``cfg.camera``)."""
     mesh, head_offset = None, cfg.rig.head_offset_m
-    pool = POOLS[cfg.rig_pool] if cfg.rig_pool else None
+    pool = cfg.rig_pool
     if cfg.bodies is not None:
         if body is None:
             choices = pool_bodies(cfg.bodies.count, pool) if pool else range(cfg.bodies.count)

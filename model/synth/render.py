@@ -696,8 +696,7 @@ class Renderer:
         length = np.linalg.norm(rays, axis=-1)
         self._rays_cam = rays / length[..., None]  # (H, W, 3) unit rays in the camera frame
         self._depth_scale = 1.0 / length  # distance along a unit ray -> z depth
-        radius = np.hypot(u - cx, v - cy) / np.hypot(cx, cy)
-        self._vignette = 1.0 - self.noise.vignetting * radius**2
+        self._radius2 = (np.hypot(u - cx, v - cy) / np.hypot(cx, cy)) ** 2  # 1 at the corners
 
     def _boxes_px(self, caps: np.ndarray, cam_from_world: np.ndarray) -> np.ndarray:
         """(C, 4) int pixel bounds [u0, u1, v0, v1] of each capsule's bounding sphere (whole image if near)."""
@@ -808,7 +807,8 @@ class Renderer:
             noise.flying_pixel_prob, noise.dropout_prob, noise.dark_albedo, noise.dark_hole_prob,
             cam.min_depth_m, cam.max_depth_m,
         ])  # fmt: skip
-        _sensor_kernel(rgb, depth_m, self._vignette, gain, params, rng, rgb8, depth_mm)
+        vignette = 1.0 - noise.vignetting * self._radius2
+        _sensor_kernel(rgb, depth_m, vignette, gain, params, rng, rgb8, depth_mm)
         if noise.ir_baseline_m > 0:
             depth_mm[ir_shadow(depth_m, self.camera.fx * noise.ir_baseline_m)] = 0
         return rgb8, depth_mm

@@ -37,6 +37,7 @@ Interval = tuple[float, float]
 class RigPool:
     """The ranges one pool draws from. Bands are unions of intervals, each chosen by its width."""
 
+    name: str
     pitch_down_deg: tuple[Interval, ...]
     hfov_deg: tuple[Interval, ...]
     resolutions: tuple[tuple[int, int], ...]
@@ -53,6 +54,7 @@ class RigPool:
 
 POOLS: Final = {
     "train": RigPool(
+        name="train",
         pitch_down_deg=((55.0, 66.0), (74.0, 88.0)),
         hfov_deg=((68.0, 86.0), (96.0, 112.0)),
         resolutions=((320, 256), (320, 240), (640, 480)),
@@ -60,6 +62,7 @@ POOLS: Final = {
         heldout_bodies=False,
     ),
     "heldout": RigPool(
+        name="heldout",
         pitch_down_deg=((66.0, 74.0),),
         hfov_deg=((86.0, 96.0),),
         resolutions=((424, 240),),

@@ -5,6 +5,7 @@ import importlib.util
 
 import numpy as np
 import pytest
+from tubebodies import a_pose_joints, tube_bank
 
 from egoposevr.model.skeleton import PARENTS, forward_kinematics
 from egoposevr.model.synth import raster
@@ -21,8 +22,6 @@ from egoposevr.model.synth.bodies import (
 from egoposevr.model.synth.headset import CameraModel
 from egoposevr.model.synth.procedural import Body, generate
 from egoposevr.model.synth.render import Renderer, prepare_mesh_body, random_appearance
-
-from .tubebodies import a_pose_joints, tube_bank
 
 HAS_ANNY = importlib.util.find_spec("anny") is not None and importlib.util.find_spec("torch") is not None
 

@@ -50,7 +50,12 @@ def test_depth_at_visible_unoccluded_joints_is_within_the_body_radius(walk_seque
                 continue
             z = frames.joints_cam_m[k, j, 2]
             radius = JOINT_RADIUS_M[j] * walk_sequence.appearance.girth * 1.3
-            assert z - radius - 0.035 <= depth_m[v, u] <= z + 0.02, (k, j, z, depth_m[v, u])  # labels: clean depth
+            assert z - radius - 0.035 <= depth_m[v, u] <= z + 0.02, (
+                k,
+                j,
+                z,
+                depth_m[v, u],
+            )  # labels: clean depth
             checked += 1
     assert checked > 100
 
