@@ -2,7 +2,11 @@
 
 Runs the serving runtime (ONNX models, the same code the server uses) over every sequence of --split,
 pushing camera frames as they would arrive, and reports MPJPE / PA-MPJPE / MPJRE (upper and lower body),
-H-PE, jitter and full-pipeline FPS (one stream, a new RGB-D frame every headset sample).
+H-PE, jitter and full-pipeline FPS (one stream, a new RGB-D frame every headset sample). --by-category adds
+MPJPE per motion category (stand with the upper body moving, walk, crouch or bend, leg actions, other: read
+from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D keypoint error
+on joints in view and not occluded. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
+evaluated like any split.
 
 Example:
   egoposevr eval --data data/dev --split val --json eval.json
@@ -22,6 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", default="all", help="comma-separated model names (default all)")
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
+    parser.add_argument(
+        "--by-category", action="store_true", help="also MPJPE per motion category (read from the truth)"
+    )
+    parser.add_argument(
+        "--keypoints",
+        action="store_true",
+        help="also each visual encoder's 3D keypoint error on visible joints",
+    )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -29,7 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError
     from ..model.training.dataset import DatasetError
-    from ..model.training.evaluate import evaluate, markdown_table
+    from ..model.training.evaluate import (
+        category_table,
+        evaluate,
+        keypoint_accuracy,
+        keypoint_table,
+        markdown_table,
+    )
     from ..model.weights import WEIGHTS_DIR, model_files
 
     available = model_files(args.models_dir or WEIGHTS_DIR)
@@ -47,11 +65,20 @@ def run(args: argparse.Namespace) -> int:
             print(f"\r{name}: {done}/{total} sequences", end="" if done < total else "\n", file=sys.stderr)
 
     try:
-        results = evaluate(args.data, args.split, {m: available[m] for m in wanted}, args.limit, progress)
+        chosen = {m: available[m] for m in wanted}
+        results = evaluate(args.data, args.split, chosen, args.limit, progress, by_category=args.by_category)
+        keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
     except (DatasetError, ModelError) as error:
         print(f"egoposevr eval: {error}", file=sys.stderr)
         return 2
     print(markdown_table(results))
+    if args.by_category:
+        print("\nMPJPE per motion category (upper / lower body, cm):\n")
+        print(category_table(results))
+    if keypoints is not None:
+        print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
+        print(keypoint_table(keypoints))
     if args.json:
-        args.json.write_text(json.dumps({"split": args.split, "models": results}, indent=2) + "\n")
+        report = {"split": args.split, "models": results} | ({"keypoints": keypoints} if keypoints else {})
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0

@@ -38,6 +38,7 @@ class FusionConfig:
     joint_layers: int = 2
     dropout: float = 0.1
     joints: int = 22
+    device_validity: bool = False  # x_t followed by each device's valid flag and time since tracked (hmd.py)
 
     def __post_init__(self) -> None:
         if self.fusion not in ("cross", "concat", "none"):

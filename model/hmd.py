@@ -123,3 +123,43 @@ def hmd_features(t_us: np.ndarray, poses: np.ndarray, valid: np.ndarray | None =
     for i in range(len(t_us)):
         out[i] = extractor.push(int(t_us[i]), poses[i], valid[i])
     return out
+
+
+# ------------------------------------------------------------------------------------ tracking state
+# The paper's x_t has no tracking state: a network reading it cannot tell a controller standing still from one
+# that was lost (a third of real samples have one lost). Models with ``FusionConfig.device_validity`` read,
+# after x_t, per device: valid (0/1) and the time since it was last tracked, capped and scaled to 0..1.
+VALIDITY_DIM: Final = 6  # [valid head, valid left, valid right, age head, age left, age right]
+AGE_CAP_S: Final = 2.0
+
+
+def hmd_input_dim(device_validity: bool) -> int:
+    """The width of the HMD stream's per-sample input."""
+    return FEATURE_DIM + (VALIDITY_DIM if device_validity else 0)
+
+
+class TrackingState:
+    """Stateful: per sample, each device's valid flag and the time since it was last tracked (VALIDITY_DIM,).
+    A device never tracked counts as lost for AGE_CAP_S."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self._last_tracked_us: list[int | None] = [None, None, None]
+
+    def push(self, t_us: int, valid: np.ndarray) -> np.ndarray:
+        out = np.empty(VALIDITY_DIM)
+        for k in range(3):
+            if valid[k]:
+                self._last_tracked_us[k] = int(t_us)
+            last = self._last_tracked_us[k]
+            age_s = AGE_CAP_S if last is None else min(max(t_us - last, 0) * 1e-6, AGE_CAP_S)
+            out[k], out[3 + k] = float(bool(valid[k])), age_s / AGE_CAP_S
+        return out
+
+
+def tracking_features(t_us: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Batch :class:`TrackingState` over a sequence: t_us (N,), valid (N, 3) -> (N, VALIDITY_DIM)."""
+    state = TrackingState()
+    return np.stack([state.push(int(t), v) for t, v in zip(t_us, np.asarray(valid, dtype=bool), strict=True)])

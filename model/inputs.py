@@ -18,7 +18,7 @@ from typing import Final
 import cv2
 import numpy as np
 
-from .hmd import FEATURE_DIM
+from .hmd import FEATURE_DIM, VALIDITY_DIM
 from .rotations import quat_xyzw_to_matrix
 from .runtime.filters import OneEuroFilter
 from .skeleton import NUM_JOINTS
@@ -52,14 +52,15 @@ def to_heading(points: np.ndarray, rot: np.ndarray, origin: np.ndarray) -> np.nd
 
 
 def canonicalize_hmd(window: np.ndarray, rot: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """HMD features (..., T, 72) in the world -> heading frame (rot (..., 3, 3), origin (..., 3)); float32.
+    """HMD features (..., T, 72 [+ tracking state]) in the world -> heading frame (rot (..., 3, 3), origin
+    (..., 3)); float32.
 
     Per device the first 12 numbers are four world vectors — position, the two 6D columns, linear velocity —
-    so they turn together; the position also moves to the origin. Angular velocity (body frame) and the
-    controllers' head-relative descriptors do not depend on the world frame.
+    so they turn together; the position also moves to the origin. Angular velocity (body frame), the
+    controllers' head-relative descriptors and the tracking state after x_t do not depend on the world frame.
     """
-    if window.shape[-1] != FEATURE_DIM:
-        raise ValueError(f"window must be (..., T, {FEATURE_DIM}), got {window.shape}")
+    if window.shape[-1] not in (FEATURE_DIM, FEATURE_DIM + VALIDITY_DIM):
+        raise ValueError(f"window must be (..., T, {FEATURE_DIM} [+ {VALIDITY_DIM}]), got {window.shape}")
     out = np.array(window, dtype=np.float64)
     for base in (0, 18, 36):
         vectors = out[..., base : base + 12].reshape(*out.shape[:-1], 4, 3)

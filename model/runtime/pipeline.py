@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from ..hmd import HmdFeatureExtractor, ignore_untracked
+from ..hmd import HmdFeatureExtractor, TrackingState, ignore_untracked
 from ..inputs import canonicalize_hmd, heading_frame
 from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
@@ -92,9 +92,10 @@ class Pipeline:
     def reset(self) -> None:
         """Forget everything (a new session, a model switch, a long pause)."""
         self.features = HmdFeatureExtractor()
+        self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
         self.body = BodyCalibrator(self.model.info.body_regressor)
-        self.hmd_window: np.ndarray | None = None  # (T, 72)
+        self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
@@ -177,6 +178,8 @@ class Pipeline:
             poses, valid
         )  # checks the shapes; an untracked device's numbers are never read
         x = self.features.push(t_us, poses, valid)  # validates finiteness
+        if self.model.info.config.device_validity:
+            x = np.concatenate([x, self.tracking.push(t_us, valid)])
         if valid[0]:
             self.last_head_pose = poses[0].copy()
             self.cache.remember_head(t_us, self.last_head_pose)

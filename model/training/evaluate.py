@@ -20,12 +20,13 @@ import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
 from ..inputs import decode_rgbd
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
+from ..runtime.frames import encode_frame
 from ..runtime.loading import LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..skeleton import LOWER_BODY, UPPER_BODY
@@ -128,17 +129,50 @@ def measure_fps(
     return statistics.median(rates)
 
 
+# Motion categories read from the truth (not from names, which captured clips do not carry): thresholds on the
+# pelvis's horizontal speed, its height below the clip's standing height, and how fast the ankles move.
+CATEGORIES: Final = ("stand, upper body", "walk", "crouch, bend", "legs", "other")
+WALK_SPEED_M_S = 0.3  # mean pelvis speed over the floor
+CROUCH_DROP_M = 0.2  # the pelvis this far below its highest (90th percentile) height at some point
+STILL_ANKLE_M_S = 0.15  # 90th percentile ankle speed below this: the legs stand still
+LEG_ACTION_ANKLE_M_S = 0.6  # ... above this without walking: kicks, knee raises, lunges, steps in place
+
+
+def motion_category(seq: dict[str, Any]) -> str:
+    """One of CATEGORIES for a sequence, from its true joints (N, J, 3) and times."""
+    joints = seq["gt_joints_m"].astype(np.float64)
+    dt_s = np.diff(seq["hmd_t_us"]) * 1e-6
+    if len(joints) < 3 or (dt_s <= 0).any():
+        return "other"
+    pelvis_speed = np.linalg.norm(np.diff(joints[:, 0, [0, 2]], axis=0), axis=-1) / dt_s
+    ankle_speed = np.linalg.norm(np.diff(joints[:, [7, 8]], axis=0), axis=-1).max(-1) / dt_s
+    drop = np.percentile(joints[:, 0, 1], 90) - joints[:, 0, 1].min()
+    ankle_p90 = np.percentile(ankle_speed, 90)
+    if pelvis_speed.mean() > WALK_SPEED_M_S:
+        return "walk"
+    if drop > CROUCH_DROP_M:
+        return "crouch, bend"
+    if ankle_p90 < STILL_ANKLE_M_S:
+        return "stand, upper body"
+    if ankle_p90 > LEG_ACTION_ANKLE_M_S:
+        return "legs"
+    return "other"
+
+
 def evaluate(
     data_dir: Path,
     split: str,
     models: dict[str, Path],
     limit: int | None = None,
     on_sequence: Callable[[str, int, int], None] | None = None,
-) -> dict[str, dict[str, float]]:
-    """{model name: metrics} over a split for each model file given as {name: path}."""
+    by_category: bool = False,
+) -> dict[str, dict[str, Any]]:
+    """{model name: metrics} over a split for each model file given as {name: path}; with ``by_category``,
+    each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}."""
     seqs = load_split(data_dir, split, limit)
+    categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
-    results = {}
+    results: dict[str, dict[str, Any]] = {}
     for name, path in models.items():
         pipeline = Pipeline(LoadedModel.load(path, shared=shared))
         errors = []
@@ -147,7 +181,70 @@ def evaluate(
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
         results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0])}
+        if by_category:
+            results[name]["categories"] = {
+                c: {**summarize([e for e, k in zip(errors, categories, strict=True) if k == c]),
+                    "sequences": categories.count(c)}
+                for c in CATEGORIES if c in categories
+            }  # fmt: skip
     return results
+
+
+def keypoint_accuracy(
+    data_dir: Path, split: str, models: dict[str, Path], limit: int | None = None
+) -> dict[str, dict[str, float]]:
+    """{encoder: accuracy} of the visual encoders the given models use (each once), on a split: the keypoints
+    it lifts to 3D in the camera frame against the truth, on joints in view and not occluded: median, mean and
+    90th percentile error (cm)."""
+    seqs = load_split(data_dir, split, limit)
+    encoders: dict[str, LoadedModel] = {}
+    for path in models.values():
+        model = LoadedModel.load(path)
+        if model.info.visual_path is not None:
+            encoders.setdefault(model.info.visual_path.stem, model)
+    out = {}
+    for name, model in encoders.items():
+        errors = []
+        for seq in seqs:
+            camera = seq["camera"]
+            for k in range(len(seq["cam_t_us"])):
+                seen = seq["visible"][k] & ~seq["occluded"][k]
+                if not seen.any():
+                    continue
+                rgb, depth = decode_rgbd(seq["rgb_jpeg"][k], seq["depth_png"][k])
+                frame = encode_frame(model, int(seq["cam_t_us"][k]), rgb, depth, camera["intrinsics"])
+                errors.append(np.linalg.norm(frame.kp_cam - seq["joints_cam_m"][k], axis=-1)[seen])
+        error_cm = 100 * np.concatenate(errors) if errors else np.zeros(0)
+        out[name] = {
+            "joints": int(error_cm.size),
+            "median_cm": float(np.median(error_cm)) if error_cm.size else float("nan"),
+            "mean_cm": float(error_cm.mean()) if error_cm.size else float("nan"),
+            "p90_cm": float(np.percentile(error_cm, 90)) if error_cm.size else float("nan"),
+        }
+    return out
+
+
+def category_table(results: dict[str, dict[str, Any]]) -> str:
+    """MPJPE upper / lower (cm) per motion category (rows) and model (columns)."""
+    names = list(results)
+    categories = [c for c in CATEGORIES if any(c in r.get("categories", {}) for r in results.values())]
+    rows = ["| category (sequences) | " + " | ".join(f"{n} U / L cm" for n in names) + " |",
+            "|" + "---|" * (len(names) + 1)]  # fmt: skip
+    for c in categories:
+        count = next(r["categories"][c]["sequences"] for r in results.values() if c in r["categories"])
+        cells = [f"{results[n]['categories'][c]['mpjpe_u_cm']:.2f} / {results[n]['categories'][c]['mpjpe_l_cm']:.2f}"
+                 for n in names]  # fmt: skip
+        rows.append(f"| {c} ({count}) | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def keypoint_table(accuracy: dict[str, dict[str, float]]) -> str:
+    rows = ["| encoder | joints | median cm | mean cm | p90 cm |", "|---|---:|---:|---:|---:|"]
+    for name, a in accuracy.items():
+        rows.append(
+            f"| {name} | {a['joints']} | {a['median_cm']:.2f} | {a['mean_cm']:.2f} | {a['p90_cm']:.2f} |"
+        )
+    return "\n".join(rows)
 
 
 def markdown_table(results: dict[str, dict[str, float]]) -> str:

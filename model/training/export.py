@@ -20,7 +20,7 @@ import onnxruntime as ort
 import torch
 
 from ..config import FORMAT_VERSION, CameraInfo, EncoderMetadata, ModelMetadata, parse, to_properties
-from ..hmd import FEATURE_DIM
+from ..hmd import hmd_input_dim
 from ..inputs import VISUAL_TOKEN_DIM
 from ..rig import DEFAULT_OFFSETS_M
 from ..runtime.body import regressor_path
@@ -114,7 +114,7 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
     net = build_net(ckpt)
     cfg = net.cfg
     rng = np.random.default_rng(0)
-    inputs = {"hmd": rng.normal(size=(1, cfg.window, FEATURE_DIM)).astype(np.float32)}
+    inputs = {"hmd": rng.normal(size=(1, cfg.window, hmd_input_dim(cfg.device_validity))).astype(np.float32)}
     if cfg.uses_camera:
         inputs["visual"] = rng.normal(size=(1, cfg.visual_window, VISUAL_TOKEN_DIM)).astype(np.float32)
     example = tuple(torch.from_numpy(v) for v in inputs.values())
@@ -125,7 +125,8 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
         visual_encoder=f"visual-{entry.visual}.onnx" if entry.visual else "",
         joint_names=JOINT_NAMES, rig_offsets_m=tuple(map(tuple, DEFAULT_OFFSETS_M.tolist())),
         training=_training_record(ckpt),
-        units="hmd: 72-d features (model/hmd.py) in the heading frame; visual: tokens (model/inputs.py); "
+        units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
+              "config.device_validity]; visual: tokens (model/inputs.py); "
               "rot6d (1, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
               "rows 1.. local rotations",
     ))  # fmt: skip

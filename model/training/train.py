@@ -18,7 +18,7 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import torch
@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..config import FusionConfig, VisualConfig, parse, to_fields
-from ..hmd import hmd_features
+from ..hmd import hmd_features, hmd_input_dim, tracking_features
 from ..inputs import (
     VisibilityFilter,
     camera_to_world,
@@ -73,9 +73,13 @@ class TrainConfig:
     drop_frame_p: float = 0.05
     position_weight: float = 10.0  # L1 metres vs L1 6D
     rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
+    device_validity: bool = True  # the nets read each device's tracking state after x_t (hmd.py)
+    lost_hand_weight: float = 3.0  # position loss of a lost controller's wrist and elbow, against 1
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
 
+
+LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {
     # The whole zoo on a 2-core CPU in about 60 minutes, inside the 90-minute budget for the default. The
@@ -97,7 +101,8 @@ def visual_config(kind: str, tc: TrainConfig) -> VisualConfig:
 
 def fusion_config(name: str, tc: TrainConfig) -> FusionConfig:
     base = {"window": tc.window, "visual_window": tc.visual_window, "d_model": tc.d_model}
-    return FusionConfig(**{**base, "joint_dim": tc.joint_dim, **ZOO[name].fusion})
+    base |= {"joint_dim": tc.joint_dim, "device_validity": tc.device_validity}
+    return FusionConfig(**{**base, **ZOO[name].fusion})
 
 
 # ------------------------------------------------------------------------------------------- checkpoints
@@ -312,7 +317,8 @@ def train_visual(
 class FusionSequence:
     """One sequence prepared for stage 2. N headset samples, K camera frames."""
 
-    hmd: np.ndarray  # (N, 72) world-frame features
+    hmd: np.ndarray  # (N, 72 + 6) world-frame features, then the tracking state (nets without it read 72)
+    valid: np.ndarray  # (N, 3) bool: devices tracked
     head_pose: np.ndarray  # (N, 7) measured headset poses
     t_us: np.ndarray  # (N,)
     target_sixd: np.ndarray  # (N, J, 6): pelvis in the heading frame, then local rotations
@@ -401,8 +407,12 @@ def prepare_fusion_sequence(
         hmd=_cached(
             cache,
             ("hmd", seq["name"]),
-            lambda: hmd_features(t_us, poses, seq["hmd_valid"]).astype(np.float32),
+            lambda: np.concatenate(
+                [hmd_features(t_us, poses, seq["hmd_valid"]), tracking_features(t_us, seq["hmd_valid"])],
+                axis=-1,
+            ).astype(np.float32),
         ),
+        valid=np.asarray(seq["hmd_valid"], dtype=bool),
         head_pose=poses[:, 0],
         t_us=t_us,
         target_sixd=matrix_to_sixd(local).astype(np.float32),
@@ -422,7 +432,7 @@ def sample_window(
     """Inputs at headset sample i, as the runtime builds them: hmd (T, 72) and visual tokens (Tv, 90)."""
     idx = np.clip(np.arange(i - cfg.window + 1, i + 1), 0, None)  # the runtime pads with the first sample
     rot, origin = heading_frame(fs.head_pose[i])
-    hmd = canonicalize_hmd(fs.hmd[idx], rot, origin)
+    hmd = canonicalize_hmd(fs.hmd[idx, : hmd_input_dim(cfg.device_validity)], rot, origin)
     now = int(fs.t_us[i])
     arrived = int(np.searchsorted(fs.arrival_us, now, side="right"))
     frames = visual_window(fs.frame_t_us[:arrived], now, cfg.visual_window)
@@ -451,15 +461,27 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         joints = torch.from_numpy(np.stack([fs.joints_h[i] for fs, i in items]))
         anchor = torch.from_numpy(np.stack([fs.anchor_h[i] for fs, i in items]))
         offsets = torch.from_numpy(np.stack([fs.offsets for fs, _ in items]))
-        return hmd, vis, target, joints, anchor, offsets
+        lost = np.stack([~fs.valid[i, 1:] for fs, i in items])  # (B, 2) left, right controller lost
+        weight = np.ones((len(items), cfg.joints), dtype=np.float32)
+        for side, arm in enumerate(LOST_HAND_JOINTS):
+            weight[np.ix_(lost[:, side], arm)] = tc.lost_hand_weight
+        return (
+            hmd,
+            vis,
+            target,
+            joints,
+            anchor,
+            offsets,
+            torch.from_numpy(weight / weight.mean(1, keepdims=True)),
+        )
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        hmd, vis, target, joints, anchor, offsets = batch(rng)
+        hmd, vis, target, joints, anchor, offsets, weight = batch(rng)
         sixd = net(hmd, vis if cfg.uses_camera else None)
         rot_loss = (sixd - target).abs().mean()
         pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3), offsets)
         pos = pos + (anchor - pos[:, HEAD])[:, None]
-        pos_loss = (pos - joints).abs().sum(-1).mean()
+        pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
         return {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
 
     return loss

@@ -152,3 +152,22 @@ def test_bad_shapes_and_nan_are_refused():
         extractor.push(0, np.zeros((3, 6)), [True] * 3)
     with pytest.raises(ValueError, match="finite"):
         extractor.push(0, np.full((3, 7), np.nan), [True] * 3)
+
+
+def test_tracking_state_says_which_device_is_lost_and_for_how_long():
+    from egoposevr.model.hmd import AGE_CAP_S, TrackingState, tracking_features
+
+    state = TrackingState()
+    t0 = 5_000_000
+    assert np.allclose(
+        state.push(t0, np.array([True, False, True])), [1, 0, 1, 0, 1, 0]
+    )  # never seen: capped
+    assert np.allclose(
+        state.push(t0 + 500_000, np.array([True, True, False])), [1, 1, 0, 0, 0, 0.5 / AGE_CAP_S]
+    )
+    late = state.push(t0 + 10_000_000, np.array([False, True, False]))
+    assert np.allclose(late, [0, 1, 0, 1, 0, 1])  # ages stop at the cap
+    t_us = t0 + np.arange(4) * 100_000
+    valid = np.array([[1, 1, 1], [1, 0, 1], [1, 0, 1], [1, 1, 1]], dtype=bool)
+    batch = tracking_features(t_us, valid)
+    assert batch.shape == (4, 6) and np.allclose(batch[:, 4], [0, 0.05, 0.1, 0])

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from ...config import FusionConfig
-from ...hmd import FEATURE_DIM
+from ...hmd import hmd_input_dim
 from ...inputs import VISUAL_TOKEN_DIM
 
 
@@ -98,14 +98,14 @@ class StreamEncoder(nn.Module):
 
 
 class FusionNet(nn.Module):
-    """hmd (B, T, 72) [, visual (B, Tv, 90)] -> 6D rotations (B, J, 6): row 0 the pelvis in the heading
+    """hmd (B, T, 72 or 78 with device_validity) [, visual (B, Tv, 90)] -> 6D rotations (B, J, 6): row 0 the pelvis in the heading
     frame, rows 1.. local rotations."""
 
     def __init__(self, cfg: FusionConfig) -> None:
         super().__init__()
         self.cfg = cfg
         S = cfg.joint_dim
-        self.hmd_stream = StreamEncoder(FEATURE_DIM, cfg.window, cfg)
+        self.hmd_stream = StreamEncoder(hmd_input_dim(cfg.device_validity), cfg.window, cfg)
         if cfg.uses_camera:
             self.visual_stream = StreamEncoder(VISUAL_TOKEN_DIM, cfg.visual_window, cfg)
         if cfg.fusion == "cross":

@@ -79,3 +79,15 @@ def test_arms_move_independently_of_the_legs():
 def test_unknown_family_is_refused():
     with pytest.raises(ValueError, match="unknown procedural family"):
         generate("moonwalk", 1.0, FPS, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize(
+    ("family", "category"),
+    [("walk", "walk"), ("squat", "crouch, bend"), ("stand_interact", "stand, upper body"), ("kick", "legs")],
+)
+def test_evaluation_reads_the_motion_category_from_the_truth(family, category):
+    from egoposevr.model.training.evaluate import motion_category
+
+    motion = generate(family, 6.0, 60.0, np.random.default_rng(11))
+    seq = {"gt_joints_m": motion.joints(), "hmd_t_us": np.arange(motion.num_frames) * 16_667}
+    assert motion_category(seq) == category

@@ -231,3 +231,25 @@ def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(ti
     jump_cm = 100 * np.linalg.norm(handed_over[60] - handed_over[59])
     assert jump_cm < 1.0
     assert 100 * np.linalg.norm(dropped[60] - dropped[59]) > 3 * jump_cm  # what the hold prevents
+
+
+def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny_weights, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    args = [
+        "eval",
+        "--data",
+        str(tiny_data),
+        "--models-dir",
+        str(tiny_weights),
+        "--json",
+        str(out),
+        "--no-progress",
+    ]
+    assert main([*args, "--models", "hmd,hmd-rgb,egoposevr", "--by-category", "--keypoints"]) == 0
+    text = capsys.readouterr().out
+    assert "| category (sequences) |" in text and "| visual-rgbd |" in text and "| visual-rgb |" in text
+    report = json.loads(out.read_text())
+    assert set(report["keypoints"]) == {"visual-rgb", "visual-rgbd"}
+    assert all(k["joints"] > 0 and 0 <= k["median_cm"] <= k["p90_cm"] for k in report["keypoints"].values())
+    categories = report["models"]["egoposevr"]["categories"]
+    assert sum(c["sequences"] for c in categories.values()) == 1  # the val split's one kick
