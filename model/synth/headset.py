@@ -197,6 +197,10 @@ class CameraModel:
     pitch_down_deg: float = 78.0
     yaw_deg: float = 0.0  # turned about the headset's up axis, towards its -x for positive angles
     roll_deg: float = 0.0  # about the optical axis
+    # Radial lens distortion (OpenCV's k1, k2) that the image has but the reported pinhole intrinsics do not
+    # describe: the protocol has no distortion, so a real camera's leftover distortion is a nuisance to learn.
+    k1: float = 0.0
+    k2: float = 0.0
     position_m: tuple[float, float, float] = (0.0, -0.05, -0.07)
     min_depth_m: float = 0.1
     max_depth_m: float = 6.0
@@ -240,12 +244,19 @@ class CameraModel:
         world_from_device[..., :3, 3] = head_pose[..., :3]
         return world_from_device @ self.device_from_camera()
 
+    @property
+    def distorted(self) -> bool:
+        return self.k1 != 0.0 or self.k2 != 0.0
+
     def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """(..., 3) camera-frame points -> (..., 2) pixel coordinates (u, v)."""
+        """(..., 3) camera-frame points -> (..., 2) pixel coordinates (u, v), lens distortion included."""
         fx, fy, cx, cy = self.intrinsics()
         z = points_cam[..., 2]
         safe = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        return np.stack([fx * points_cam[..., 0] / safe + cx, fy * points_cam[..., 1] / safe + cy], axis=-1)
+        x, y = points_cam[..., 0] / safe, points_cam[..., 1] / safe
+        r2 = x * x + y * y
+        factor = 1.0 + self.k1 * r2 + self.k2 * r2 * r2
+        return np.stack([fx * x * factor + cx, fy * y * factor + cy], axis=-1)
 
     def in_view(self, points_cam: np.ndarray) -> np.ndarray:
         """(...,) bool: in front of the camera (beyond the minimum depth) and inside the image."""

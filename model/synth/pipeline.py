@@ -170,7 +170,11 @@ def render_frames(
                 depth = d
                 cam_from_world = np.linalg.inv(world_from_cam)
                 body_face = renderer.last_body_face if body is not None else None
-        rgb8, depth_mm = renderer.add_noise(rgb_sum / blur, depth, rng, cfg.noise)
+        if body_face is not None:
+            rgb_mean, depth, body_face = renderer.distort(rgb_sum / blur, depth, body_face)
+        else:
+            rgb_mean, depth = renderer.distort(rgb_sum / blur, depth)
+        rgb8, depth_mm = renderer.add_noise(rgb_mean, depth, rng, cfg.noise)
         jpeg, png = encode_images(rgb8, depth_mm, cfg.jpeg_quality)
         frames.rgb_jpeg.append(jpeg)
         frames.depth_png.append(png)
@@ -224,8 +228,12 @@ def synthesize_sequence(
         cfg = dataclasses.replace(cfg, rig=dataclasses.replace(cfg.rig, head_offset_m=head_offset))
     renderer = renderer or renderer_for(cfg.camera)
     track = simulate_headset(motion, cfg.hmd_rate_hz, rng, cfg.rig)
-    floors = pool.floors if pool else FLOOR_PATTERNS[:3]
-    look = random_appearance(rng, motion.root_pos_m[0, [0, 2]], floors)
+    if pool is None:
+        look = random_appearance(rng, motion.root_pos_m[0, [0, 2]], FLOOR_PATTERNS[:3])
+    else:
+        look = random_appearance(
+            rng, motion.root_pos_m[0, [0, 2]], pool.floors, pool.top_patterns, pool.two_lights_p
+        )
     frames = render_frames(motion, track, look, cfg, renderer, rng, mesh)
     rig = record(drawn) if drawn is not None else None
     return Sequence(name or motion.name, motion, track, frames, look, -1 if mesh is None else body, cfg, rig)

@@ -101,6 +101,7 @@ TOP_PATTERNS: Final = (
     PATTERN_PRINT,
     PATTERN_KNIT,
 )
+TOP_WEIGHTS: Final = (0.35, 0.2, 0.1, 0.1, 0.15, 0.1)  # how often each of TOP_PATTERNS is drawn
 # From very light to very dark (sRGB 0..1): the renderer draws any tone between neighbours.
 SKIN_TONES: Final = np.array(
     [[0.97, 0.84, 0.75], [0.92, 0.74, 0.62], [0.80, 0.60, 0.46], [0.65, 0.45, 0.31], [0.47, 0.31, 0.21],
@@ -122,9 +123,18 @@ class Appearance:
     walls: np.ndarray  # (4, 3) colours of the -x, +x, -z, +z walls
     room: np.ndarray  # x0, x1, z0, z1, height (m), room centred near the motion's start
     boxes: np.ndarray  # (K, 9): min xyz, max xyz, rgb
-    light_dir: np.ndarray  # (3,) unit vector towards the light
+    light_dir: np.ndarray  # (3,) unit vector towards the light (the key light: it casts the body's shadow)
     light_rgb: np.ndarray  # (3,)
     ambient: float
+    fill_light: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(6)
+    )  # dir (3,), rgb (3,); 0: none
+
+    @property
+    def lights(self) -> np.ndarray:
+        """(L, 6) [direction towards the light (3), colour (3)], the key light first."""
+        key = np.concatenate([self.light_dir, self.light_rgb])[None]
+        return np.concatenate([key, self.fill_light[None]]) if self.fill_light[3:].any() else key
 
 
 def _colour(rng: np.random.Generator, lo: float = 0.05, hi: float = 0.95) -> np.ndarray:
@@ -210,12 +220,17 @@ def random_furniture(rng: np.random.Generator, room: np.ndarray, centre_xz: np.n
 
 
 def random_appearance(
-    rng: np.random.Generator, centre_xz: np.ndarray, floors: tuple[int, ...] = FLOOR_PATTERNS[:3]
+    rng: np.random.Generator,
+    centre_xz: np.ndarray,
+    floors: tuple[int, ...] = FLOOR_PATTERNS[:3],
+    tops: tuple[int, ...] = TOP_PATTERNS,
+    fill_light_p: float = 0.0,
 ) -> Appearance:
-    """Random clothing, skin, shoes, hair, room (a floor of one of ``floors``, furniture) and lighting."""
+    """Random clothing (a shirt of one of ``tops``), skin, shoes, hair, room (a floor of one of ``floors``,
+    furniture) and lighting (a second, fill light with chance ``fill_light_p``)."""
     skin = _skin(rng)
     mats = np.zeros((8, MATERIAL_FIELDS))
-    mats[0] = _garment(rng, TOP_PATTERNS, (0.35, 0.2, 0.1, 0.1, 0.15, 0.1))
+    mats[0] = _garment(rng, tops, tuple(TOP_WEIGHTS[TOP_PATTERNS.index(t)] for t in tops))
     if rng.random() < 0.45:  # jeans
         blue = rng.uniform([0.08, 0.12, 0.25], [0.3, 0.38, 0.65])
         mats[1] = [*blue, *(blue * 0.8), PATTERN_DENIM, rng.uniform(0.04, 0.08)]
@@ -253,7 +268,14 @@ def random_appearance(
         light_dir=light / np.linalg.norm(light),
         light_rgb=rng.uniform(0.8, 1.1, 3),
         ambient=float(rng.uniform(0.25, 0.5)),
+        fill_light=_fill_light(rng) if rng.random() < fill_light_p else np.zeros(6),
     )
+
+
+def _fill_light(rng: np.random.Generator) -> np.ndarray:
+    """A weaker second light from any direction above the horizon, of its own colour."""
+    direction = np.array([rng.uniform(-1, 1), rng.uniform(0.2, 1.0), rng.uniform(-1, 1)])
+    return np.concatenate([direction / np.linalg.norm(direction), rng.uniform(0.2, 0.5, 3)])
 
 
 def body_capsules(
@@ -355,6 +377,20 @@ def _pattern(
     if second:
         return mat[3] * shade, mat[4] * shade, mat[5] * shade
     return mat[0] * shade, mat[1] * shade, mat[2] * shade
+
+
+@njit(cache=True, fastmath=True)
+def _lit(nx, ny, nz, lights, ambient, two_sided):
+    """Light reaching a surface of unit normal n per colour channel: ambient in the key light's colour plus
+    Lambert from each light of lights (L, 6)."""
+    sr, sg, sb = ambient * lights[0, 3], ambient * lights[0, 4], ambient * lights[0, 5]
+    for k in range(lights.shape[0]):
+        cos = nx * lights[k, 0] + ny * lights[k, 1] + nz * lights[k, 2]
+        cos = abs(cos) if two_sided else max(cos, 0.0)
+        sr += (1.0 - ambient) * cos * lights[k, 3]
+        sg += (1.0 - ambient) * cos * lights[k, 4]
+        sb += (1.0 - ambient) * cos * lights[k, 5]
+    return sr, sg, sb
 
 
 @njit(cache=True, fastmath=True)
@@ -504,11 +540,10 @@ def _render_kernel(
                 ny = -1.0 if abs(py - bx[1]) < eps else (1.0 if abs(py - bx[4]) < eps else 0.0)
                 nz = -1.0 if abs(pz - bx[2]) < eps else (1.0 if abs(pz - bx[5]) < eps else 0.0)
                 r, g, b = bx[6], bx[7], bx[8]
-            lambert = max(0.0, nx * light[0] + ny * light[1] + nz * light[2])
-            shade = ambient + (1.0 - ambient) * lambert
-            rgb_out[v, u, 0] = min(255.0, r * shade * light[3] * 255.0)
-            rgb_out[v, u, 1] = min(255.0, g * shade * light[4] * 255.0)
-            rgb_out[v, u, 2] = min(255.0, b * shade * light[5] * 255.0)
+            sr, sg, sb = _lit(nx, ny, nz, light, ambient, False)
+            rgb_out[v, u, 0] = min(255.0, r * sr * 255.0)
+            rgb_out[v, u, 1] = min(255.0, g * sg * 255.0)
+            rgb_out[v, u, 2] = min(255.0, b * sb * 255.0)
             depth_out[v, u] = best * depth_scale[v, u] if kind >= 0 else 0.0
 
 
@@ -582,11 +617,10 @@ def _shade_body(
             q = wa * surface[a, 1] + wb * surface[b, 1] + wc * surface[c, 1]
             r, g, b_ = _pattern(materials[face_slot[f]], s, q, px, py, pz)
             norm = np.sqrt(nx * nx + ny * ny + nz * nz) + 1e-12
-            lambert = abs(nx * light[0] + ny * light[1] + nz * light[2]) / norm  # drawn from both sides
-            shade = ambient + (1.0 - ambient) * lambert
-            rgb[v, u, 0] = min(255.0, r * shade * light[3] * 255.0)
-            rgb[v, u, 1] = min(255.0, g * shade * light[4] * 255.0)
-            rgb[v, u, 2] = min(255.0, b_ * shade * light[5] * 255.0)
+            sr, sg, sb = _lit(nx / norm, ny / norm, nz / norm, light, ambient, True)  # drawn from both sides
+            rgb[v, u, 0] = min(255.0, r * sr * 255.0)
+            rgb[v, u, 1] = min(255.0, g * sg * 255.0)
+            rgb[v, u, 2] = min(255.0, b_ * sb * 255.0)
             depth[v, u] = zbuf[v, u]
 
 
@@ -599,6 +633,22 @@ def light_frame(light_dir: np.ndarray, centre: np.ndarray) -> np.ndarray:
     out[:3, :3] = np.stack([x, np.cross(z, x), z])
     out[:3, 3] = -out[:3, :3] @ centre
     return out
+
+
+def _distortion_maps(camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel of the distorted image, where it lies in the pinhole render: (map_u, map_v) (H, W)
+    float32 for cv2.remap (the inverse of the radial model, solved by OpenCV's undistortPoints)."""
+    import cv2
+
+    fx, fy, cx, cy = camera.intrinsics()
+    k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+    points = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :]
+    undistorted = cv2.undistortPoints(points, k, np.array([camera.k1, camera.k2, 0.0, 0.0]), P=k)[:, 0]
+    shape = (camera.height, camera.width)
+    return undistorted[:, 0].reshape(shape).astype(np.float32), undistorted[:, 1].reshape(shape).astype(
+        np.float32
+    )
 
 
 # ------------------------------------------------------------------------------------------ sensor
@@ -697,6 +747,28 @@ class Renderer:
         self._rays_cam = rays / length[..., None]  # (H, W, 3) unit rays in the camera frame
         self._depth_scale = 1.0 / length  # distance along a unit ray -> z depth
         self._radius2 = (np.hypot(u - cx, v - cy) / np.hypot(cx, cy)) ** 2  # 1 at the corners
+        self._distortion_maps = _distortion_maps(camera) if camera.distorted else None
+
+    def distort(self, *images: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The camera's lens distortion applied to pinhole renders: the first image (colour) interpolated,
+        the rest (depth, labels) nearest; unchanged without distortion."""
+        if self._distortion_maps is None:
+            return images
+        import cv2
+
+        map_u, map_v = self._distortion_maps
+        out = [
+            cv2.remap(
+                images[0].astype(np.float32), map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
+        ]
+        for image in images[1:]:
+            kind, flat = image.dtype, image.astype(np.float32)  # face ids < 2^24 survive float32
+            out.append(
+                cv2.remap(flat, map_u, map_v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE).astype(kind)
+            )
+        out[0] = out[0].astype(images[0].dtype)
+        return tuple(out)
 
     def _boxes_px(self, caps: np.ndarray, cam_from_world: np.ndarray) -> np.ndarray:
         """(C, 4) int pixel bounds [u0, u1, v0, v1] of each capsule's bounding sphere (whole image if near)."""
@@ -725,7 +797,7 @@ class Renderer:
         rot = world_from_camera[:3, :3]
         dirs = np.ascontiguousarray(self._rays_cam @ rot.T)
         cam_from_world = np.linalg.inv(world_from_camera)
-        light = np.concatenate([look.light_dir, look.light_rgb])
+        light = np.ascontiguousarray(look.lights)
         rgb = np.empty((cam.height, cam.width, 3))
         depth = np.empty((cam.height, cam.width))
         _render_kernel(
@@ -766,7 +838,7 @@ class Renderer:
         raster.rasterize(verts_cam, body.faces, *cam.intrinsics(), zbuf, face_id, bary)
         normals = np.empty_like(vertices_m)
         raster.vertex_normals(vertices_m, body.faces, normals)
-        light = np.concatenate([look.light_dir, look.light_rgb])
+        light = np.ascontiguousarray(look.lights)
         _shade_body(zbuf, face_id, bary, body.faces, body.face_slot, normals, body.surface_m, body.rest_m,
                     look.materials, light, look.ambient, rgb, depth)  # fmt: skip
         self._shadow(world_from_camera, vertices_m, body.faces, look, rgb, depth)

@@ -23,7 +23,10 @@ from .render import (
     PATTERN_CARPET,
     PATTERN_CHECKER,
     PATTERN_CONCRETE,
+    PATTERN_KNIT,
     PATTERN_MOTTLE,
+    PATTERN_PLAIN,
+    PATTERN_PRINT,
     PATTERN_STRIPES,
     PATTERN_TILES,
     PATTERN_WOOD,
@@ -50,6 +53,10 @@ class RigPool:
     camera_y_m: Interval = (-0.07, -0.02)
     camera_z_m: Interval = (-0.10, -0.05)
     ir_shadow_p: float = 0.5  # structured-light cameras (a projector beside the lens) show IR shadows
+    distortion_p: float = 0.5  # leftover radial lens distortion the reported intrinsics do not describe
+    k1: Interval = (-0.08, 0.05)
+    two_lights_p: float = 0.4
+    top_patterns: tuple[int, ...] = ()  # the shirts' patterns this pool may wear
 
 
 POOLS: Final = {
@@ -60,6 +67,7 @@ POOLS: Final = {
         resolutions=((320, 256), (320, 240), (640, 480)),
         floors=(PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_MOTTLE, PATTERN_WOOD, PATTERN_CARPET),
         heldout_bodies=False,
+        top_patterns=(PATTERN_PLAIN, PATTERN_STRIPES, PATTERN_CHECKER, PATTERN_MOTTLE),
     ),
     "heldout": RigPool(
         name="heldout",
@@ -68,6 +76,7 @@ POOLS: Final = {
         resolutions=((424, 240),),
         floors=(PATTERN_TILES, PATTERN_CONCRETE),
         heldout_bodies=True,
+        top_patterns=(PATTERN_PRINT, PATTERN_KNIT),
     ),
 }
 HELDOUT_BODY_SHARE: Final = 0.2
@@ -116,6 +125,7 @@ def random_camera(rng: np.random.Generator, pool: RigPool) -> CameraModel:
             float(rng.uniform(*pool.camera_y_m)),
             float(rng.uniform(*pool.camera_z_m)),
         ),
+        k1=float(rng.uniform(*pool.k1)) if rng.random() < pool.distortion_p else 0.0,
     )
 
 

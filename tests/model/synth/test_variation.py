@@ -107,3 +107,26 @@ def test_exposure_and_white_balance_scale_the_image():
         _sensor(exposure=1.5, white_balance=(1.0, 0.8, 1.2)),
     )  # fmt: skip
     assert tuple(rgb8[0, 0]) == (150, 120, 180)
+
+
+def test_heldout_shirts_are_never_worn_in_training():
+    assert not set(POOLS["train"].top_patterns) & set(POOLS["heldout"].top_patterns)
+
+
+def test_lens_distortion_moves_labels_with_the_image():
+    """Where a point projects with distortion, the distortion map points back at its pinhole projection, so a
+    label drawn with ``project`` sits on the remapped render."""
+    camera = CameraModel(width=160, height=120, hfov_deg=90.0, k1=-0.08, k2=0.01)
+    pinhole = dataclasses.replace(camera, k1=0.0, k2=0.0)
+    renderer = Renderer(camera)
+    rng = np.random.default_rng(5)
+    points = np.stack([rng.uniform(-0.8, 0.8, 50), rng.uniform(-0.6, 0.6, 50), np.ones(50)], axis=-1)
+    distorted, straight = camera.project(points), pinhole.project(points)
+    map_u, map_v = renderer._distortion_maps
+    inside = (distorted[:, 0] > 1) & (distorted[:, 0] < 158) & (distorted[:, 1] > 1) & (distorted[:, 1] < 118)
+    u, v = np.round(distorted[inside]).astype(int).T
+    back = np.stack([map_u[v, u], map_v[v, u]], axis=-1)
+    assert inside.sum() > 30
+    assert np.abs(back - straight[inside]).max() < 1.5  # rounding to the pixel, scaled by the local stretch
+    image = np.zeros((120, 160, 3))
+    assert renderer.distort(image, np.ones((120, 160)))[1].dtype == np.float64
