@@ -58,13 +58,20 @@ class VisualConfig:
     channels: int = 4  # 3: RGB, 4: RGB-D
     width: int = 80
     height: int = 64
-    widths: tuple[int, ...] = (16, 32, 64, 128)  # backbone stages, strides 2, 4, 8, 16
+    widths: tuple[int, ...] = (16, 32, 64, 128)  # backbone stages, strides 2, 4, 8, 16 (after the stem)
     fpn_channels: int = 32
     joints: int = 22
+    # > 0: a strided 3x3 convolution of this many channels first, so that a larger input (160x128) costs about
+    # what the smaller one did while the first layer still sees every pixel; heatmaps are then at stride 4.
+    stem_channels: int = 0
+
+    @property
+    def input_stride(self) -> int:
+        return 2 if self.stem_channels else 1
 
     @property
     def heatmap_wh(self) -> tuple[int, int]:
-        return self.width // 2, self.height // 2
+        return self.width // (2 * self.input_stride), self.height // (2 * self.input_stride)
 
     @property
     def input_wh(self) -> tuple[int, int]:

@@ -63,6 +63,7 @@ class TrainConfig:
     fusion_steps: int = 8000
     visual_width: int = 80
     visual_height: int = 64
+    visual_stem: int = 0  # VisualConfig.stem_channels
     window: int = 40
     visual_window: int = 8
     d_model: int = 64
@@ -96,7 +97,10 @@ PRESETS: dict[str, TrainConfig] = {
 
 
 def visual_config(kind: str, tc: TrainConfig) -> VisualConfig:
-    return VisualConfig(channels=4 if kind == "rgbd" else 3, width=tc.visual_width, height=tc.visual_height)
+    return VisualConfig(
+        channels=4 if kind == "rgbd" else 3, width=tc.visual_width, height=tc.visual_height,
+        stem_channels=tc.visual_stem,
+    )  # fmt: skip
 
 
 def fusion_config(name: str, tc: TrainConfig) -> FusionConfig:

@@ -47,7 +47,16 @@ class KeypointNet(nn.Module):
     def __init__(self, cfg: VisualConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        stages, c_in = [], cfg.channels
+        c_in = cfg.channels
+        self.stem: nn.Module = nn.Identity()
+        if cfg.stem_channels:
+            self.stem = nn.Sequential(
+                nn.Conv2d(c_in, cfg.stem_channels, 3, 2, 1, bias=False),
+                nn.BatchNorm2d(cfg.stem_channels),
+                nn.ReLU(),
+            )
+            c_in = cfg.stem_channels
+        stages = []
         for c_out in cfg.widths:
             stages.append(nn.Sequential(BasicBlock(c_in, c_out, 2), BasicBlock(c_out, c_out, 1)))
             c_in = c_out
@@ -69,10 +78,10 @@ class KeypointNet(nn.Module):
         self.register_buffer("grid_v", (torch.arange(hh, dtype=torch.float32) + 0.5) / hh, persistent=False)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        feats, x = [], image
+        feats, x = [], self.stem(image)
         for stage in self.stages:
             x = stage(x)
-            feats.append(x)  # strides 2, 4, 8, 16
+            feats.append(x)  # strides 2, 4, 8, 16 of the stem's output
         top = self.lateral[-1](feats[-1])
         for level in range(len(feats) - 2, -1, -1):  # top-down pathway to stride 2
             top = F.interpolate(top, size=feats[level].shape[-2:], mode="nearest") + self.lateral[level](

@@ -9,12 +9,14 @@ from egoposevr.model.training.nets.fusion import FusionConfig, FusionNet
 from egoposevr.model.training.nets.visual import KeypointNet, VisualConfig
 
 
-@pytest.mark.parametrize("channels", [3, 4])
-def test_keypoint_net_shapes_and_ranges(channels):
-    cfg = VisualConfig(channels=channels, width=80, height=64)
-    uv, depth_m, zeta, logits = KeypointNet(cfg).eval()(torch.randn(2, channels, 64, 80))
+@pytest.mark.parametrize(
+    ("channels", "width", "height", "stem"), [(3, 80, 64, 0), (4, 80, 64, 0), (4, 160, 128, 16)]
+)
+def test_keypoint_net_shapes_and_ranges(channels, width, height, stem):
+    cfg = VisualConfig(channels=channels, width=width, height=height, stem_channels=stem)
+    uv, depth_m, zeta, logits = KeypointNet(cfg).eval()(torch.randn(2, channels, height, width))
     assert uv.shape == (2, 22, 2) and depth_m.shape == (2, 22) and zeta.shape == (2, 22)
-    assert logits.shape == (2, 22, 32, 40)
+    assert logits.shape == (2, 22, 32, 40) and cfg.heatmap_wh == (40, 32)
     assert ((uv >= 0) & (uv <= 1)).all() and ((zeta >= 0) & (zeta <= 1)).all()
 
 
@@ -34,3 +36,14 @@ def test_fusion_net_shapes_and_identity_start(fusion, visual_window):
 def test_unknown_fusion_is_refused():
     with pytest.raises(ValueError, match="fusion"):
         FusionConfig(fusion="sum")
+
+
+def test_a_fusion_net_with_tracking_state_reads_78_numbers_per_sample():
+    from egoposevr.model.hmd import VALIDITY_DIM
+
+    cfg = FusionConfig(window=10, visual_window=4, d_model=16, joint_dim=8, device_validity=True)
+    net = FusionNet(cfg).eval()
+    out = net(torch.randn(2, 10, FEATURE_DIM + VALIDITY_DIM), torch.randn(2, 4, VISUAL_TOKEN_DIM))
+    assert out.shape == (2, 22, 6)
+    with pytest.raises(RuntimeError):
+        net(torch.randn(2, 10, FEATURE_DIM), torch.randn(2, 4, VISUAL_TOKEN_DIM))
