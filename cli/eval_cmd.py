@@ -2,7 +2,9 @@
 
 Runs the serving runtime (ONNX models, the same code the server uses) over every sequence of --split,
 pushing camera frames as they would arrive, and reports MPJPE / PA-MPJPE / MPJRE (upper and lower body),
-H-PE, jitter and full-pipeline FPS (one stream, a new RGB-D frame every headset sample). --by-category adds
+H-PE, jitter and full-pipeline FPS (one stream, a new RGB-D frame every headset sample), then whether the
+body behaves like one: foot skating and floor error while the true foot is planted, leg leakage while the
+true legs are still, jerk (model/training/plausibility.py defines each). --by-category adds
 MPJPE per motion category (stand with the upper body moving, walk, crouch or bend, leg actions, other: read
 from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D keypoint error
 on joints in view and not occluded. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
@@ -47,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         keypoint_accuracy,
         keypoint_table,
         markdown_table,
+        plausibility_table,
     )
     from ..model.weights import WEIGHTS_DIR, model_files
 
@@ -72,13 +75,29 @@ def run(args: argparse.Namespace) -> int:
         print(f"egoposevr eval: {error}", file=sys.stderr)
         return 2
     print(markdown_table(results))
+    print(
+        "\nDoes the body behave (foot skating and floor error while the true foot is planted, leg leakage while"
+    )
+    print("the true legs are still):\n")
+    print(plausibility_table(results))
     if args.by_category:
         print("\nMPJPE per motion category (upper / lower body, cm):\n")
         print(category_table(results))
+        print("\nFoot skating (cm/s) / leg leakage (cm) per motion category:\n")
+        print(category_table(results, ("foot_skate_cm_s", "leg_leakage_cm"), "skate / leak"))
     if keypoints is not None:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))
     if args.json:
         report = {"split": args.split, "models": results} | ({"keypoints": keypoints} if keypoints else {})
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        args.json.write_text(json.dumps(_without_nan(report), indent=2) + "\n")
     return 0
+
+
+def _without_nan(value):
+    """NaN (a metric with nothing to measure on the split) as JSON null."""
+    if isinstance(value, dict):
+        return {k: _without_nan(v) for k, v in value.items()}
+    if isinstance(value, float) and value != value:
+        return None
+    return value

@@ -31,13 +31,15 @@ from ..runtime.loading import LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..skeleton import LOWER_BODY, UPPER_BODY
 from .dataset import load_split
+from .plausibility import plausibility, summarize_plausibility
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
 FPS_SAMPLES = 200
 FPS_REPEATS = 3
 METRIC_KEYS = (
     "mpjpe_u_cm", "mpjpe_l_cm", "pa_mpjpe_u_cm", "pa_mpjpe_l_cm", "mpjre_u_deg", "mpjre_l_deg", "hpe_cm",
-    "jitter", "fps",
+    "jitter", "foot_skate_cm_s", "floor_float_cm", "floor_penetration_cm", "leg_leakage_cm", "jerk", "jerk_true",
+    "fps",
 )  # fmt: skip
 WRISTS = np.array([20, 21])
 
@@ -88,6 +90,7 @@ def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -
         "pa": np.linalg.norm(procrustes_aligned(joints, gt) - gt, axis=-1),
         "rot": np.degrees(geodesic_angle(rots, gt_rot)),
         "jitter": np.linalg.norm(third, axis=-1).mean(-1),
+        "plausibility": plausibility(joints, gt, np.asarray(seq["hmd_t_us"])),
     }
 
 
@@ -106,6 +109,7 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
         "mpjre_l_deg": float(rot[:, LOWER_BODY].mean()),
         "hpe_cm": 100 * float(pos[:, WRISTS].mean()),
         "jitter": float(jitter.mean()) if len(jitter) else 0.0,
+        **summarize_plausibility([e["plausibility"] for e in errors]),
     }
 
 
@@ -224,16 +228,19 @@ def keypoint_accuracy(
     return out
 
 
-def category_table(results: dict[str, dict[str, Any]]) -> str:
-    """MPJPE upper / lower (cm) per motion category (rows) and model (columns)."""
+def category_table(
+    results: dict[str, dict[str, Any]],
+    keys: tuple[str, str] = ("mpjpe_u_cm", "mpjpe_l_cm"),
+    unit: str = "U / L cm",
+) -> str:
+    """Two metrics (``keys``, shown as "a / b") per motion category (rows) and model (columns)."""
     names = list(results)
     categories = [c for c in CATEGORIES if any(c in r.get("categories", {}) for r in results.values())]
-    rows = ["| category (sequences) | " + " | ".join(f"{n} U / L cm" for n in names) + " |",
+    rows = ["| category (sequences) | " + " | ".join(f"{n} {unit}" for n in names) + " |",
             "|" + "---|" * (len(names) + 1)]  # fmt: skip
     for c in categories:
         count = next(r["categories"][c]["sequences"] for r in results.values() if c in r["categories"])
-        cells = [f"{results[n]['categories'][c]['mpjpe_u_cm']:.2f} / {results[n]['categories'][c]['mpjpe_l_cm']:.2f}"
-                 for n in names]  # fmt: skip
+        cells = [" / ".join(f"{results[n]['categories'][c][k]:.2f}" for k in keys) for n in names]
         rows.append(f"| {c} ({count}) | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
@@ -243,6 +250,19 @@ def keypoint_table(accuracy: dict[str, dict[str, float]]) -> str:
     for name, a in accuracy.items():
         rows.append(
             f"| {name} | {a['joints']} | {a['median_cm']:.2f} | {a['mean_cm']:.2f} | {a['p90_cm']:.2f} |"
+        )
+    return "\n".join(rows)
+
+
+def plausibility_table(results: dict[str, dict[str, Any]]) -> str:
+    """Does the served body behave like one (plausibility.py): one row per model; NaN where the split has no
+    foot contact or no still legs."""
+    rows = ["| model | foot skating cm/s | floating cm | penetration cm | leg leakage cm | jerk m/s³ (truth) |",
+            "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for name, m in results.items():
+        rows.append(
+            f"| {name} | {m['foot_skate_cm_s']:.1f} | {m['floor_float_cm']:.1f} | {m['floor_penetration_cm']:.1f} | "
+            f"{m['leg_leakage_cm']:.1f} | {m['jerk']:.0f} ({m['jerk_true']:.0f}) |"
         )
     return "\n".join(rows)
 

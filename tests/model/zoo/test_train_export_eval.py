@@ -127,7 +127,8 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     results = json.loads(out.read_text())["models"]
     assert list(results) == ["hmd", "egoposevr"]
     assert set(results["hmd"]) == set(METRIC_KEYS)
-    assert all(np.isfinite(v) and v >= 0 for m in results.values() for v in m.values())
+    assert all(v is None or (np.isfinite(v) and v >= 0) for m in results.values() for v in m.values())
+    assert all(np.isfinite(m[k]) for m in results.values() for k in ("mpjpe_u_cm", "foot_skate_cm_s", "jerk"))
 
 
 def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):

@@ -1,0 +1,112 @@
+"""Does the served body behave like a body: planted feet that stay put, soles on the floor, legs that stay
+still while only the arms move. Measured against the truth of a dataset sequence (numpy, no torch).
+
+- **Contact** (from the truth): a foot touches the floor while its foot joint (the ball of the foot) is
+  below ``CONTACT_HEIGHT_M`` and moves slower than ``CONTACT_SPEED_M_S`` over the floor.
+- **Foot skating** (cm/s): the served foot joint's speed over the floor while the true foot is in contact.
+- **Floor error** (cm): the served sole's height while the true foot is in contact (sole = foot joint minus
+  its height above the sole when flat), as floating (above the floor) and penetration (below), each the mean
+  over contact samples of the positive part.
+- **Leg leakage** (cm): over stretches of at least ``STILL_MIN_S`` where the true lower body is still (every
+  lower-body joint slower than ``STILL_SPEED_M_S``), the served lower-body joints' mean distance from where
+  they were at the stretch's start, averaged over the stretch.
+- **Jerk** (m/s³): the mean norm of the third time derivative of the joints, served and true.
+
+The world is a stage space: the floor is y = 0 (PROTOCOL.md §3).
+
+Shape legend: ``N`` headset samples, ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import numpy as np
+
+from ..skeleton import FOOT_JOINT_HEIGHT_M, LOWER_BODY
+
+FEET: Final = (10, 11)  # left, right foot joints (the balls of the feet)
+CONTACT_HEIGHT_M: Final = FOOT_JOINT_HEIGHT_M + 0.03
+CONTACT_SPEED_M_S: Final = 0.2
+STILL_SPEED_M_S: Final = 0.08
+STILL_MIN_S: Final = 0.5
+
+
+def _speeds(joints: np.ndarray, t_us: np.ndarray, horizontal: bool) -> np.ndarray:
+    """(N, J) speed of each joint (m/s) by central differences over the samples' own times."""
+    t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
+    points = joints[..., [0, 2]] if horizontal else joints
+    if len(t_s) < 2:
+        return np.zeros(joints.shape[:2])
+    velocity = np.gradient(points, t_s, axis=0)
+    return np.linalg.norm(velocity, axis=-1)
+
+
+def contacts(true_joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """(N, 2) bool: each foot (left, right) touching the floor, from the true joints (N, J, 3)."""
+    height = true_joints[:, FEET, 1]
+    speed = _speeds(true_joints[:, FEET], t_us, horizontal=True)
+    return (height < CONTACT_HEIGHT_M) & (speed < CONTACT_SPEED_M_S)
+
+
+def still_stretches(true_joints: np.ndarray, t_us: np.ndarray) -> list[slice]:
+    """Sample ranges of at least STILL_MIN_S where every true lower-body joint is slower than
+    STILL_SPEED_M_S."""
+    still = (_speeds(true_joints[:, LOWER_BODY], t_us, horizontal=False) < STILL_SPEED_M_S).all(axis=1)
+    stretches, start = [], None
+    for i, now in enumerate([*still, False]):
+        if now and start is None:
+            start = i
+        elif not now and start is not None:
+            if (t_us[i - 1] - t_us[start]) * 1e-6 >= STILL_MIN_S:
+                stretches.append(slice(start, i))
+            start = None
+    return stretches
+
+
+def jerk(joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+    """(N-3,) mean over joints of |d³x/dt³| (m/s³), on the mean sample interval."""
+    if len(joints) < 4:
+        return np.zeros(0)
+    dt_s = np.diff(t_us).mean() * 1e-6
+    return np.linalg.norm(np.diff(joints, n=3, axis=0) / dt_s**3, axis=-1).mean(-1)
+
+
+def plausibility(served: np.ndarray, truth: np.ndarray, t_us: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-sample (or per-stretch) values for one sequence, pooled later by :func:`summarize_plausibility`:
+    served (N, J, 3), truth (N, J, 3), t_us (N,)."""
+    touch = contacts(truth, t_us)
+    served_speed = _speeds(served[:, FEET], t_us, horizontal=True)
+    sole = served[:, FEET, 1] - FOOT_JOINT_HEIGHT_M
+    leakage = [
+        np.linalg.norm(served[s][:, LOWER_BODY] - served[s][:1, LOWER_BODY], axis=-1).mean()
+        for s in still_stretches(truth, t_us)
+    ]
+    return {
+        "skate": served_speed[touch],
+        "sole": sole[touch],
+        "leakage": np.array(leakage),
+        "jerk": jerk(served, t_us),
+        "jerk_true": jerk(truth, t_us),
+    }
+
+
+def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
+    """Pooled over sequences: foot_skate_cm_s, floor_float_cm, floor_penetration_cm, leg_leakage_cm (NaN
+    where nothing was in contact or still), jerk and jerk_true (m/s³)."""
+
+    def pooled(key: str) -> np.ndarray:
+        return np.concatenate([p[key] for p in parts]) if parts else np.zeros(0)
+
+    def mean(values: np.ndarray, scale: float = 1.0) -> float:
+        return float(values.mean() * scale) if values.size else float("nan")
+
+    sole = pooled("sole")
+    return {
+        "foot_skate_cm_s": mean(pooled("skate"), 100.0),
+        "floor_float_cm": mean(np.maximum(sole, 0.0), 100.0),
+        "floor_penetration_cm": mean(np.maximum(-sole, 0.0), 100.0),
+        "leg_leakage_cm": mean(pooled("leakage"), 100.0),
+        "jerk": mean(pooled("jerk")),
+        "jerk_true": mean(pooled("jerk_true")),
+    }

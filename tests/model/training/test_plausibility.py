@@ -1,0 +1,69 @@
+"""Body-behaviour measures on synthetic sequences whose answers are known."""
+
+import numpy as np
+import pytest
+
+from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
+from egoposevr.model.training.plausibility import (
+    contacts,
+    plausibility,
+    still_stretches,
+    summarize_plausibility,
+)
+
+RATE_HZ = 90.0
+
+
+def standing(seconds: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """A body standing still with its feet flat on the floor: joints (N, J, 3), t_us (N,)."""
+    n = round(seconds * RATE_HZ)
+    pose = REST_JOINTS_M - [0.0, REST_JOINTS_M[[10, 11], 1].min() - FOOT_JOINT_HEIGHT_M, 0.0]
+    pose[[10, 11], 1] = FOOT_JOINT_HEIGHT_M  # both feet exactly flat
+    return np.repeat(pose[None], n, axis=0), (np.arange(n) * 1e6 / RATE_HZ).astype(np.int64)
+
+
+def test_a_standing_truth_is_in_contact_and_still_throughout():
+    truth, t_us = standing()
+    assert contacts(truth, t_us).all()
+    assert still_stretches(truth, t_us) == [slice(0, len(t_us))]
+
+
+def test_a_served_foot_sliding_at_10_cm_s_skates_10_cm_s_and_served_feet_2_cm_up_float_2_cm():
+    truth, t_us = standing()
+    served = truth.copy()
+    served[:, 10, 0] += 0.10 * (t_us - t_us[0]) * 1e-6  # the left foot slides along x
+    served[:, [10, 11], 1] += 0.02
+    result = summarize_plausibility([plausibility(served, truth, t_us)])
+    assert result["foot_skate_cm_s"] == pytest.approx(5.0, abs=0.01)  # one foot of two at 10 cm/s
+    assert result["floor_float_cm"] == pytest.approx(2.0) and result["floor_penetration_cm"] == 0.0
+
+
+def test_legs_drifting_while_the_truth_stands_still_leak_their_mean_displacement():
+    truth, t_us = standing()
+    served = truth.copy()
+    served[:, [4, 5, 7, 8, 10, 11], 2] += np.linspace(0.0, 0.06, len(t_us))[:, None]  # the legs wander 6 cm
+    leak = summarize_plausibility([plausibility(served, truth, t_us)])["leg_leakage_cm"]
+    # six of the nine lower-body joints move, by 3 cm on average over the stretch
+    assert leak == pytest.approx(6 / 9 * 3.0, rel=0.02)
+
+
+def test_a_walking_truth_has_no_still_legs_and_feet_in_the_air_are_not_in_contact():
+    truth, t_us = standing()
+    phase = 2 * np.pi * 1.0 * (t_us - t_us[0]) * 1e-6
+    swing = np.maximum(np.sin(phase), 0)  # the left leg steps forward once a second, the right one stands
+    truth[:, [4, 7, 10], 1] += swing[:, None] * 0.15
+    truth[:, [4, 7, 10], 2] += 0.3 * np.cumsum(swing)[:, None] / RATE_HZ
+    touch = contacts(truth, t_us)
+    assert touch[:, 1].all() and 0.2 < touch[:, 0].mean() < 0.8
+    assert still_stretches(truth, t_us) == []
+    result = summarize_plausibility([plausibility(truth, truth, t_us)])
+    assert np.isnan(result["leg_leakage_cm"]) and result["foot_skate_cm_s"] < 2.0
+    assert result["jerk"] == pytest.approx(result["jerk_true"])
+
+
+def test_penetration_is_the_depth_below_the_floor():
+    truth, t_us = standing()
+    served = truth.copy()
+    served[:, 11, 1] -= 0.04
+    result = summarize_plausibility([plausibility(served, truth, t_us)])
+    assert result["floor_penetration_cm"] == pytest.approx(2.0) and result["floor_float_cm"] == 0.0
