@@ -42,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError
+    from ..model.runtime.procedural import NAME as PROCEDURAL
     from ..model.training.dataset import DatasetError
     from ..model.training.evaluate import (
         category_table,
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..model.weights import WEIGHTS_DIR, model_files
 
-    available = model_files(args.models_dir or WEIGHTS_DIR)
+    available = {PROCEDURAL: None} | model_files(args.models_dir or WEIGHTS_DIR)  # the baseline has no file
     wanted = list(available) if args.models in ("", "all") else [m.strip() for m in args.models.split(",")]
     missing = [m for m in wanted if m not in available]
     if missing or not wanted:

@@ -136,7 +136,7 @@ class Server:
 
     def _check_models(self) -> None:
         names = self.registry.names()
-        if not names:
+        if not self.registry.file_names():
             problems = (
                 "; ".join(f"{p}: {r}" for p, r in self.registry.failures.items()) or "no model files found"
             )

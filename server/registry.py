@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from ..model.runtime.loading import LoadedModel, ModelError
+from ..model.runtime.procedural import NAME as PROCEDURAL
+from ..model.runtime.procedural import ProceduralModel
 from ..model.weights import WEIGHTS_DIR, model_files
 from ..protocol import ModelInfo as WireModelInfo
 
@@ -43,7 +45,9 @@ class ModelRegistry:
 
     def __init__(self, models_dir: Path | None = None, bundled: bool = True, ort_threads: int = 1) -> None:
         self.models_dir, self.bundled, self.ort_threads = models_dir, bundled, ort_threads
-        self.models: dict[str, LoadedModel] = {}
+        # The procedural baseline has no file: it is always there, first, unless a file takes its name.
+        self._builtin: dict[str, Any] = {PROCEDURAL: ProceduralModel()}
+        self.models: dict[str, LoadedModel] = dict(self._builtin)
         self.failures: dict[Path, str] = {}
         self._stamps: dict[str, _Stamp] = {}  # the file version each model was loaded from
         self._failed: dict[Path, _Stamp] = {}  # not retried until the file changes
@@ -52,6 +56,10 @@ class ModelRegistry:
 
     def names(self) -> list[str]:
         return list(self.models)
+
+    def file_names(self) -> list[str]:
+        """The models loaded from files (the built-in procedural baseline not counted)."""
+        return [n for n, m in self.models.items() if not isinstance(m, ProceduralModel)]
 
     def get(self, name: str) -> LoadedModel | None:
         return self.models.get(name)
@@ -74,7 +82,7 @@ class ModelRegistry:
         events: list[str] = []
         candidates = self._candidates()
         stale_encoders = self._forget_changed_encoders()
-        models = dict(self.models)
+        models = {n: m for n, m in self.models.items() if n not in self._builtin or n in candidates}
         for name in set(models) - set(candidates):
             del models[name], self._stamps[name]
             events.append(f"model {name} removed")
@@ -87,7 +95,8 @@ class ModelRegistry:
             if (self._stamps.get(name) == stamp and not uses_stale) or self._failed.get(path) == stamp:
                 continue
             events.append(self._load(name, stamp, models))
-        self.models = {n: models[n] for n in candidates if n in models}  # zoo order, then by name
+        files = {n: models[n] for n in candidates if n in models}  # zoo order, then by name
+        self.models = {n: m for n, m in self._builtin.items() if n not in files} | files
         for event in events:
             log.info("%s", event)
         return events

@@ -30,7 +30,8 @@ import numpy as np
 from ..model.inputs import decode_rgbd
 from ..model.runtime.frames import EncodedFrame, encode_frame
 from ..model.runtime.loading import LoadedModel
-from ..model.runtime.pipeline import Pipeline, PoseResult
+from ..model.runtime.pipeline import PoseResult
+from ..model.runtime.procedural import pipeline_for
 from ..protocol import Error, ErrorCode, Hmd, Pose, Ref, Rgbd, encode
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
@@ -126,7 +127,7 @@ class Session:
         self._next_model: tuple[str, LoadedModel] | None = None
         self._reset = False
         self.naive = naive  # the benchmark's baseline: re-encode the whole visual window per request
-        self._pipeline = Pipeline(model, naive=naive)  # run() only
+        self._pipeline = pipeline_for(model, naive=naive)  # run() only
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
 
@@ -226,7 +227,7 @@ class Session:
         result = RunResult()
         if job.model is not None:
             self._pipeline_model_name, model = job.model
-            self._pipeline = Pipeline(model, naive=self.naive)
+            self._pipeline = pipeline_for(model, naive=self.naive)
         elif job.reset:
             self._pipeline.reset()
         image_us = (

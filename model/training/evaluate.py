@@ -29,6 +29,7 @@ from ..rotations import geodesic_angle, quat_xyzw_to_matrix
 from ..runtime.frames import encode_frame
 from ..runtime.loading import LoadedModel
 from ..runtime.pipeline import Pipeline
+from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import LOWER_BODY, UPPER_BODY
 from .dataset import load_split
 from .plausibility import plausibility, summarize_plausibility
@@ -166,19 +167,20 @@ def motion_category(seq: dict[str, Any]) -> str:
 def evaluate(
     data_dir: Path,
     split: str,
-    models: dict[str, Path],
+    models: dict[str, Path | None],
     limit: int | None = None,
     on_sequence: Callable[[str, int, int], None] | None = None,
     by_category: bool = False,
 ) -> dict[str, dict[str, Any]]:
-    """{model name: metrics} over a split for each model file given as {name: path}; with ``by_category``,
+    """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
+    baseline); with ``by_category``,
     each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}."""
     seqs = load_split(data_dir, split, limit)
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
     for name, path in models.items():
-        pipeline = Pipeline(LoadedModel.load(path, shared=shared))
+        pipeline = pipeline_for(ProceduralModel() if path is None else LoadedModel.load(path, shared=shared))
         errors = []
         for i, seq in enumerate(seqs):
             errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))
@@ -203,6 +205,8 @@ def keypoint_accuracy(
     seqs = load_split(data_dir, split, limit)
     encoders: dict[str, LoadedModel] = {}
     for path in models.values():
+        if path is None:  # the procedural baseline reads no camera
+            continue
         model = LoadedModel.load(path)
         if model.info.visual_path is not None:
             encoders.setdefault(model.info.visual_path.stem, model)

@@ -137,6 +137,17 @@ def test_model_switch_mid_session_resets_cleanly(server):
         viewer.close()
 
 
+def test_the_procedural_baseline_is_served_like_any_model(server):
+    with Client(server.url, "baseline") as headset:
+        headset.hello("input", "baseline", model="procedural")
+        headset.collect()
+        replay(headset, WALK[:60])
+        headset.wait_for(lambda: len(headset.poses()) >= 40)
+        poses = headset.poses()
+        assert {p.model for p in poses} == {"procedural"} and all(p.camera is None for p in poses)
+        assert min(min(p.joints[31], p.joints[34]) for p in poses) > 0.0  # both feet above the floor
+
+
 def test_headset_reconnects_and_viewers_keep_their_subscription(server):
     viewer = Client(server.url, "again")
     viewer.hello("render", "again")
@@ -159,8 +170,8 @@ def test_select_and_list_models(server):
         headset.send(ListModels())
         models = headset.recv_type("models")
         assert models.active == "egoposevr"
-        assert [m.name for m in models.models][:6] == [
-            "hmd", "hmd-rgb1", "hmd-rgb", "hmd-rgbd", "egoposevr", "hmd-rgbd-concat",
+        assert [m.name for m in models.models][:7] == [
+            "procedural", "hmd", "hmd-rgb1", "hmd-rgb", "hmd-rgbd", "egoposevr", "hmd-rgbd-concat",
         ]  # fmt: skip
         headset.send(Ping(nonce=7, t_us=5))
         pong = headset.recv_type("pong")

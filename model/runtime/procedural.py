@@ -1,0 +1,280 @@
+"""The ``procedural`` model: a body from the headset and controllers alone, with no network and no weights.
+
+The baseline every learned model is compared with, and a fallback that never wanders (the VRIK style of
+avatar legs that VR users know):
+
+- the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
+- the pelvis hangs under the head joint, upright; the body's yaw follows the head's, lagging by
+  ``TURN_TIME_S`` (a glance over the shoulder does not turn the hips);
+- each foot stays planted where it was put. When a foot is more than ``STEP_TRIGGER_M`` (scaled by the
+  body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
+  stood, it steps in ``STEP_S`` along a low arc to where its hip will be when the step ends (the pelvis's
+  smoothed velocity ahead); one foot at a time;
+- the joints above the feet get the One Euro filter of the network pipeline (planted feet are exact);
+- knees and elbows by two-bone IK (knees forward, elbows down and back); a wrist goes to its controller, or
+  hangs when the controller is lost; crouching bends the knees, never sinks the feet;
+- the served rotations are re-derived from the joints (:func:`.kpo.rederive_rotations`), as for every model.
+
+Shape legend: ``J`` = 22 joints; device order head, left, right.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Final
+
+import numpy as np
+
+from ..config import FusionConfig, ModelMetadata
+from ..hmd import ignore_untracked
+from ..inputs import heading_frame
+from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
+from ..skeleton import FOOT_JOINT_HEIGHT_M, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
+from . import kernels
+from .body import BodyCalibrator
+from .filters import OneEuroFilter
+from .kpo import rederive_rotations
+from .loading import ModelInfo
+from .pipeline import POSITION_BETA, POSITION_MIN_CUTOFF_HZ, PoseResult
+
+NAME: Final = "procedural"
+DESCRIPTION: Final = "no network: pelvis under the head, planted feet that step, IK knees and arms (baseline)"
+TURN_TIME_S: Final = 0.4
+STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
+STEP_TURN_DEG: Final = 35.0
+STEP_S: Final = 0.28
+VELOCITY_TIME_S: Final = 0.15  # smoothing of the pelvis's velocity, which steps lead by STEP_S
+STEP_HEIGHT_M: Final = 0.06
+FOOT_SPREAD_M: Final = 0.02  # feet this much wider than the hips
+LEG_CHAINS: Final = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot
+ARM_CHAINS: Final = ((16, 18, 20), (17, 19, 21))  # shoulder, elbow, wrist
+FEET_AND_ANKLES: Final = [7, 8, 10, 11]
+
+
+class ProceduralModel:
+    """The servable face of the procedural baseline: what the registry lists and sessions select."""
+
+    visual = None
+
+    def __init__(self) -> None:
+        metadata = ModelMetadata(
+            format="1", kind="model", name=NAME, description=DESCRIPTION, inputs=("hmd",),
+            config=FusionConfig(window=1, fusion="none"), kpo=False, visual_encoder="",
+            joint_names=JOINT_NAMES, rig_offsets_m=tuple(map(tuple, DEFAULT_OFFSETS_M.tolist())),
+            training={}, units="",
+        )  # fmt: skip
+        self.info = ModelInfo(path=None, metadata=metadata, visual_path=None, encoder=None)  # type: ignore[arg-type]
+        self.measures_body = False
+        kernels.warm_up()
+
+
+@dataclasses.dataclass
+class _Foot:
+    planted: np.ndarray  # (3,) world position of the foot joint
+    step_from: np.ndarray | None = None
+    step_to: np.ndarray | None = None
+    step_t0_s: float = 0.0
+
+
+def _two_bone(
+    root: np.ndarray, target: np.ndarray, upper: float, lower: float, pole: np.ndarray
+) -> np.ndarray:
+    """The middle joint of a two-bone chain from root (3,) reaching towards target (3,), bending towards pole
+    (3,); an out-of-reach target straightens the chain towards it."""
+    axis = target - root
+    dist = float(np.linalg.norm(axis))
+    if dist < 1e-9:
+        return root + pole / max(np.linalg.norm(pole), 1e-9) * upper
+    axis = axis / dist
+    dist = min(max(dist, abs(upper - lower) + 1e-6), upper + lower - 1e-6)
+    along = (upper**2 - lower**2 + dist**2) / (2 * dist)
+    height = math.sqrt(max(upper**2 - along**2, 0.0))
+    bend = pole - (pole @ axis) * axis
+    norm = np.linalg.norm(bend)
+    bend = bend / norm if norm > 1e-9 else np.cross(axis, [0.0, 1.0, 0.0])
+    return root + along * axis + height * bend
+
+
+def _reach(root: np.ndarray, target: np.ndarray, length: float) -> np.ndarray:
+    """target, or the point towards it at ``length`` from root when it is farther."""
+    axis = target - root
+    dist = float(np.linalg.norm(axis))
+    return target if dist <= length else root + axis * (length / dist)
+
+
+class ProceduralPipeline:
+    """The Pipeline interface (push_hmd, observe_hmd, push_rgbd, add_frame, reset) for the procedural model.
+    Not thread-safe: one caller at a time."""
+
+    def __init__(self, model: ProceduralModel, bone_scale: np.ndarray | None = None) -> None:
+        self.model = model
+        self.fixed_body = bone_scale is not None
+        self.bone_scale = (
+            np.ones(NUM_JOINTS) if bone_scale is None else np.asarray(bone_scale, dtype=np.float64)
+        )
+        self.reset()
+
+    def reset(self) -> None:
+        self.body = BodyCalibrator()
+        self.offsets = rest_offsets(self.bone_scale)
+        self.feet: list[_Foot] | None = None
+        self.yaw: float | None = None
+        self.stood_yaw = 0.0
+        self.last_t_us: int | None = None
+        self.last_head = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
+        self.frames_encoded = 0
+        self.velocity = np.zeros(3)
+        self.last_pelvis: np.ndarray | None = None
+        self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
+
+    # The camera is not read.
+    def push_rgbd(self, *args, **kwargs) -> bool:
+        return False
+
+    def add_frame(self, frame) -> bool:
+        return False
+
+    def observe_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> None:
+        self.push_hmd(t_us, poses, valid)
+
+    def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
+        started = time.perf_counter()
+        t_us = int(t_us)
+        valid = np.asarray(valid, dtype=bool)
+        poses = ignore_untracked(poses, valid)
+        if not np.isfinite(poses[valid]).all():
+            raise ValueError("tracked poses must be finite")
+        if valid[0]:
+            self.last_head = poses[0].copy()
+        device_poses = poses.copy()
+        device_poses[0] = self.last_head
+        tracked, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
+        if not self.fixed_body and self.body.push(tracked, valid):
+            self.offsets = rest_offsets(self.body.bone_scale)
+        dt_s = 0.0 if self.last_t_us is None else max(t_us - self.last_t_us, 0) * 1e-6
+        self.last_t_us = t_us
+        joints, body_rot = self._solve(t_us * 1e-6, dt_s, tracked, valid)
+        feet = joints[FEET_AND_ANKLES].copy()
+        joints = self.position_filter(t_us, joints)
+        joints[FEET_AND_ANKLES] = feet
+        local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
+        local[0] = body_rot
+        glob = forward_kinematics(local, np.zeros(3), self.offsets)[1]
+        local = rederive_rotations(local, joints, self.offsets, glob)
+        joints, _ = kernels.forward_kinematics_one(
+            local, joints[0].copy(), self.offsets, PARENTS.astype(np.int64)
+        )
+        axis_angle = kernels.matrices_to_rotvecs(local)
+        return PoseResult(
+            t_us=t_us, model=NAME, global_orient=axis_angle[0], body_pose=axis_angle[1:].reshape(-1),
+            transl=joints[0].copy(), joints=joints, local_rot=local, camera=None,
+            timing_us={"procedural": int((time.perf_counter() - started) * 1e6)},
+        )  # fmt: skip
+
+    def _turn(self, dt_s: float) -> np.ndarray:
+        """The body's yaw rotation (3, 3), following the head's with a lag."""
+        head_rot, _ = heading_frame(self.last_head)
+        head_yaw = math.atan2(head_rot[0, 2], head_rot[0, 0])
+        if self.yaw is None:
+            self.yaw = self.stood_yaw = head_yaw
+        gap = (head_yaw - self.yaw + math.pi) % (2 * math.pi) - math.pi
+        self.yaw += gap * (1.0 - math.exp(-dt_s / TURN_TIME_S))
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        # heading_frame's yaw convention, and a half turn: devices look along -z, SMPL faces +z
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.diag([-1.0, 1.0, -1.0])
+
+    def _solve(
+        self, now_s: float, dt_s: float, tracked: np.ndarray, valid: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        body_rot = self._turn(dt_s)
+        offsets = self.offsets
+        rest, _ = forward_kinematics(np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)), np.zeros(3), offsets)
+        self._rest = rest
+        rest_world = rest @ body_rot.T  # upright, at the pelvis
+        # Hanging from the head joint; a crouch lowers the pelvis with the head and the knees bend below.
+        joints = rest_world + (tracked[0] - rest_world[15])
+        if self.last_pelvis is not None and dt_s > 0:
+            blend = 1.0 - math.exp(-dt_s / VELOCITY_TIME_S)
+            self.velocity += blend * ((joints[0] - self.last_pelvis) / dt_s - self.velocity)
+        self.last_pelvis = joints[0].copy()
+        scale = float(np.mean((self.bone_scale if self.fixed_body else self.body.bone_scale)[1:]))
+        self._place_feet(now_s, joints, body_rot, scale)
+        for side, (hip, knee, ankle, foot) in enumerate(LEG_CHAINS):
+            foot_pos = self._foot_position(side, now_s)
+            ankle_target = foot_pos - body_rot @ (rest[foot] - rest[ankle])
+            thigh, shin = np.linalg.norm(offsets[knee]), np.linalg.norm(offsets[ankle])
+            ankle_pos = _reach(joints[hip], ankle_target, thigh + shin - 1e-6)
+            forward = body_rot @ np.array([0.0, 0.0, 1.0])
+            joints[knee] = _two_bone(joints[hip], ankle_pos, thigh, shin, forward)
+            joints[ankle] = ankle_pos
+            joints[foot] = ankle_pos + body_rot @ (rest[foot] - rest[ankle])
+        for side, (shoulder, elbow, wrist) in enumerate(ARM_CHAINS):
+            upper, lower = np.linalg.norm(offsets[elbow]), np.linalg.norm(offsets[wrist])
+            if valid[side + 1]:
+                target = tracked[side + 1]
+            else:  # hanging by the side
+                target = joints[shoulder] + np.array([0.0, -(upper + lower) * 0.98, 0.0])
+            target = _reach(joints[shoulder], target, upper + lower - 1e-6)
+            pole = body_rot @ np.array([0.0, -1.0, -0.5])
+            joints[elbow] = _two_bone(joints[shoulder], target, upper, lower, pole)
+            joints[wrist] = target
+        return joints, body_rot
+
+    def _ideal_feet(self, joints: np.ndarray, body_rot: np.ndarray) -> np.ndarray:
+        """(2, 3) where the foot joints would stand: under the hips, a little apart, on the floor."""
+        out = np.empty((2, 3))
+        rest = self._rest
+        for side, (hip, _, _, foot) in enumerate(LEG_CHAINS):
+            outward = body_rot @ np.array([FOOT_SPREAD_M if side == 0 else -FOOT_SPREAD_M, 0.0, 0.0])
+            out[side] = joints[hip] + outward + body_rot @ (rest[foot] - rest[hip]) * [1.0, 0.0, 1.0]
+        out[:, 1] = FOOT_JOINT_HEIGHT_M
+        return out
+
+    def _place_feet(self, now_s: float, joints: np.ndarray, body_rot: np.ndarray, scale: float) -> None:
+        """Finish steps that are done; start one when a foot is far from where it would stand, or the body
+        has turned since the feet were last both in place."""
+        ideal = self._ideal_feet(joints, body_rot)
+        if self.feet is None:
+            self.feet = [_Foot(planted=ideal[k].copy()) for k in range(2)]
+            return
+        for foot in self.feet:
+            if foot.step_to is not None and now_s - foot.step_t0_s >= STEP_S:
+                foot.planted, foot.step_from, foot.step_to = foot.step_to, None, None
+        if any(f.step_to is not None for f in self.feet):
+            return
+        distance = [float(np.linalg.norm((self.feet[k].planted - ideal[k])[[0, 2]])) for k in range(2)]
+        trigger = STEP_TRIGGER_M * scale
+        turned = abs((self.yaw - self.stood_yaw + math.pi) % (2 * math.pi) - math.pi) > math.radians(
+            STEP_TURN_DEG
+        )
+        if max(distance) <= trigger and not turned:
+            return
+        worst = int(np.argmax(distance))
+        foot = self.feet[worst]
+        ahead = self.velocity * STEP_S * [1.0, 0.0, 1.0]
+        foot.step_from, foot.step_to, foot.step_t0_s = foot.planted.copy(), ideal[worst] + ahead, now_s
+        if distance[1 - worst] <= trigger:
+            self.stood_yaw = self.yaw  # the other foot is in place: this step completes the turn
+
+    def _foot_position(self, side: int, now_s: float) -> np.ndarray:
+        foot = self.feet[side]
+        if foot.step_to is None:
+            return foot.planted
+        phase = min(max((now_s - foot.step_t0_s) / STEP_S, 0.0), 1.0)
+        smooth = phase * phase * (3 - 2 * phase)
+        position = foot.step_from + smooth * (foot.step_to - foot.step_from)
+        position[1] += STEP_HEIGHT_M * math.sin(math.pi * phase)
+        return position
+
+
+def pipeline_for(model, **kwargs):
+    """A session's pipeline for any servable model: the procedural one's, or the network pipeline."""
+    from .pipeline import Pipeline
+
+    if isinstance(model, ProceduralModel):
+        kwargs.pop("naive", None)
+        kwargs.pop("kpo_weights", None)
+        return ProceduralPipeline(model, **kwargs)
+    return Pipeline(model, **kwargs)

@@ -1,0 +1,66 @@
+"""The procedural baseline: planted feet that stay, steps when the body moves away, arms to the controllers."""
+
+import numpy as np
+import pytest
+
+from egoposevr.model.runtime.procedural import ProceduralModel, ProceduralPipeline, pipeline_for
+from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+from egoposevr.model.synth.headset import simulate_headset
+from egoposevr.model.synth.procedural import generate
+from egoposevr.model.training.plausibility import plausibility, summarize_plausibility
+
+
+@pytest.fixture(scope="module")
+def model():
+    return ProceduralModel()
+
+
+def served(model, family, seconds=6.0, seed=3):
+    rng = np.random.default_rng(seed)
+    motion = generate(family, seconds, 60.0, rng)
+    track = simulate_headset(motion, 90.0, rng)
+    pipeline = pipeline_for(model)
+    poses = [pipeline.push_hmd(int(t), track.poses[i], track.valid[i]) for i, t in enumerate(track.t_us)]
+    return poses, track
+
+
+def test_standing_and_gesturing_keeps_the_feet_planted_and_on_the_floor(model):
+    poses, track = served(model, "stand_interact")
+    joints = np.array([p.joints for p in poses])
+    after = joints[90:]  # once the height estimate has settled
+    result = summarize_plausibility([plausibility(after, track.joints_m[90:], track.t_us[90:])])
+    assert result["foot_skate_cm_s"] < 1.0 and result["floor_penetration_cm"] < 0.5
+    assert result["floor_float_cm"] < 1.5
+    lower = np.linalg.norm(joints - track.joints_m, axis=-1)[:, [0, 1, 2, 4, 5, 7, 8, 10, 11]].mean()
+    assert lower < 0.08
+
+
+def test_walking_makes_it_step_after_the_body(model):
+    poses, track = served(model, "walk", seconds=5.0)
+    feet = np.array([p.joints[[10, 11]] for p in poses])
+    travelled = np.linalg.norm(feet[-1, :, [0, 2]] - feet[0, :, [0, 2]], axis=0)
+    pelvis_travel = np.linalg.norm(track.joints_m[-1, 0, [0, 2]] - track.joints_m[0, 0, [0, 2]])
+    assert pelvis_travel > 1.0 and (travelled > 0.6 * pelvis_travel).all()
+    final_gap = np.linalg.norm((poses[-1].joints[0] - track.joints_m[-1, 0])[[0, 2]])
+    assert final_gap < 0.25  # the body keeps up with the walker
+
+
+def test_served_rotations_give_the_served_joints_and_lost_controllers_let_the_arms_hang(model):
+    rng = np.random.default_rng(1)
+    motion = generate("stand_interact", 2.0, 60.0, rng)
+    track = simulate_headset(motion, 90.0, rng)
+    pipeline = ProceduralPipeline(model)
+    valid = track.valid.copy()
+    valid[90:, 1] = False
+    for i, t in enumerate(track.t_us):
+        pose = pipeline.push_hmd(int(t), track.poses[i], valid[i])
+    joints, _ = forward_kinematics(pose.local_rot, pose.transl, rest_offsets(pipeline.body.bone_scale))
+    assert np.allclose(joints, pose.joints, atol=1e-6)
+    left_hand, left_shoulder = pose.joints[20], pose.joints[16]
+    assert left_hand[1] < left_shoulder[1] - 0.4 and abs(left_hand[0] - left_shoulder[0]) < 0.15
+    assert pose.camera is None and not pipeline.push_rgbd(0, None, None, None)
+
+
+def test_pipeline_for_picks_the_network_pipeline_for_onnx_models(model):
+    assert isinstance(pipeline_for(model, naive=True), ProceduralPipeline)
+    assert model.info.name == "procedural" and model.info.inputs == ("hmd",) and model.visual is None
