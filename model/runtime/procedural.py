@@ -4,8 +4,10 @@ The baseline every learned model is compared with, and a fallback that never wan
 avatar legs that VR users know):
 
 - the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
-- the pelvis hangs under the head joint, upright; the body's yaw follows the head's, lagging by
-  ``TURN_TIME_S`` (a glance over the shoulder does not turn the hips);
+- the neck hangs under the head joint; the pelvis stands over the planted feet and follows the head's sway
+  only by ``TORSO_FOLLOW``, at the torso's length from the neck, so leaning and bending tilt the spine
+  rather than slide the hips; the body's yaw follows the head's, lagging by ``TURN_TIME_S`` (a glance over
+  the shoulder does not turn the hips);
 - each foot stays planted where it was put. When a foot is more than ``STEP_TRIGGER_M`` (scaled by the
   body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
   stood, it steps in ``STEP_S`` along a low arc to where its hip will be when the step ends (the pelvis's
@@ -45,6 +47,9 @@ TURN_TIME_S: Final = 0.4
 STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
 STEP_TURN_DEG: Final = 35.0
 STEP_S: Final = 0.28
+TORSO_FOLLOW: Final = 0.35  # how much of the head's sway over the feet the pelvis follows
+WALKING_M_S: Final = 0.5  # from this head speed on, the pelvis follows the head all the way
+MAX_LEAN: Final = 0.8  # the neck at most this fraction of the torso's length ahead of the pelvis
 VELOCITY_TIME_S: Final = 0.15  # smoothing of the pelvis's velocity, which steps lead by STEP_S
 STEP_HEIGHT_M: Final = 0.06
 FOOT_SPREAD_M: Final = 0.02  # feet this much wider than the hips
@@ -193,13 +198,13 @@ class ProceduralPipeline:
         rest, _ = forward_kinematics(np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)), np.zeros(3), offsets)
         self._rest = rest
         rest_world = rest @ body_rot.T  # upright, at the pelvis
-        # Hanging from the head joint; a crouch lowers the pelvis with the head and the knees bend below.
-        joints = rest_world + (tracked[0] - rest_world[15])
+        upright = rest_world + (tracked[0] - rest_world[15])  # hanging from the head joint
         if self.last_pelvis is not None and dt_s > 0:
             blend = 1.0 - math.exp(-dt_s / VELOCITY_TIME_S)
-            self.velocity += blend * ((joints[0] - self.last_pelvis) / dt_s - self.velocity)
-        self.last_pelvis = joints[0].copy()
+            self.velocity += blend * ((upright[0] - self.last_pelvis) / dt_s - self.velocity)
+        self.last_pelvis = upright[0].copy()
         scale = float(np.mean((self.bone_scale if self.fixed_body else self.body.bone_scale)[1:]))
+        joints = self._torso(upright, rest_world, tracked[0])
         self._place_feet(now_s, joints, body_rot, scale)
         for side, (hip, knee, ankle, foot) in enumerate(LEG_CHAINS):
             foot_pos = self._foot_position(side, now_s)
@@ -221,6 +226,42 @@ class ProceduralPipeline:
             joints[elbow] = _two_bone(joints[shoulder], target, upper, lower, pole)
             joints[wrist] = target
         return joints, body_rot
+
+    def _torso(self, upright: np.ndarray, rest_world: np.ndarray, head: np.ndarray) -> np.ndarray:
+        """The upper body (J, 3): the neck under the head joint, the pelvis over the planted feet, following
+        the head only by TORSO_FOLLOW of the way while the body stands (leaning and bending tilt the spine, not
+        the hips) and all the way once it moves at WALKING_M_S, at the torso's length from the neck (bending
+        forward lowers it); the spine on the line between them."""
+        joints = upright.copy()
+        if self.feet is None:
+            return joints
+        neck, pelvis_upright = upright[12], upright[0]
+        feet_mid = (self.feet[0].planted + self.feet[1].planted) / 2
+        stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
+        over_feet = feet_mid - stance
+        speed = float(np.linalg.norm(self.velocity[[0, 2]]))
+        follow = TORSO_FOLLOW + (1.0 - TORSO_FOLLOW) * min(
+            speed / WALKING_M_S, 1.0
+        )  # walking: the hips go along
+        pelvis = over_feet + follow * (pelvis_upright - over_feet)
+        torso = float(np.linalg.norm(rest_world[12] - rest_world[0]))
+        lean = (neck - pelvis) * [1.0, 0.0, 1.0]
+        reach = float(np.linalg.norm(lean))
+        if reach > MAX_LEAN * torso:
+            pelvis += lean * (1.0 - MAX_LEAN * torso / reach)
+            lean *= MAX_LEAN * torso / reach
+            reach = MAX_LEAN * torso
+        pelvis[1] = min(neck[1] - math.sqrt(torso**2 - reach**2), pelvis_upright[1] + 0.02)
+        shift = pelvis - pelvis_upright
+        for joint in (0, 1, 2):  # pelvis and hips
+            joints[joint] = upright[joint] + shift
+        for joint in (3, 6, 9):  # the spine between the pelvis and the neck, at its rest heights
+            fraction = (rest_world[joint, 1] - rest_world[0, 1]) / (rest_world[12, 1] - rest_world[0, 1])
+            joints[joint] = pelvis + fraction * (neck - pelvis)
+        for joint in (13, 14, 16, 17, 18, 19, 20, 21):  # collars and arms ride on spine3
+            joints[joint] = upright[joint] + (joints[9] - upright[9])
+        joints[15] = head
+        return joints
 
     def _ideal_feet(self, joints: np.ndarray, body_rot: np.ndarray) -> np.ndarray:
         """(2, 3) where the foot joints would stand: under the hips, a little apart, on the floor."""
