@@ -4,9 +4,9 @@ The baseline every learned model is compared with, and a fallback that never wan
 avatar legs that VR users know):
 
 - the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
-- the neck hangs under the head joint; the pelvis stands over the planted feet and follows the head's sway
-  only by ``TORSO_FOLLOW``, at the torso's length from the neck, so leaning and bending tilt the spine
-  rather than slide the hips; the body's yaw follows the head's, lagging by ``TURN_TIME_S`` (a glance over
+- the neck hangs under the head joint; standing, the pelvis stays over the planted feet (a hip hinge:
+  bending over tilts the spine with straight legs, a squat bends the knees), walking it goes along under
+  the head; the body's yaw follows the head's, lagging by ``TURN_TIME_S`` (a glance over
   the shoulder does not turn the hips);
 - each foot stays planted where it was put. When a foot is more than ``STEP_TRIGGER_M`` (scaled by the
   body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
@@ -47,9 +47,10 @@ TURN_TIME_S: Final = 0.4
 STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
 STEP_TURN_DEG: Final = 35.0
 STEP_S: Final = 0.28
-TORSO_FOLLOW: Final = 0.35  # how much of the head's sway over the feet the pelvis follows
+HIP_BACK: Final = 0.3  # standing, the hips move back by this share of how far the neck leans forward
+STEP_LEAN: Final = 0.5  # standing, the feet step after the head once the neck leans this share of the torso
 WALKING_M_S: Final = 0.5  # from this head speed on, the pelvis follows the head all the way
-MAX_LEAN: Final = 0.8  # the neck at most this fraction of the torso's length ahead of the pelvis
+MAX_LEAN: Final = 0.95  # the neck at most this fraction of the torso's length ahead of the pelvis
 VELOCITY_TIME_S: Final = 0.15  # smoothing of the pelvis's velocity, which steps lead by STEP_S
 STEP_HEIGHT_M: Final = 0.06
 FOOT_SPREAD_M: Final = 0.02  # feet this much wider than the hips
@@ -133,6 +134,8 @@ class ProceduralPipeline:
         self.velocity = np.zeros(3)
         self.last_pelvis: np.ndarray | None = None
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
+        self.standing_pelvis_y = 0.0  # the highest an upright pelvis under the head has been
+        self.support_shift = np.zeros(3)
 
     # The camera is not read.
     def push_rgbd(self, *args, **kwargs) -> bool:
@@ -205,7 +208,12 @@ class ProceduralPipeline:
         self.last_pelvis = upright[0].copy()
         scale = float(np.mean((self.bone_scale if self.fixed_body else self.body.bone_scale)[1:]))
         joints = self._torso(upright, rest_world, tracked[0])
-        self._place_feet(now_s, joints, body_rot, scale)
+        support = upright.copy()  # the hips where the feet belong (see _torso)
+        if self.feet is not None:
+            feet_mid = (self.feet[0].planted + self.feet[1].planted) / 2
+            stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]
+            support[[0, 1, 2]] += ((feet_mid - stance) - upright[0]) * [1.0, 0.0, 1.0] + self.support_shift
+        self._place_feet(now_s, support, body_rot, scale)
         for side, (hip, knee, ankle, foot) in enumerate(LEG_CHAINS):
             foot_pos = self._foot_position(side, now_s)
             ankle_target = foot_pos - body_rot @ (rest[foot] - rest[ankle])
@@ -228,30 +236,35 @@ class ProceduralPipeline:
         return joints, body_rot
 
     def _torso(self, upright: np.ndarray, rest_world: np.ndarray, head: np.ndarray) -> np.ndarray:
-        """The upper body (J, 3): the neck under the head joint, the pelvis over the planted feet, following
-        the head only by TORSO_FOLLOW of the way while the body stands (leaning and bending tilt the spine, not
-        the hips) and all the way once it moves at WALKING_M_S, at the torso's length from the neck (bending
-        forward lowers it); the spine on the line between them."""
+        """The upper body (J, 3). The neck hangs under the head joint. While the body stands, the pelvis stays
+        over the planted feet and moves back by HIP_BACK of the way the neck leans forward (a hip hinge), at
+        most at its standing height and at the torso's length from the neck: bending over tilts the spine with
+        straight legs, a squat (the head going straight down) bends the knees. Walking (from WALKING_M_S) the
+        pelvis goes along under the head. The spine lies on the line from the pelvis to the neck."""
         joints = upright.copy()
+        self.standing_pelvis_y = max(self.standing_pelvis_y, float(upright[0, 1]))
         if self.feet is None:
             return joints
         neck, pelvis_upright = upright[12], upright[0]
+        flat = np.array([1.0, 0.0, 1.0])
         feet_mid = (self.feet[0].planted + self.feet[1].planted) / 2
         stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
-        over_feet = feet_mid - stance
-        speed = float(np.linalg.norm(self.velocity[[0, 2]]))
-        follow = TORSO_FOLLOW + (1.0 - TORSO_FOLLOW) * min(
-            speed / WALKING_M_S, 1.0
-        )  # walking: the hips go along
-        pelvis = over_feet + follow * (pelvis_upright - over_feet)
+        over_feet = (feet_mid - stance) * flat
+        standing = over_feet - HIP_BACK * (neck - over_feet) * flat
+        walking = min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
+        pelvis = standing + walking * (pelvis_upright * flat - standing)
         torso = float(np.linalg.norm(rest_world[12] - rest_world[0]))
-        lean = (neck - pelvis) * [1.0, 0.0, 1.0]
+        # Where the feet should be: under the hips when walking, or once the neck leans so far (more than
+        # STEP_LEAN of the torso's length) that standing there would topple; otherwise where they are.
+        leaning = float(np.linalg.norm((neck - over_feet) * flat)) / torso
+        moving = max(walking, min(max((leaning - STEP_LEAN) / STEP_LEAN, 0.0), 1.0))
+        self.support_shift = moving * (pelvis_upright - over_feet) * flat
+        lean = (neck - pelvis) * flat
         reach = float(np.linalg.norm(lean))
-        if reach > MAX_LEAN * torso:
+        if reach > MAX_LEAN * torso:  # the neck is too far ahead: the pelvis follows it
             pelvis += lean * (1.0 - MAX_LEAN * torso / reach)
-            lean *= MAX_LEAN * torso / reach
             reach = MAX_LEAN * torso
-        pelvis[1] = min(neck[1] - math.sqrt(torso**2 - reach**2), pelvis_upright[1] + 0.02)
+        pelvis[1] = min(neck[1] - math.sqrt(torso**2 - reach**2), self.standing_pelvis_y)
         shift = pelvis - pelvis_upright
         for joint in (0, 1, 2):  # pelvis and hips
             joints[joint] = upright[joint] + shift
