@@ -12,7 +12,7 @@ avatar legs that VR users know):
   body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
   stood, it steps in ``STEP_S`` along a low arc to where its hip will be when the step ends (the pelvis's
   smoothed velocity ahead); one foot at a time;
-- the joints above the feet get the One Euro filter of the network pipeline (planted feet are exact);
+- the joints get the One Euro filter of the network pipeline, except the feet and tracked wrists (exact);
 - knees and elbows by two-bone IK (knees forward, elbows down and back); a wrist goes to its controller, or
   hangs when the controller is lost; crouching bends the knees, never sinks the feet;
 - the served rotations are re-derived from the joints (:func:`.kpo.rederive_rotations`), as for every model.
@@ -164,9 +164,10 @@ class ProceduralPipeline:
         dt_s = 0.0 if self.last_t_us is None else max(t_us - self.last_t_us, 0) * 1e-6
         self.last_t_us = t_us
         joints, body_rot = self._solve(t_us * 1e-6, dt_s, tracked, valid)
-        feet = joints[FEET_AND_ANKLES].copy()
+        exact = FEET_AND_ANKLES + [20 + k for k in range(2) if valid[k + 1]]  # planted feet, tracked wrists
+        kept = joints[exact].copy()
         joints = self.position_filter(t_us, joints)
-        joints[FEET_AND_ANKLES] = feet
+        joints[exact] = kept
         local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
         local[0] = body_rot
         glob = forward_kinematics(local, np.zeros(3), self.offsets)[1]
