@@ -51,6 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--soak-growth-mib", type=float, default=64.0, metavar="MIB", help="allowed growth after warm-up (64)"
     )
+    parser.add_argument(
+        "--providers",
+        default="cpu",
+        help="onnxruntime execution providers for the server it starts and --flat-out",
+    )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT")
     parser.add_argument("--plot", type=Path, default=None, metavar="OUT.png", help="needs matplotlib")
 
@@ -132,9 +137,15 @@ def run(args: argparse.Namespace) -> int:
         return run_soak(args)
     from ..clients.bench import Load, flat_out_fps, measure, plot, serving, sweep
     from ..clients.replay import Recording
+    from ..model.runtime.loading import ProviderError, resolve_providers
     from ..model.weights import model_files
     from ..recordings import bundled
 
+    try:
+        providers = resolve_providers(args.providers)
+    except ProviderError as error:
+        print(f"egoposevr bench: {error}", file=sys.stderr)
+        return 2
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     files = model_files()
     if args.flat_out and (missing := [m for m in models if m not in files]):
@@ -148,13 +159,13 @@ def run(args: argparse.Namespace) -> int:
     )
     results: dict[str, dict] = {}
     try:
-        with serving(args.url) as (url, pid):
+        with serving(args.url, "--providers", args.providers) as (url, pid):
             for model in models:
                 results[model] = measure(url, pid, load, model, tag=f"bench-{model}")
                 if args.sweep:
                     results[model]["sweep"] = sweep(url, pid, load, model, args.max_sessions)
         if args.naive:
-            with serving(None, "--naive") as (url, pid):
+            with serving(None, "--naive", "--providers", args.providers) as (url, pid):
                 for model in models:
                     naive = measure(url, pid, load, model, tag=f"naive-{model}")
                     results[f"{model} (naive)"] = naive
@@ -169,7 +180,8 @@ def run(args: argparse.Namespace) -> int:
         recording = Recording.load(load.recordings[0])
         for name in list(results):
             model = name.removesuffix(" (naive)")
-            results[name]["fps"] = flat_out_fps(files[model], recording, naive=name.endswith("(naive)"))
+            naive = name.endswith("(naive)")
+            results[name]["fps"] = flat_out_fps(files[model], recording, naive=naive, providers=providers)
     for r in results.values():
         r.setdefault("fps", None)
     print_tables(results)

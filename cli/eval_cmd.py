@@ -36,12 +36,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also each visual encoder's 3D keypoint error on visible joints",
     )
+    parser.add_argument(
+        "--providers",
+        default="cpu",
+        help="onnxruntime execution providers, most preferred first (as serve's)",
+    )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT")
     parser.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..model.runtime.loading import ModelError
+    from ..model.runtime.loading import ModelError, ProviderError, resolve_providers
     from ..model.runtime.procedural import NAME as PROCEDURAL
     from ..model.training.dataset import DatasetError
     from ..model.training.evaluate import (
@@ -54,6 +59,11 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..model.weights import WEIGHTS_DIR, model_files
 
+    try:
+        providers = resolve_providers(args.providers)
+    except ProviderError as error:
+        print(f"egoposevr eval: {error}", file=sys.stderr)
+        return 2
     available = {PROCEDURAL: None} | model_files(args.models_dir or WEIGHTS_DIR)  # the baseline has no file
     wanted = list(available) if args.models in ("", "all") else [m.strip() for m in args.models.split(",")]
     missing = [m for m in wanted if m not in available]
@@ -70,7 +80,15 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         chosen = {m: available[m] for m in wanted}
-        results = evaluate(args.data, args.split, chosen, args.limit, progress, by_category=args.by_category)
+        results = evaluate(
+            args.data,
+            args.split,
+            chosen,
+            args.limit,
+            progress,
+            by_category=args.by_category,
+            providers=providers,
+        )
         keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
     except (DatasetError, ModelError) as error:
         print(f"egoposevr eval: {error}", file=sys.stderr)

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..model.inputs import decode_rgbd
-from ..model.runtime.loading import LoadedModel
+from ..model.runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..model.runtime.pipeline import Pipeline
 from .replay import Recording, Replayer, ReplayStats
 
@@ -151,13 +151,18 @@ def sweep(url: str, pid: int | None, load: Load, model: str, max_sessions: int =
 
 
 def flat_out_fps(
-    model_path: Path, recording: Recording, samples: int = 300, repeats: int = 3, naive: bool = False
+    model_path: Path,
+    recording: Recording,
+    samples: int = 300,
+    repeats: int = 3,
+    naive: bool = False,
+    providers: tuple[str, ...] = DEFAULT_PROVIDERS,
 ) -> float:
     """The paper's FPS: one stream, batch 1, a NEW RGB-D frame before every headset sample (image decode and
     visual encoder included), as fast as it goes, in-process. Median over ``repeats``."""
     hmd = [m for _, m, _ in recording.messages if m.type == "hmd"]
     frames = [m for _, m, _ in recording.messages if m.type == "rgbd"]
-    pipeline = Pipeline(LoadedModel.load(model_path), naive=naive)
+    pipeline = Pipeline(LoadedModel.load(model_path, providers=providers), naive=naive)
     rates = []
     for _ in range(repeats):
         pipeline.reset()

@@ -209,6 +209,9 @@ class Welcome(Message):
     server: Text  # "egoposevr/<version>"
     model: Name
     models: Annotated[list[Name], Len(0, 256)]
+    provider: Text | None = (
+        None  # the onnxruntime execution provider running the active model ("none": no net)
+    )
 
 
 class Pose(Message):

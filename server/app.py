@@ -36,7 +36,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from ..model.runtime.loading import LoadedModel
+from ..model.runtime.loading import LoadedModel, resolve_providers
 from ..protocol import Error, ErrorCode
 from .config import ConfigError, ServerConfig
 from .hub import CLOSE_NORMAL, Client, Hub
@@ -72,7 +72,9 @@ class Server:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
         self.metrics = Metrics()
-        self.registry = ModelRegistry(config.models_dir, config.bundled_models, config.ort_threads)
+        self.registry = ModelRegistry(
+            config.models_dir, config.bundled_models, config.ort_threads, resolve_providers(config.providers)
+        )
         self.recorder = (
             Recorder(config.record, server_name(), on_failure=self.metrics.recordings_failed.inc)
             if config.record
@@ -192,6 +194,8 @@ class Server:
     async def _rescan(self) -> None:
         await asyncio.get_running_loop().run_in_executor(self._loader, self.registry.rescan)
         self.metrics.models_loaded.set(len(self.registry.models))
+        for provider in self.registry.active_providers():
+            self.metrics.execution_provider.labels(provider).set(1)
         self.metrics.model_failures.set(len(self.registry.failures))
 
     async def _rescan_forever(self) -> None:

@@ -50,6 +50,11 @@ class ServerConfig(BaseSettings):
     rescan_s: float = Field(2.0, ge=0, description="models_dir rescan period; 0 = only at startup")
     workers: int = Field(max(os.cpu_count() or 2, 1), ge=1, le=64, description="inference threads")
     ort_threads: int = Field(1, ge=1, le=64, description="onnxruntime threads per model")
+    providers: str = Field(
+        "cpu",
+        description="onnxruntime execution providers, most preferred first (cpu, cuda, tensorrt, openvino, "
+        "...); one that is not installed is an error unless a later one is listed to fall back to: cuda,cpu",
+    )
     max_message_bytes: int = Field(DEFAULT_MAX_MESSAGE_BYTES, ge=1024, description="largest message accepted")
     max_sessions: int = Field(16, ge=1, description="sessions at once; more get server_full")
     max_renders_per_session: int = Field(32, ge=0, description="render clients per session")
@@ -108,6 +113,17 @@ class ServerConfig(BaseSettings):
                 f"ssl_certfile/ssl_keyfile: cannot load the certificate and key ({exc})"
             ) from None
         return context
+
+    @field_validator("providers")
+    @classmethod
+    def _known_providers(cls, value: str) -> str:
+        from ..model.runtime.loading import ProviderError, resolve_providers
+
+        try:
+            resolve_providers(value)
+        except ProviderError as exc:
+            raise ValueError(str(exc)) from None
+        return value
 
     @field_validator("origins", mode="before")
     @classmethod

@@ -307,6 +307,7 @@ class Hub:
             server=self.server_name,
             model=session.model_name,
             models=self.registry.names(),
+            provider=getattr(self.registry.get(session.model_name), "provider", None),
         )
         client.outbox.put_control(encode(welcome))
         if requested is not None and self.registry.get(requested) is None:

@@ -55,6 +55,10 @@ class Metrics:
             registry=r,
         )
         self.models_loaded = Gauge("egoposevr_models_loaded", "Models servable now", registry=r)
+        self.execution_provider = Gauge(
+            "egoposevr_execution_provider", "1 for each onnxruntime execution provider models run on",
+            ["provider"], registry=r,
+        )  # fmt: skip
         self.model_failures = Gauge("egoposevr_model_failures", "Model files that failed to load", registry=r)
         self.stage_seconds = Histogram(
             "egoposevr_stage_seconds", "Server time per pose by stage", ["stage"], buckets=STAGE_BUCKETS_S,

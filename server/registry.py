@@ -17,7 +17,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from ..model.runtime.loading import LoadedModel, ModelError
+from ..model.runtime.loading import DEFAULT_PROVIDERS, LoadedModel, ModelError
 from ..model.runtime.procedural import NAME as PROCEDURAL
 from ..model.runtime.procedural import ProceduralModel
 from ..model.weights import WEIGHTS_DIR, model_files
@@ -43,8 +43,15 @@ def _stamp(path: Path) -> _Stamp:
 class ModelRegistry:
     """{name: LoadedModel} for every servable model; ``failures`` {path: reason} for files that would not load."""
 
-    def __init__(self, models_dir: Path | None = None, bundled: bool = True, ort_threads: int = 1) -> None:
+    def __init__(
+        self,
+        models_dir: Path | None = None,
+        bundled: bool = True,
+        ort_threads: int = 1,
+        providers: tuple[str, ...] = DEFAULT_PROVIDERS,
+    ) -> None:
         self.models_dir, self.bundled, self.ort_threads = models_dir, bundled, ort_threads
+        self.providers = providers
         # The procedural baseline has no file: it is always there, first, unless a file takes its name.
         self._builtin: dict[str, Any] = {PROCEDURAL: ProceduralModel()}
         self.models: dict[str, LoadedModel] = dict(self._builtin)
@@ -56,6 +63,10 @@ class ModelRegistry:
 
     def names(self) -> list[str]:
         return list(self.models)
+
+    def active_providers(self) -> set[str]:
+        """The execution providers the loaded models run on."""
+        return {m.provider for m in self.models.values()} - {"none"}
 
     def file_names(self) -> list[str]:
         """The models loaded from files (the built-in procedural baseline not counted)."""
@@ -117,7 +128,9 @@ class ModelRegistry:
 
     def _load(self, name: str, stamp: _Stamp, models: dict[str, LoadedModel]) -> str:
         try:
-            model = LoadedModel.load(stamp.path, threads=self.ort_threads, shared=self._shared)
+            model = LoadedModel.load(
+                stamp.path, threads=self.ort_threads, shared=self._shared, providers=self.providers
+            )
         except (ModelError, OSError) as exc:
             self._failed[stamp.path], self.failures[stamp.path] = stamp, str(exc)
             models.pop(name, None)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import onnxruntime as ort
@@ -22,6 +22,54 @@ RGBD_CHANNELS = 4  # RGB + depth: the encoder input that measures bone lengths
 
 class ModelError(Exception):
     """A model file that cannot be served: unreadable, not an EgoPoseVR graph, or missing its encoder."""
+
+
+class ProviderError(ValueError):
+    """Execution providers asked for that this onnxruntime cannot give (and no allowed fallback can)."""
+
+
+# Short names people type -> onnxruntime's execution provider names (full names are accepted as well).
+PROVIDER_NAMES: Final = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "rocm": "ROCMExecutionProvider",
+    "migraphx": "MIGraphXExecutionProvider",
+    "directml": "DmlExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+}
+DEFAULT_PROVIDERS: Final = ("CPUExecutionProvider",)
+
+
+def resolve_providers(spec: str, available: list[str] | None = None) -> tuple[str, ...]:
+    """A comma-separated preference (``"cuda,cpu"``) -> onnxruntime provider names, most preferred first.
+
+    Every name must be one onnxruntime knows. Those this installation lacks are dropped only when a later one
+    in the list is installed: listing ``cpu`` after ``cuda`` is what allows falling back to it. Raises
+    ProviderError naming what is missing and what is installed."""
+    available = ort.get_available_providers() if available is None else available
+    wanted = [part.strip() for part in spec.split(",") if part.strip()]
+    if not wanted:
+        raise ProviderError("no execution provider given (e.g. cpu, or cuda,cpu)")
+    names = []
+    for part in wanted:
+        name = PROVIDER_NAMES.get(part.lower(), part)
+        if name not in PROVIDER_NAMES.values() and not name.endswith("ExecutionProvider"):
+            known = ", ".join(PROVIDER_NAMES)
+            raise ProviderError(
+                f"unknown execution provider {part!r}; known: {known} (or onnxruntime's names)"
+            )
+        names.append(name)
+    usable = [n for n in names if n in available]
+    if not usable or names[-1] not in available:
+        missing = [n for n in names if n not in available]
+        raise ProviderError(
+            f"execution provider {', '.join(missing)} is not available in this onnxruntime (it has "
+            f"{', '.join(available)}); install the matching onnxruntime package (onnxruntime-gpu for CUDA and "
+            "TensorRT, onnxruntime-openvino for OpenVINO), or list a provider to fall back to last, e.g. cuda,cpu"
+        )
+    return tuple(usable)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,13 +122,15 @@ def _properties(session: ort.InferenceSession) -> dict[str, str]:
     return {k.removeprefix("egoposevr."): v for k, v in meta.items() if k.startswith("egoposevr.")}
 
 
-def _session(path: Path, threads: int) -> ort.InferenceSession:
+def _session(
+    path: Path, threads: int, providers: tuple[str, ...] = DEFAULT_PROVIDERS
+) -> ort.InferenceSession:
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # do not burn idle cores
     try:
-        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), options, providers=list(providers))
     except Exception as exc:  # onnxruntime raises its own exception types for bad files
         raise ModelError(f"{path}: cannot load ({exc})") from exc
 
@@ -102,10 +152,18 @@ class LoadedModel:
         self.info, self.fusion, self.visual = info, fusion, visual
 
     @classmethod
-    def load(cls, path: str | Path, threads: int = 1, shared: dict[Path, Any] | None = None) -> LoadedModel:
+    def load(
+        cls,
+        path: str | Path,
+        threads: int = 1,
+        shared: dict[Path, Any] | None = None,
+        providers: tuple[str, ...] = DEFAULT_PROVIDERS,
+    ) -> LoadedModel:
+        """Load a model file (and its encoder, shared through ``shared``) on the given onnxruntime execution
+        providers (:func:`resolve_providers`)."""
         path = Path(path)
         kernels.warm_up()  # compiled (or loaded from numba's cache) before the first pose, not during it
-        fusion = _session(path, threads)
+        fusion = _session(path, threads, providers)
         metadata = _metadata(path, fusion, ModelMetadata, "model")
         visual_path = path.parent / metadata.visual_encoder if metadata.visual_encoder else None
         visual, encoder, regressor = None, None, None
@@ -114,7 +172,7 @@ class LoadedModel:
             if visual_path not in shared:
                 if not visual_path.exists():
                     raise ModelError(f"{path}: its visual encoder {visual_path.name} is missing")
-                shared[visual_path] = _session(visual_path, threads)
+                shared[visual_path] = _session(visual_path, threads, providers)
             visual = shared[visual_path]
             encoder = _metadata(visual_path, visual, EncoderMetadata, "visual")
             try:
@@ -123,6 +181,11 @@ class LoadedModel:
                 raise ModelError(f"{path}: {exc}") from exc
         info = ModelInfo(path, metadata, visual_path, encoder, regressor)
         return cls(info, fusion, visual)
+
+    @property
+    def provider(self) -> str:
+        """The execution provider that runs the fusion net (the first onnxruntime actually gave it)."""
+        return self.fusion.get_providers()[0]
 
     @property
     def measures_body(self) -> bool:

@@ -63,6 +63,7 @@ class ProceduralModel:
     """The servable face of the procedural baseline: what the registry lists and sessions select."""
 
     visual = None
+    provider = "none"  # runs no network
 
     def __init__(self) -> None:
         metadata = ModelMetadata(

@@ -27,7 +27,7 @@ import numpy as np
 from ..inputs import decode_rgbd
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
 from ..runtime.frames import encode_frame
-from ..runtime.loading import LoadedModel
+from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import LOWER_BODY, UPPER_BODY
@@ -171,6 +171,7 @@ def evaluate(
     limit: int | None = None,
     on_sequence: Callable[[str, int, int], None] | None = None,
     by_category: bool = False,
+    providers: tuple[str, ...] = DEFAULT_PROVIDERS,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
     baseline); with ``by_category``,
@@ -180,7 +181,10 @@ def evaluate(
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
     for name, path in models.items():
-        pipeline = pipeline_for(ProceduralModel() if path is None else LoadedModel.load(path, shared=shared))
+        model = (
+            ProceduralModel() if path is None else LoadedModel.load(path, shared=shared, providers=providers)
+        )
+        pipeline = pipeline_for(model)
         errors = []
         for i, seq in enumerate(seqs):
             errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))

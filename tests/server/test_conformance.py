@@ -721,3 +721,12 @@ def test_the_python_clients_ignore_a_message_type_they_do_not_know(tmp_path):
     assert code == 0
     result = json.loads(report.read_text())
     assert result["answered"] > 100 and not result["errors"]
+
+
+@pytest.mark.protocol("welcome-provider")
+def test_welcome_names_the_execution_provider_of_the_active_model(server):
+    with Client(server.url, "providers") as client:
+        welcome = client.hello("input", "providers", model="hmd")
+        assert welcome.provider == "CPUExecutionProvider" and "procedural" in welcome.models
+    with Client(server.url, "providers-2") as client:
+        assert client.hello("input", "providers-2", model="procedural").provider == "none"
