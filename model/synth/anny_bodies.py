@@ -1,7 +1,7 @@
 """Body banks from ``anny`` (NAVER's parametric body model, Apache-2.0, built on MakeHuman's CC0 assets): torch
 and anny, so only ``egoposevr synth bodies`` imports this module; rendering reads the saved bank.
 
-Each body is a random adult (anny's phenotype: gender, age 19-80 years, muscle, weight, height,
+Each body is a random adult (anny's phenotype: gender, age about 20-80 years, muscle, weight, height,
 proportions, all recorded), standing in anny's rest pose. Its SMPL-22 joints are anny bone heads (the table
 below), its skinning collapses anny's 104 bones onto the 22 joints, and each triangle gets a region from
 anny's body-part segmentation (head, hands, feet) and from the joint that moves it (the rest).
