@@ -160,7 +160,7 @@ def random_sensor(rng: np.random.Generator, pool: RigPool) -> SensorNoise:
         edge_hole_prob=float(rng.uniform(0.2, 0.7)),
         flying_pixel_prob=float(rng.uniform(0.05, 0.3)),
         dropout_prob=float(rng.uniform(0.001, 0.01)),
-        dark_albedo=float(rng.uniform(0.04, 0.12)),
+        dark_albedo=float(rng.uniform(0.01, 0.04)),  # near-black only: shaded renders are darker than albedo
         ir_baseline_m=float(rng.uniform(0.03, 0.06)) if rng.random() < pool.ir_shadow_p else 0.0,
         rgb_sigma=float(rng.uniform(1.0, 5.0)),
         vignetting=float(rng.uniform(0.1, 0.4)),
