@@ -30,7 +30,7 @@ def realistic_pose() -> Pose:
         seq=123456, t_us=987654321, model="egoposevr",
         global_orient=rng.normal(size=3).tolist(), body_pose=(rng.normal(size=63) * 0.3).tolist(),
         transl=rng.normal(size=3).tolist(), joints=rng.normal(size=66).tolist(),
-        timing_us={"features": 41, "visual": 2100, "fusion": 900, "fk": 30, "filter": 12, "kpo": 260, "total": 3400},
+        timing_us={"features": 41, "visual": 2100, "fusion": 900, "fk_filter": 42, "kpo": 260, "total": 3400},
     )  # fmt: skip
 
 

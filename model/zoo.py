@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Final
 
-DEFAULT_MODEL: Final = "egoposevr"
-
 
 @dataclasses.dataclass(frozen=True)
 class ZooEntry:
@@ -44,8 +42,6 @@ ZOO: Final = {
         ZooEntry("hmd-rgbd-concat", "ablation: fusion by concatenation", "rgbd", {"fusion": "concat"}),
     )
 }
-TRAINED_FUSIONS: Final = tuple(name for name, e in ZOO.items() if e.trained_as is None)
-VISUAL_KINDS: Final = ("rgb", "rgbd")
 
 
 def resolve(names: str) -> list[str]:

@@ -110,7 +110,7 @@ def example_messages() -> dict[str, Message]:
             body_pose=body_pose,
             transl=[0.0, 0.875, 0.0],
             joints=joints,
-            timing_us={"features": 40, "fusion": 900, "fk": 30, "kpo": 250, "total": 1300},
+            timing_us={"features": 40, "fusion": 900, "fk_filter": 30, "kpo": 250, "total": 1300},
         ),
         "models": Models(
             active="egoposevr",

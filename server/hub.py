@@ -54,7 +54,6 @@ CLOSE_CODES = {
     ErrorCode.SHUTTING_DOWN: CLOSE_GOING_AWAY,
 }
 RATE_ERROR_INTERVAL_NS = 1_000_000_000  # one rate_limited reply per second per client; all drops counted
-SERVER_MESSAGE_TYPES = frozenset({"welcome", "pose", "models", "error", "pong"})
 
 
 @dataclasses.dataclass(eq=False)

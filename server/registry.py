@@ -6,8 +6,9 @@ is reloaded; a removed one disappears from the list (sessions that use it keep t
 switch). Files in the models directory win over bundled ones of the same name. Visual encoders are shared
 between the models that use them.
 
-Loading is blocking work (onnxruntime builds its graphs); the app runs ``rescan`` in a worker thread and swaps
-the result in on the event loop, so readers never see a half-updated registry.
+Loading is blocking work (onnxruntime builds its graphs), so the app runs ``rescan`` in a worker thread. A
+rescan builds a new ``models`` dict and swaps it in with one assignment: readers on the event loop see the old
+registry or the new one, never a half-updated one.
 """
 
 from __future__ import annotations

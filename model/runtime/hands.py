@@ -1,12 +1,9 @@
 """What the served wrist does when its controller is lost (it reports its last pose with ``valid = False``).
 
 KPO holds the wrist at the network's position plus the correction tracking last gave it, fading with
-``LOST_HAND_FADE_S``, for ``LOST_HAND_HOLD_S``; then the wrist is free like any untracked joint. The network
-alone is 6-8 cm off at the moment of loss (the avatar's hand jumped that far); on the validation split, with
-the controllers lost 16-20 % of the time, the lost wrists' error in their first 0.1 s falls 8.0 -> 5.5 cm and
-upper-body MPJPE 2.49 -> 2.46 cm (with the single-map body regressor of the time; fade 0.25 s: 2.46, 1 s:
-2.47). A frozen wrist or one held in the head's frame does worse than the network after 0.1-0.25 s; the
-camera's wrist keypoints are 11 cm off when lost.
+``LOST_HAND_FADE_S``, for ``LOST_HAND_HOLD_S``; then the wrist is free like any untracked joint. Without it
+the served hand jumps where the network alone puts it at the moment of loss. MODEL_CARD.md ("Lost
+controllers") has the measurements that chose the policy and its constants.
 
 Shape legend: ``J`` = 22 joints; devices 0 head, 1 left controller, 2 right controller.
 """

@@ -190,9 +190,8 @@ class LoadedModel:
     @property
     def measures_body(self) -> bool:
         """Whether its visual encoder sees depth, so that its keypoints measure bone lengths (body.py).
-        RGB-only keypoints guess their depth: a body regressor fitted on visual-rgb's lengths made validation
-        worse (hmd-rgb upper body 3.70 -> 4.68 cm, lower 9.61 -> 11.74 cm) although its summed bone error
-        was lower (34 against 41 cm), so RGB models keep the height-scaled body."""
+        RGB-only keypoints guess their depth, so RGB models keep the height-scaled body (MODEL_CARD.md, the
+        body regressor, has the measurement)."""
         vc = self.info.visual_config
         return self.visual is not None and vc is not None and vc.channels == RGBD_CHANNELS
 

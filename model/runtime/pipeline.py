@@ -155,9 +155,7 @@ class Pipeline:
 
     def _measure_body(self, kp_cam: np.ndarray, confidence: np.ndarray) -> None:
         """Bone lengths from a new frame's keypoints where Alg. 1 keeps both ends (body.py), through the
-        encoder's body regressor when it has one. Only with a depth channel: RGB-only keypoints guess their
-        depth; raw lengths from them made hmd-rgb's lower-body MPJPE worse (9.61 -> 9.81 cm), and so did a
-        regressor fitted on them (LoadedModel.measures_body)."""
+        encoder's body regressor when it has one. Only with a depth channel (LoadedModel.measures_body)."""
         if self.fixed_body or not self.model.measures_body:
             return
         if self.body.push_visual(kp_cam, confidence > 0.0):
