@@ -246,9 +246,10 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny
         str(out),
         "--no-progress",
     ]
-    assert main([*args, "--models", "hmd,hmd-rgb,egoposevr", "--by-category", "--keypoints"]) == 0
+    assert main([*args, "--models", "procedural,hmd,hmd-rgb,egoposevr", "--by-category", "--keypoints"]) == 0
     text = capsys.readouterr().out
     assert "| category (sequences) |" in text and "| visual-rgbd |" in text and "| visual-rgb |" in text
+    assert "| procedural |" in text  # the baseline, evaluated like the others
     report = json.loads(out.read_text())
     assert set(report["keypoints"]) == {"visual-rgb", "visual-rgbd"}
     assert all(k["joints"] > 0 and 0 <= k["median_cm"] <= k["p90_cm"] for k in report["keypoints"].values())
