@@ -179,6 +179,26 @@ def flat_out_fps(
     return statistics.median(rates)
 
 
+def visual_ms(
+    model_path: Path, recording: Recording, naive: bool, providers: tuple[str, ...] = DEFAULT_PROVIDERS
+) -> float:
+    """Mean visual-stage time per pose (ms) over a recording replayed in arrival order, in-process: the
+    incremental keypoint cache, or with ``naive`` the paper's baseline that re-encodes the whole window for
+    every request. The baseline lives here, not in the server."""
+    pipeline = Pipeline(LoadedModel.load(model_path, providers=providers), naive=naive)
+    if pipeline.model.visual is None:
+        return 0.0
+    spent = []
+    for _, message, _ in recording.messages:
+        if message.type == "rgbd":
+            rgb, depth = decode_rgbd(message.rgb, message.depth)
+            pipeline.push_rgbd(message.t_us, rgb, depth, np.asarray(message.intrinsics))
+        elif message.type == "hmd":
+            pose = pipeline.push_hmd(message.t_us, np.asarray(message.poses()), np.asarray(message.valid))
+            spent.append(pose.timing_us.get("visual", 0) * 1e-3)
+    return float(np.mean(spent)) if spent else 0.0
+
+
 def plot(results: dict[str, dict[str, Any]], path: Path) -> None:
     """Latency distribution (CDF per model) and the median stage times (stacked bars)."""
     import matplotlib

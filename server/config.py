@@ -81,9 +81,6 @@ class ServerConfig(BaseSettings):
     ping_interval_s: float = Field(20.0, gt=0, description="WebSocket keep-alive ping period")
     ping_timeout_s: float = Field(20.0, gt=0, description="close a connection whose pong is this late")
     shutdown_timeout_s: float = Field(5.0, gt=0, description="bound on a graceful stop")
-    naive: bool = Field(
-        False, description="re-encode every frame of the visual window per request (benchmark baseline)"
-    )
     frame_lane: bool = Field(
         True,
         description="decode + encode camera frames on a low-priority thread beside the headset jobs "

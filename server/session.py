@@ -14,8 +14,8 @@ takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_re
 visual encoder, stateless) on the app's low-priority lane thread, beside the session's headset jobs; the
 result comes back through :meth:`Session.offer_encoded`, and the next headset job adds it to the pipeline's
 cache (:meth:`Pipeline.add_frame`, in capture order) before answering. One frame is in the lane per session
-at a time; frames arriving meanwhile replace each other (counted). Without the lane (the naive baseline,
-whose re-encoding is the point of its measurement), a job decodes and encodes its frame before its samples.
+at a time; frames arriving meanwhile replace each other (counted). Without the lane (``--no-frame-lane``), a
+job decodes and encodes its frames before its samples.
 """
 
 from __future__ import annotations
@@ -107,7 +107,6 @@ class Session:
         model_name: str,
         model: LoadedModel,
         rate: TokenBucket,
-        naive: bool = False,
         frame_lane: bool = False,
     ) -> None:
         self.id = session_id
@@ -117,7 +116,7 @@ class Session:
         self.renders: list[Any] = []
         self.pending: deque[Received] = deque()
         self.frame: Received | None = None
-        self.frame_lane = frame_lane and not naive
+        self.frame_lane = frame_lane
         self._model = model  # the model the next job runs (a pending switch's), for the lane's encoder
         self._encoding = False  # a frame is in the lane
         self._encoded: deque[FrameResult] = deque(maxlen=MAX_ENCODED_FRAMES)
@@ -126,8 +125,7 @@ class Session:
         self.replaced_frames = 0
         self._next_model: tuple[str, LoadedModel] | None = None
         self._reset = False
-        self.naive = naive  # the benchmark's baseline: re-encode the whole visual window per request
-        self._pipeline = pipeline_for(model, naive=naive)  # run() only
+        self._pipeline = pipeline_for(model)  # run() only
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
 
@@ -227,7 +225,7 @@ class Session:
         result = RunResult()
         if job.model is not None:
             self._pipeline_model_name, model = job.model
-            self._pipeline = pipeline_for(model, naive=self.naive)
+            self._pipeline = pipeline_for(model)
         elif job.reset:
             self._pipeline.reset()
         image_us = (
