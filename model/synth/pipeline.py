@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import io
 import json
-import zipfile
 from pathlib import Path
 from typing import Any, Final
 
@@ -25,6 +23,7 @@ from ...recordings.egrec import EgrecWriter
 from ..rotations import matrix_to_quat_xyzw
 from ..skeleton import PARENTS, forward_kinematics, local_rot_to_smpl
 from ..training.dataset import iter_shard_sequences, load_shard  # noqa: F401  (re-exported: the format's readers)
+from .archive import write_npz
 from .bodies import BodyBank, fit_motion_to_body, pose_vertices
 from .headset import CameraModel, HeadsetRig, HeadsetTrack, device_poses, simulate_headset
 from .motion import Motion, sample_at
@@ -246,20 +245,6 @@ def renderer_for(camera: CameraModel) -> Renderer:
 
 
 # ------------------------------------------------------------------------------------------ datasets
-def _zip_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Like ``np.savez_compressed`` but with fixed zip timestamps, so equal arrays give equal bytes."""
-    tmp = path.with_suffix(".tmp")
-    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as archive:
-        for key, value in arrays.items():
-            buffer = io.BytesIO()
-            np.lib.format.write_array(buffer, np.ascontiguousarray(value), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            # JPEG and PNG bytes are compressed already; deflating them again costs time and saves nothing.
-            info.compress_type = zipfile.ZIP_STORED if value.dtype == np.uint8 else zipfile.ZIP_DEFLATED
-            archive.writestr(info, buffer.getvalue())
-    tmp.replace(path)
-
-
 def _blob(chunks: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
     offsets = np.zeros(len(chunks) + 1, dtype=np.int64)
     offsets[1:] = np.cumsum([len(c) for c in chunks])
@@ -331,7 +316,7 @@ class DatasetWriter:
         if not self._pending:
             return
         name = f"shard-{len(self.shards):05d}.npz"
-        _zip_npz(self.split_dir / name, sequence_arrays(self._pending))
+        write_npz(self.split_dir / name, sequence_arrays(self._pending))
         self.shards.append(name)
         self._pending = []
 
