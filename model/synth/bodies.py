@@ -21,7 +21,6 @@ Shape legend: ``B`` bodies, ``V`` vertices, ``F`` triangles, ``J`` = 22 joints, 
 from __future__ import annotations
 
 import dataclasses
-import io
 import zipfile
 from pathlib import Path
 from typing import Final
@@ -30,6 +29,8 @@ import numpy as np
 from numba import njit, prange
 
 from ..skeleton import NUM_JOINTS, PARENTS, REST_JOINTS_M, rest_offsets
+from .archive import write_npz
+from .bvh import best_rotations, smallest_rotations
 from .motion import ANKLE_JOINT_HEIGHT_M, Motion, ground
 
 SKIN_SLOTS: Final = 4
@@ -109,22 +110,14 @@ class BodyBank:
         return float(self.rest_vertices[body, :, 1].max() - self.rest_vertices[body, :, 1].min())
 
     def save(self, path: str | Path) -> Path:
-        """Write as an uncompressed-header ``.npz`` (fixed timestamps: equal banks give equal bytes)."""
+        """Write as ``.npz`` (archive.write_npz: equal banks give equal bytes)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         arrays["phenotype_names"] = np.array(self.phenotype_names)
         arrays["source"] = np.array(self.source)
         arrays["format"] = np.array(BANK_FORMAT)
-        tmp = path.with_suffix(".tmp")
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as archive:
-            for key, value in arrays.items():
-                buffer = io.BytesIO()
-                np.lib.format.write_array(buffer, np.asarray(value), allow_pickle=False)  # 0-d stays 0-d
-                archive.writestr(
-                    zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0)), buffer.getvalue()
-                )
-        tmp.replace(path)
+        write_npz(path, arrays)
         return path
 
     @classmethod
@@ -165,37 +158,17 @@ def body_bone_scale(rest_joints: np.ndarray) -> np.ndarray:
     return np.concatenate([[1.0], have / smpl])
 
 
-def smallest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation turning direction a (3,) onto direction b (3,)."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis, cos = np.cross(a, b), float(a @ b)
-    sin = np.linalg.norm(axis)
-    if sin < 1e-12:
-        if cos > 0:
-            return np.eye(3)
-        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        axis, sin = perp / np.linalg.norm(perp), 0.0
-    else:
-        axis = axis / sin
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + sin * k + (1 - cos) * (k @ k)
-
-
-def best_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) the rotation R minimising sum |R a_k - b_k|² over direction sets a, b (K, 3) (Kabsch)."""
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(u @ vt))
-    return (u @ np.diag([1.0, 1.0, d]) @ vt).T
-
-
 # Which children set each joint's rest alignment: one child -> the smallest rotation onto SMPL's bone, several
 # -> the best rotation for all of them; None -> the parent's alignment (leaves whose direction is unknown).
 ALIGN_CHILDREN: Final = {
     0: (1, 2, 3), 1: (4,), 2: (5,), 3: (6,), 4: (7,), 5: (8,), 6: (9,), 7: (10,), 8: (11,), 9: (12, 13, 14),
     10: None, 11: None, 12: (15,), 13: (16,), 14: (17,), 15: None, 16: (18,), 17: (19,), 18: (20,), 19: (21,),
 }  # fmt: skip
+
+
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    """Directions (K, 3): every child bone weighs the same in the best rotation, whatever its length."""
+    return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
 
 
 def rest_alignment(rest_joints: np.ndarray, hand_dirs: np.ndarray | None = None) -> np.ndarray:
@@ -212,15 +185,19 @@ def rest_alignment(rest_joints: np.ndarray, hand_dirs: np.ndarray | None = None)
                 align[j] = align[PARENTS[j]]
                 continue
             forearm = smpl[j] - smpl[PARENTS[j]]
-            align[j] = smallest_rotation(hand_dirs[j - 20], forearm)
+            align[j] = smallest_rotations(hand_dirs[j - 20][None], forearm[None])[0]
         elif children is None:
             align[j] = align[PARENTS[j]]
         elif len(children) == 1:
             c = children[0]
-            align[j] = smallest_rotation(rest_joints[c] - rest_joints[j], smpl[c] - smpl[j])
+            align[j] = smallest_rotations((rest_joints[c] - rest_joints[j])[None], (smpl[c] - smpl[j])[None])[
+                0
+            ]
         else:
             c = list(children)
-            align[j] = best_rotation(rest_joints[c] - rest_joints[j], smpl[c] - smpl[j])
+            align[j] = best_rotations(
+                _unit(rest_joints[c] - rest_joints[j])[None], _unit(smpl[c] - smpl[j])[None]
+            )[0]
     return align
 
 

@@ -317,8 +317,9 @@ def bvh_fk(clip: BvhClip) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ------------------------------------------------------------------------------------------ retargeting
-def _align(vectors_from: np.ndarray, vectors_to: np.ndarray) -> np.ndarray:
-    """Smallest rotations (F, 3, 3) turning directions (F, 3) onto directions (F, 3)."""
+def smallest_rotations(vectors_from: np.ndarray, vectors_to: np.ndarray) -> np.ndarray:
+    """Smallest rotations (F, 3, 3) turning directions (F, 3) onto directions (F, 3); opposite directions
+    get a half turn about an axis perpendicular to them."""
     a = vectors_from / np.linalg.norm(vectors_from, axis=-1, keepdims=True)
     b = vectors_to / np.linalg.norm(vectors_to, axis=-1, keepdims=True)
     axis = np.cross(a, b)
@@ -326,11 +327,16 @@ def _align(vectors_from: np.ndarray, vectors_to: np.ndarray) -> np.ndarray:
     cos = np.einsum("fi,fi->f", a, b)
     angle = np.arctan2(sin, cos)
     safe = np.where(sin[:, None] > 1e-12, axis / np.maximum(sin, 1e-12)[:, None], 0.0)
+    opposite = (sin <= 1e-12) & (cos < 0)
+    if opposite.any():
+        helper = np.where(np.abs(a[opposite, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        perpendicular = np.cross(a[opposite], helper)
+        safe[opposite] = perpendicular / np.linalg.norm(perpendicular, axis=-1, keepdims=True)
     return Rotation.from_rotvec(safe * angle[:, None]).as_matrix()
 
 
-def _kabsch(vectors_from: np.ndarray, vectors_to: np.ndarray) -> np.ndarray:
-    """Best rotations (F, 3, 3) mapping vector sets (F, K, 3) onto (F, K, 3) (least squares)."""
+def best_rotations(vectors_from: np.ndarray, vectors_to: np.ndarray) -> np.ndarray:
+    """Best rotations (F, 3, 3) mapping vector sets (F, K, 3) onto (F, K, 3) (least squares, Kabsch)."""
     h = np.swapaxes(vectors_from, -1, -2) @ vectors_to
     u, _, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)))
@@ -413,11 +419,11 @@ def retarget(
         if len(kids) == 1:
             have = global_rot[:, j] @ offsets[kids[0]]
             want = target_pos_m[:, kids[0]] - pos[:, j]
-            global_rot[:, j] = _align(have, want) @ global_rot[:, j]
+            global_rot[:, j] = smallest_rotations(have, want) @ global_rot[:, j]
         elif len(kids) > 1:
             want = (target_pos_m[:, kids] - pos[:, j, None]) * weight[kids, None]
             have = np.broadcast_to(offsets[kids] * weight[kids, None], want.shape)
-            global_rot[:, j] = _kabsch(have, want)
+            global_rot[:, j] = best_rotations(have, want)
     return global_to_local(global_rot), pos[:, 0].copy(), bone_scale
 
 
@@ -470,7 +476,7 @@ def tpose_reference(
         have = mapped[JOINT_NAMES.index(child)] - mapped[JOINT_NAMES.index(parent)]
         if np.linalg.norm(have) < 1e-9:
             continue
-        turn = _align(have[None], rest[JOINT_NAMES.index(child)][None])[0]
+        turn = smallest_rotations(have[None], rest[JOINT_NAMES.index(child)][None])[0]
         driver = index[mapping.joints[parent].rotation]
         moved = _subtree(clip.parents, driver)
         pos[moved] = pos[driver] + (pos[moved] - pos[driver]) @ turn.T
