@@ -125,7 +125,7 @@ class ProceduralPipeline:
 
     def reset(self) -> None:
         self.body = BodyCalibrator()
-        self.offsets = rest_offsets(self.bone_scale)
+        self._set_offsets(rest_offsets(self.bone_scale))
         self.feet: list[_Foot] | None = None
         self.yaw: float | None = None
         self.stood_yaw = 0.0
@@ -161,7 +161,7 @@ class ProceduralPipeline:
         device_poses[0] = self.last_head
         tracked, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
         if not self.fixed_body and self.body.push(tracked, valid):
-            self.offsets = rest_offsets(self.body.bone_scale)
+            self._set_offsets(rest_offsets(self.body.bone_scale))
         dt_s = 0.0 if self.last_t_us is None else max(t_us - self.last_t_us, 0) * 1e-6
         self.last_t_us = t_us
         joints, body_rot = self._solve(t_us * 1e-6, dt_s, tracked, valid)
@@ -171,7 +171,7 @@ class ProceduralPipeline:
         joints[exact] = kept
         local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
         local[0] = body_rot
-        glob = forward_kinematics(local, np.zeros(3), self.offsets)[1]
+        glob = np.broadcast_to(body_rot, (NUM_JOINTS, 3, 3))  # FK of identity joints under the pelvis
         local = rederive_rotations(local, joints, self.offsets, glob)
         joints, _ = kernels.forward_kinematics_one(
             local, joints[0].copy(), self.offsets, PARENTS.astype(np.int64)
@@ -182,6 +182,19 @@ class ProceduralPipeline:
             transl=joints[0].copy(), joints=joints, local_rot=local, camera=None,
             timing_us={"procedural": int((time.perf_counter() - started) * 1e6)},
         )  # fmt: skip
+
+    def _set_offsets(self, offsets: np.ndarray) -> None:
+        """The body's bone offsets (J, 3) and its upright rest pose (J, 3) at the pelvis, kept together."""
+        self.offsets = offsets
+        self._rest = forward_kinematics(np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)), np.zeros(3), offsets)[
+            0
+        ]
+
+    def _over_feet(self, rest_world: np.ndarray) -> np.ndarray:
+        """(3,) on the floor plane: where an upright pelvis stands over the planted feet."""
+        feet_mid = (self.feet[0].planted + self.feet[1].planted) / 2
+        stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
+        return (feet_mid - stance) * [1.0, 0.0, 1.0]
 
     def _turn(self, dt_s: float) -> np.ndarray:
         """The body's yaw rotation (3, 3), following the head's with a lag."""
@@ -199,9 +212,7 @@ class ProceduralPipeline:
         self, now_s: float, dt_s: float, tracked: np.ndarray, valid: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         body_rot = self._turn(dt_s)
-        offsets = self.offsets
-        rest, _ = forward_kinematics(np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)), np.zeros(3), offsets)
-        self._rest = rest
+        offsets, rest = self.offsets, self._rest
         rest_world = rest @ body_rot.T  # upright, at the pelvis
         upright = rest_world + (tracked[0] - rest_world[15])  # hanging from the head joint
         if self.last_pelvis is not None and dt_s > 0:
@@ -212,9 +223,9 @@ class ProceduralPipeline:
         joints = self._torso(upright, rest_world, tracked[0])
         support = upright.copy()  # the hips where the feet belong (see _torso)
         if self.feet is not None:
-            feet_mid = (self.feet[0].planted + self.feet[1].planted) / 2
-            stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]
-            support[[0, 1, 2]] += ((feet_mid - stance) - upright[0]) * [1.0, 0.0, 1.0] + self.support_shift
+            support[[0, 1, 2]] += (
+                self._over_feet(rest_world) - upright[0] * [1.0, 0.0, 1.0] + self.support_shift
+            )
         self._place_feet(now_s, support, body_rot, scale)
         for side, (hip, knee, ankle, foot) in enumerate(LEG_CHAINS):
             foot_pos = self._foot_position(side, now_s)
@@ -249,9 +260,7 @@ class ProceduralPipeline:
             return joints
         neck, pelvis_upright = upright[12], upright[0]
         flat = np.array([1.0, 0.0, 1.0])
-        feet_mid = (self.feet[0].planted + self.feet[1].planted) / 2
-        stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
-        over_feet = (feet_mid - stance) * flat
+        over_feet = self._over_feet(rest_world)
         standing = over_feet - HIP_BACK * (neck - over_feet) * flat
         walking = min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
         pelvis = standing + walking * (pelvis_upright * flat - standing)
