@@ -60,6 +60,7 @@ UPDATE_STEP_M: Final = 0.005  # rescale when the head is 5 mm higher than ever (
 SIGHTED_BONES: Final = tuple(range(1, 12))
 # What the fallback without a regressor takes from the camera, as (left, right) pairs: thighs, shins, feet.
 LEG_BONES: Final = (4, 5, 7, 8, 10, 11)
+ARM_BONES: Final = (18, 19, 20, 21)  # upper arms and forearms, which a T-pose calibration measures
 # A median of 5 sightings is a measurement for the regressor, which was fitted on such early medians too
 # (validation upper-body MPJPE 2.59 cm with 30, 2.49 cm with 5: the CMU clips there last 2-4 s). The fallback
 # trusts a leg bone from STEADY_SAMPLES on; medians are refreshed every frame until then, every 10th after.
@@ -278,15 +279,26 @@ class BodyCalibrator:
         self._sightings = {j: deque(maxlen=VISUAL_WINDOW) for j in SIGHTED_BONES}
         self._count = dict.fromkeys(SIGHTED_BONES, 0)
         self.measured: dict[int, float] = {}  # bone -> median length / mean-body length, once measured
+        self.height_locked = False  # a calibration measured the height: push() no longer raises it
+        self.arm_scale: float | None = None  # a calibration's arms (upper arm and forearm), else estimated
 
     @property
     def height_scale(self) -> float:
         return height_scale(self.highest_head_m)
 
+    def calibrate(self, head_height_m: float | None, arm_scale: float | None) -> None:
+        """A calibration's standing head-joint height and arm scale (runtime/calibration.py) replace the
+        running estimates; None, None goes back to estimating (from the height reached so far)."""
+        self.height_locked = head_height_m is not None
+        if head_height_m is not None:
+            self.highest_head_m = float(head_height_m)
+        self.arm_scale = arm_scale
+        self._rebuild()
+
     def push(self, joints_m: np.ndarray, valid: np.ndarray) -> bool:
         """joints_m (3, 3) tracked head / wrist joint positions, valid (3,) -> whether the scale changed."""
         head_y = float(joints_m[0, 1])
-        if not valid[0] or head_y < self.highest_head_m + UPDATE_STEP_M:
+        if self.height_locked or not valid[0] or head_y < self.highest_head_m + UPDATE_STEP_M:
             return False
         self.highest_head_m = head_y
         self._rebuild()
@@ -316,11 +328,17 @@ class BodyCalibrator:
     def _rebuild(self) -> None:
         """bone_scale from what is known: the regressor once the camera measured anything (it was fitted on
         measured bodies only), else the height scale with the measured leg bones in place (left and right
-        averaged, so the body stays symmetric where only one side was seen)."""
+        averaged, so the body stays symmetric where only one side was seen); a calibration's arms win."""
         scale_h = self.height_scale
         if self.regressor is not None and self.measured:
-            self.bone_scale = self.regressor.predict(scale_h, self.measured)
-            return
+            scale = self.regressor.predict(scale_h, self.measured)
+        else:
+            scale = self._height_and_legs(scale_h)
+        if self.arm_scale is not None:
+            scale[list(ARM_BONES)] = self.arm_scale
+        self.bone_scale = scale
+
+    def _height_and_legs(self, scale_h: float) -> np.ndarray:
         scale = np.full(NUM_JOINTS, scale_h)
         for left, right in zip(LEG_BONES[::2], LEG_BONES[1::2], strict=True):
             measured = [
@@ -330,4 +348,4 @@ class BodyCalibrator:
             ]
             if measured:
                 scale[left] = scale[right] = float(np.clip(np.mean(measured), *VISUAL_SCALE_RANGE))
-        self.bone_scale = scale
+        return scale

@@ -25,6 +25,7 @@ from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
+from .calibration import Calibration, canonical_poses
 from .filters import OneEuroFilter
 from .frames import (
     CachedFrame,
@@ -87,10 +88,25 @@ class Pipeline:
         self.bone_scale = (
             np.ones(NUM_JOINTS) if bone_scale is None else np.asarray(bone_scale, dtype=np.float64)
         )
+        self.calibration: Calibration | None = None  # the wearer's; kept across reset()
         self.reset()
 
+    def calibrate(self, calibration: Calibration | None) -> None:
+        """Apply a per-session calibration (runtime/calibration.py), or drop it with None: device rotations
+        are read as the training rig's from the next sample on, and the body takes its height and arms."""
+        self.calibration = calibration
+        self._apply_calibration()
+
+    def _apply_calibration(self) -> None:
+        cal = self.calibration
+        self.body.calibrate(
+            None if cal is None else cal.head_height_m, None if cal is None else cal.arm_scale
+        )
+        if not self.fixed_body:
+            self.offsets = rest_offsets(self.body.bone_scale)
+
     def reset(self) -> None:
-        """Forget everything (a new session, a model switch, a long pause)."""
+        """Forget the stream (a new session, a model switch, a long pause); a calibration stays."""
         self.features = HmdFeatureExtractor()
         self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
@@ -101,6 +117,8 @@ class Pipeline:
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.hands = LostHandPolicy()
         self._pending_visual_us = 0
+        if self.calibration is not None:
+            self._apply_calibration()
 
     @property
     def frames_encoded(self) -> int:
@@ -175,7 +193,8 @@ class Pipeline:
         poses = ignore_untracked(
             poses, valid
         )  # checks the shapes; an untracked device's numbers are never read
-        x = self.features.push(t_us, poses, valid)  # validates finiteness
+        poses = canonical_poses(poses, self.calibration)
+        x = self.features.push(t_us, poses, valid)
         if self.model.info.config.device_validity:
             x = np.concatenate([x, self.tracking.push(t_us, valid)])
         if valid[0]:

@@ -36,6 +36,7 @@ from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..skeleton import FOOT_JOINT_HEIGHT_M, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
+from .calibration import Calibration, canonical_poses
 from .filters import OneEuroFilter
 from .kpo import rederive_rotations
 from .loading import ModelInfo
@@ -121,7 +122,18 @@ class ProceduralPipeline:
         self.bone_scale = (
             np.ones(NUM_JOINTS) if bone_scale is None else np.asarray(bone_scale, dtype=np.float64)
         )
+        self.calibration: Calibration | None = None  # the wearer's; kept across reset()
         self.reset()
+
+    def calibrate(self, calibration: Calibration | None) -> None:
+        """As :meth:`Pipeline.calibrate <egoposevr.model.runtime.pipeline.Pipeline.calibrate>`."""
+        self.calibration = calibration
+        self.body.calibrate(
+            None if calibration is None else calibration.head_height_m,
+            None if calibration is None else calibration.arm_scale,
+        )
+        if not self.fixed_body:
+            self._set_offsets(rest_offsets(self.body.bone_scale))
 
     def reset(self) -> None:
         self.body = BodyCalibrator()
@@ -137,6 +149,8 @@ class ProceduralPipeline:
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.standing_pelvis_y = 0.0  # the highest an upright pelvis under the head has been
         self.support_shift = np.zeros(3)
+        if self.calibration is not None:
+            self.calibrate(self.calibration)
 
     # The camera is not read.
     def push_rgbd(self, *args, **kwargs) -> bool:
@@ -155,6 +169,7 @@ class ProceduralPipeline:
         poses = ignore_untracked(poses, valid)
         if not np.isfinite(poses[valid]).all():
             raise ValueError("tracked poses must be finite")
+        poses = canonical_poses(poses, self.calibration)
         if valid[0]:
             self.last_head = poses[0].copy()
         device_poses = poses.copy()
