@@ -53,6 +53,8 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from ..protocol import (
+    Calibrate,
+    Calibration,
     Error,
     Hello,
     Hmd,
@@ -99,6 +101,8 @@ class HeadsetClient:
         self.reconnect, self.backoff_s, self.jpeg_quality = reconnect, backoff_s, jpeg_quality
         self.welcome: Welcome | None = None
         self.models: Models | None = None
+        self.calibration: Calibration | None = None  # the newest calibration message
+        self._calibration_changed = asyncio.Event()
         self.errors: deque[Error] = deque(maxlen=100)  # the newest error replies
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
@@ -194,6 +198,9 @@ class HeadsetClient:
             self._poses.put_nowait(msg)
         elif isinstance(msg, Models):
             self.models = msg
+        elif isinstance(msg, Calibration):
+            self.calibration = msg
+            self._calibration_changed.set()
         elif isinstance(msg, Error):
             self.errors.append(msg)
             if msg.fatal and msg.code in PERMANENT_REFUSALS:
@@ -253,6 +260,27 @@ class HeadsetClient:
     async def select_model(self, name: str) -> None:
         self.model = name  # also the model a reconnect asks for
         await self._send(SelectModel(model=name))
+
+    async def calibrate(
+        self, pose: str = "tpose", seconds: float = 2.0, timeout_s: float = 30.0
+    ) -> Calibration:
+        """Ask the server to measure the wearer (PROTOCOL.md §4.1); keep sending ``hmd`` meanwhile. Returns
+        the final ``calibration`` message (``done`` or ``failed``; read its ``status``)."""
+        return await self._calibration_request(Calibrate(pose=pose, seconds=seconds), timeout_s)
+
+    async def clear_calibration(self, timeout_s: float = 10.0) -> Calibration:
+        return await self._calibration_request(Calibrate(clear=True), timeout_s)
+
+    async def _calibration_request(self, msg: Calibrate, timeout_s: float) -> Calibration:
+        self.calibration = None
+        self._calibration_changed.clear()
+        await self._send(msg)
+        async with asyncio.timeout(timeout_s):
+            while True:
+                await self._calibration_changed.wait()
+                self._calibration_changed.clear()
+                if self.calibration is not None and self.calibration.status != "started":
+                    return self.calibration
 
     # ------------------------------------------------------------------------------ receiving
     async def poses(self) -> AsyncIterator[Pose]:

@@ -65,7 +65,7 @@ class Recording:
                     raise ReplayError(f"{path}: a recorded message is not protocol v1 ({exc})") from None
                 if isinstance(msg, Hello):
                     hello = msg
-                elif msg.type in ("hmd", "rgbd", "select_model"):
+                elif msg.type in ("hmd", "rgbd", "select_model", "calibrate"):
                     messages.append((record.t_us, msg, record.payload))
             elif record.kind == KIND_TRUTH:
                 truth[int(record.payload["seq"])] = np.asarray(record.payload["joints"]).reshape(

@@ -11,6 +11,8 @@ from __future__ import annotations
 import base64
 
 from .messages import (
+    Calibrate,
+    Calibration,
     Error,
     Hello,
     Hmd,
@@ -134,6 +136,15 @@ def example_messages() -> dict[str, Message]:
             session="room-1", event="input_joined", input=True, model="egoposevr", renders=2
         ),
         "pong": Pong(nonce=3, t_us=1_000_900, server_t_us=5_000_000_123),
+        "calibrate": Calibrate(pose="tpose", seconds=2.0),
+        "calibration": Calibration(
+            status="done",
+            pose="tpose",
+            message="calibrated: head 1.5 m above the floor, arm span 1.5 m",
+            head_height_m=1.5,
+            arm_span_m=1.5,
+            corrections=[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.25, 0.96875, 0.0, 0.0, -0.25, 0.96875],
+        ),
     }
 
 

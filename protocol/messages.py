@@ -182,6 +182,17 @@ class SelectModel(Message):
     model: Name
 
 
+class Calibrate(Message):
+    """Ask the server to measure the wearer: hold ``pose`` still for ``seconds`` (PROTOCOL.md §4.1); answered
+    by ``calibration`` messages. ``clear`` forgets the session's calibration instead."""
+
+    TYPE: ClassVar[str] = "calibrate"
+    type: Literal["calibrate"] = "calibrate"
+    pose: Literal["tpose", "stand"] = "tpose"
+    seconds: Annotated[float, Strict(), AllowInfNan(False), Field(ge=0.5, le=10.0)] = 2.0
+    clear: Bool = False
+
+
 class ListModels(Message):
     """Ask for the ``models`` list."""
 
@@ -297,6 +308,23 @@ class SessionStatus(Message):
     renders: Annotated[int, Strict(), Field(ge=0, le=1_000_000)]
 
 
+class Calibration(Message):
+    """Where a session's calibration stands, sent to every client of the session: ``started`` (hold the
+    pose now), ``done`` (with what was measured), ``failed`` (``message`` says why), ``cleared``.
+
+    ``corrections`` (12): the rotation the server applies to each device from now on (head, left, right;
+    xyzw quaternions, ``R_device @ c``)."""
+
+    TYPE: ClassVar[str] = "calibration"
+    type: Literal["calibration"] = "calibration"
+    status: Literal["started", "done", "failed", "cleared"]
+    pose: Literal["tpose", "stand"]
+    message: Text = ""
+    head_height_m: Float | None = None
+    arm_span_m: Float | None = None
+    corrections: vec(12) | None = None
+
+
 class Pong(Message):
     """Answer to ``ping``: echoes ``nonce``/``t_us`` and adds the server's clock."""
 
@@ -307,6 +335,6 @@ class Pong(Message):
     server_t_us: TimeUs
 
 
-CLIENT_MESSAGES: tuple[type[Message], ...] = (Hello, Hmd, Rgbd, SelectModel, ListModels, Ping)
-SERVER_MESSAGES: tuple[type[Message], ...] = (Welcome, Pose, Models, Error, Pong, SessionStatus)
+CLIENT_MESSAGES: tuple[type[Message], ...] = (Hello, Hmd, Rgbd, SelectModel, ListModels, Ping, Calibrate)
+SERVER_MESSAGES: tuple[type[Message], ...] = (Welcome, Pose, Models, Error, Pong, SessionStatus, Calibration)
 MESSAGE_TYPES: dict[str, type[Message]] = {m.TYPE: m for m in CLIENT_MESSAGES + SERVER_MESSAGES}

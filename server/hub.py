@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 
 from ..protocol import (
+    Calibrate,
     ErrorCode,
     Hello,
     Hmd,
@@ -222,6 +223,10 @@ class Hub:
         elif isinstance(msg, SelectModel):
             self._record(client, data, received.recv_ns)
             self._select(client, msg.model, msg)
+        elif isinstance(msg, Calibrate):
+            self._record(client, data, received.recv_ns)
+            session.request_calibration(msg)
+            self.on_work(session)
         elif isinstance(msg, ListModels):
             client.outbox.put_control(encode(self._models(session)))
         elif isinstance(msg, Ping):
@@ -406,6 +411,10 @@ class Hub:
             self.metrics.errors.labels(error.code).inc()
         if result.stale_frame:
             self.metrics.stale_frames.inc()
+        for notice in result.notices:
+            encoded = encode(notice)
+            for member in session.clients:
+                member.outbox.put_control(encoded)
         if result.pose is None:
             return
         self.metrics.poses.labels(result.model).inc()

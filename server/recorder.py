@@ -1,7 +1,7 @@
 """``--record DIR``: every input connection's messages as one ``.egrec`` file, replayable later.
 
 One file per input connection, ``<session>-<UTC time>-<n>.egrec``, holding the exact bytes of each valid
-message the headset sent (hello, hmd, rgbd, select_model) with its arrival time. Writes go through a buffered
+message the headset sent (hello, hmd, rgbd, select_model, calibrate) with its arrival time. Writes go through a buffered
 file, so a write on the event loop costs a memory copy; files are flushed when the connection closes and at
 shutdown. A write that fails (disk full) is logged once, counted (``egoposevr_recordings_failed_total``) and
 that connection's recording stops; serving goes on. What reached the disk replays up to its last complete

@@ -28,11 +28,13 @@ from typing import Any
 import numpy as np
 
 from ..model.inputs import decode_rgbd
+from ..model.runtime.calibration import Calibration as MeasuredCalibration
+from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
 from ..model.runtime.frames import EncodedFrame, encode_frame
 from ..model.runtime.loading import LoadedModel
 from ..model.runtime.pipeline import PoseResult
 from ..model.runtime.procedural import pipeline_for
-from ..protocol import Error, ErrorCode, Hmd, Pose, Ref, Rgbd, encode
+from ..protocol import Calibrate, Calibration, Error, ErrorCode, Hmd, Pose, Ref, Rgbd, encode
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
@@ -59,6 +61,7 @@ class Job:
     skipped: int  # samples not answered since the previous pose, these jobs' history ones included
     encoded: tuple[EncodedFrame, ...] = ()  # frames from the lane, added to the cache before the samples
     image_us: int | None = None  # the lane's image decoding time of those frames
+    calibrate: tuple[Calibrate, ...] = ()  # calibrate requests, in arrival order, before the samples
 
 
 @dataclasses.dataclass
@@ -79,6 +82,7 @@ class RunResult:
     timing_us: dict[str, int] = dataclasses.field(default_factory=dict)
     errors: list[Error] = dataclasses.field(default_factory=list)
     stale_frame: bool = False
+    notices: list[Calibration] = dataclasses.field(default_factory=list)  # for every client of the session
 
 
 class TokenBucket:
@@ -125,9 +129,12 @@ class Session:
         self.replaced_frames = 0
         self._next_model: tuple[str, LoadedModel] | None = None
         self._reset = False
+        self._calibrate: list[Calibrate] = []  # requests for the next job
         self._pipeline = pipeline_for(model)  # run() only
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
+        self._collector: tuple[Calibrate, CalibrationCollector] | None = None  # run() only
+        self._calibration: MeasuredCalibration | None = None  # run() only: kept across switches, reconnects
 
     # ------------------------------------------------------------------------------ event loop side
     @property
@@ -159,6 +166,10 @@ class Session:
         self._encoded.clear()  # encoded by the previous model's encoder
         self._reset = False  # a new pipeline is a reset
 
+    def request_calibration(self, msg: Calibrate) -> None:
+        """A ``calibrate`` request: the next job starts (or clears) it, with or without headset samples."""
+        self._calibrate.append(msg)
+
     def restart_stream(self) -> None:
         """A new input client: forget the previous headset's history at the next job; drop its leftovers."""
         self.pending.clear()
@@ -168,7 +179,7 @@ class Session:
 
     @property
     def has_work(self) -> bool:
-        return bool(self.pending) or (self.frame is not None and not self.frame_lane)
+        return bool(self.pending) or bool(self._calibrate) or (self.frame is not None and not self.frame_lane)
 
     def take_job(self) -> Job | None:
         if not self.has_work:
@@ -184,7 +195,9 @@ class Session:
             self.skipped,
             encoded=tuple(r.encoded for r in lane if r.encoded is not None),
             image_us=sum(r.image_us for r in lane) if lane else None,
+            calibrate=tuple(self._calibrate),
         )
+        self._calibrate.clear()
         self.pending.clear()
         if samples:
             self._encoded.clear()
@@ -226,8 +239,12 @@ class Session:
         if job.model is not None:
             self._pipeline_model_name, model = job.model
             self._pipeline = pipeline_for(model)
+            self._pipeline.calibrate(self._calibration)
         elif job.reset:
             self._pipeline.reset()
+            self._abandon_calibration("the input client reconnected", result)
+        for request in job.calibrate:
+            self._start_calibration(request, result)
         image_us = (
             self._push_frame(job.frame, result) if job.frame is not None else job.image_us
         )  # µs or None
@@ -271,13 +288,54 @@ class Session:
         result.stale_frame = not pushed and self._pipeline.model.visual is not None
         return image_us
 
+    # ------------------------------------------------------------------------------ calibration (run() only)
+    def _start_calibration(self, request: Calibrate, result: RunResult) -> None:
+        self._abandon_calibration("a newer calibrate replaced it", result)
+        if request.clear:
+            self._calibration = None
+            self._pipeline.calibrate(None)
+            message = "calibration cleared; the body is estimated as the session goes"
+            result.notices.append(Calibration(status="cleared", pose=request.pose, message=message))
+            return
+        offsets = self._pipeline.model.info.rig_offsets_m
+        self._collector = (request, CalibrationCollector(request.pose, request.seconds, offsets))
+        what = "arms out sideways, palms down" if request.pose == "tpose" else "arms relaxed"
+        message = f"hold still for {request.seconds:g} s: standing straight, looking ahead, {what}"
+        result.notices.append(Calibration(status="started", pose=request.pose, message=message))
+
+    def _abandon_calibration(self, reason: str, result: RunResult) -> None:
+        if self._collector is not None:
+            pose = self._collector[0].pose
+            result.notices.append(Calibration(status="failed", pose=pose, message=reason))
+            self._collector = None
+
+    def _collect(self, msg: Hmd, result: RunResult) -> None:
+        """Feed the sample to a calibration in progress; when it completes, the pipeline takes it from this
+        sample on."""
+        if self._collector is None:
+            return
+        request, collector = self._collector
+        try:
+            measured = collector.push(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
+        except CalibrationFailed as exc:
+            self._collector = None
+            result.notices.append(Calibration(status="failed", pose=request.pose, message=str(exc)))
+            return
+        if measured is None:
+            return
+        self._collector, self._calibration = None, measured
+        self._pipeline.calibrate(measured)
+        result.notices.append(_calibration_done(request, measured))
+
     def _observe(self, msg: Hmd, result: RunResult) -> None:
+        self._collect(msg, result)
         try:
             self._pipeline.observe_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
         except ValueError as exc:
             result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg))
 
     def _infer(self, msg: Hmd, result: RunResult) -> PoseResult | None:
+        self._collect(msg, result)
         try:
             pose = self._pipeline.push_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
         except ValueError as exc:
@@ -289,6 +347,19 @@ class Session:
             )
             return None
         return pose
+
+
+def _calibration_done(request: Calibrate, measured: MeasuredCalibration) -> Calibration:
+    """The ``calibration`` message announcing a finished measurement."""
+    span = "" if measured.arm_span_m is None else f", arm span {measured.arm_span_m:.2f} m"
+    return Calibration(
+        status="done",
+        pose=request.pose,
+        message=f"calibrated: head joint {measured.head_height_m:.2f} m above the floor{span}",
+        head_height_m=measured.head_height_m,
+        arm_span_m=measured.arm_span_m,
+        corrections=[float(v) for v in measured.correction_quats.reshape(-1)],
+    )
 
 
 def encode_received_frame(received: Received, model: LoadedModel) -> FrameResult:

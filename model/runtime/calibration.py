@@ -33,6 +33,7 @@ from typing import Final, Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..hmd import ignore_untracked
 from ..rig import DEFAULT_OFFSETS_M, DEVICE_FROM_JOINT, joints_from_devices
 from ..rotations import quat_xyzw_to_matrix
 from ..skeleton import HEAD, REST_JOINTS_M
@@ -147,7 +148,7 @@ class CalibrationCollector:
             raise CalibrationFailed(f"the {' and '.join(lost)} lost tracking during calibration")
         if self._start_us is None:
             self._start_us = int(t_us)
-        self._poses.append(np.asarray(poses, dtype=np.float64).copy())
+        self._poses.append(ignore_untracked(poses, valid))  # a copy; an untracked device's numbers are unread
         if int(t_us) - self._start_us < self.seconds * 1e6 or len(self._poses) < MIN_SAMPLES:
             return None
         return measure(self.pose, np.stack(self._poses), self.rig_offsets_m)
