@@ -44,6 +44,7 @@ from ..rig import joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
+from .augment import crop_and_flip, mirror_sequence, mirror_world_keypoints, retime_sequence
 from .dataset import decode_frames, load_split, split_camera
 from .nets.fusion import FusionNet, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
@@ -76,6 +77,9 @@ class TrainConfig:
     rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
     device_validity: bool = True  # the nets read each device's tracking state after x_t (hmd.py)
     lost_hand_weight: float = 3.0  # position loss of a lost controller's wrist and elbow, against 1
+    mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
+    crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
+    speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
 
@@ -85,9 +89,13 @@ LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost lef
 PRESETS: dict[str, TrainConfig] = {
     # The whole zoo on a 2-core CPU in about 60 minutes, inside the 90-minute budget for the default. The
     # bundled weights add --fusion-steps 16000 (about 1 h 45 min; MODEL_CARD.md has the measured times).
-    "cpu": TrainConfig(),
+    # The visual encoder reads 160×128 through a strided stem: what 80×64 costs (PERFORMANCE.md / MODEL_CARD).
+    "cpu": TrainConfig(visual_width=160, visual_height=128, visual_stem=16),
     # For a GPU: wider nets, longer schedules.
-    "gpu": TrainConfig(visual_steps=20000, fusion_steps=30000, d_model=128, joint_dim=64),
+    "gpu": TrainConfig(
+        visual_steps=20000, fusion_steps=30000, d_model=128, joint_dim=64, visual_width=160, visual_height=128,
+        visual_stem=16,
+    ),
     # For tests: seconds.
     "tiny": TrainConfig(
         visual_steps=30, fusion_steps=30, batch=8, visual_width=40, visual_height=32, window=8,
@@ -269,9 +277,13 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
         idx = rng.integers(0, len(data.rgb), tc.batch)
-        image = torch.from_numpy(network_input(data.rgb[idx], data.depth[idx], cfg.channels))
-        uv_t = torch.from_numpy(data.uv[idx])
-        vis = torch.from_numpy(data.visible[idx]).float()
+        rgb, depth, uv_np, visible, intrinsics_np, size_np, joints_np = crop_and_flip(
+            rng, data.rgb[idx], data.depth[idx], data.uv[idx], data.visible[idx], data.intrinsics[idx],
+            data.size_wh[idx], data.joints_cam_m[idx], crop_p=tc.crop_p, flip_p=tc.mirror_p,
+        )  # fmt: skip
+        image = torch.from_numpy(network_input(rgb, depth, cfg.channels))
+        uv_t = torch.from_numpy(uv_np)
+        vis = torch.from_numpy(visible).float()
         uv, depth_m, zeta, logits = net(image)
         # Gaussian target distribution on the heatmap grid, (B, J, hh, hw)
         du = (gu[None, None, None, :] - uv_t[..., 0, None, None]) / sigma_u
@@ -281,9 +293,9 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
         log_p = torch.log_softmax(logits.flatten(2), -1).view_as(logits)
         n_vis = vis.sum().clamp_min(1.0)
         heat = -((target * log_p).flatten(2).sum(-1) * vis).sum() / n_vis
-        intrinsics = torch.from_numpy(data.intrinsics[idx]).float()
-        xyz = lift_torch(uv, depth_m, intrinsics, torch.from_numpy(data.size_wh[idx]).float())
-        joints = torch.from_numpy(data.joints_cam_m[idx])
+        intrinsics = torch.from_numpy(intrinsics_np).float()
+        xyz = lift_torch(uv, depth_m, intrinsics, torch.from_numpy(size_np).float())
+        joints = torch.from_numpy(joints_np)
         pos = ((xyz - joints).abs().sum(-1) * vis).sum() / n_vis
         bce = F.binary_cross_entropy(zeta.clamp(1e-6, 1 - 1e-6), vis)
         return {"heat": heat * 0.1, "pos": pos * tc.position_weight, "vis": bce}
@@ -400,12 +412,18 @@ def prepare_fusion_sequence(
     kp_world, conf = np.zeros((K, J, 3)), np.zeros((K, J))
     if visual is not None and K:
         size = (visual.cfg.width, visual.cfg.height)
+        shot = seq.get("mirror_of", seq)  # whose headset the images were taken from
         uv, depth_m, zeta = _cached(
             cache,
-            (visual.cfg.channels, seq["name"]),
-            lambda: predict_keypoints(visual, *decode_frames(seq, size)),
+            (visual.cfg.channels, seq.get("images_name", seq["name"])),
+            lambda: predict_keypoints(visual, *decode_frames(shot, size)),
         )
-        kp_world, conf = frame_keypoints(uv, depth_m, zeta, seq["cam_t_us"], seq["camera"], t_us, poses[:, 0])
+        kp_world, conf = frame_keypoints(
+            uv, depth_m, zeta, shot["cam_t_us"], shot["camera"], shot["hmd_t_us"],
+            shot["hmd_poses"][:, 0].astype(np.float64),
+        )  # fmt: skip
+        if shot is not seq:
+            kp_world, conf = mirror_world_keypoints(kp_world, conf)
     latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
     return FusionSequence(
         hmd=_cached(
@@ -514,13 +532,21 @@ def train_fusion(
     net = FusionNet(cfg)
     seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
     rng = np.random.default_rng([tc.seed, 7])
-    prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in seqs]
+    prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": str(data_dir), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)
     return path
+
+
+def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
+    """Stage 2's sequences: each as recorded and, with ``mirror_p`` > 0, mirrored at a random speed."""
+    if tc.mirror_p <= 0:
+        return list(seqs)
+    speeds = np.random.default_rng([tc.seed, 11]).uniform(*tc.speed_range, len(seqs))
+    return list(seqs) + [mirror_sequence(retime_sequence(s, v)) for s, v in zip(seqs, speeds, strict=True)]
 
 
 def _set_statistics(

@@ -1,0 +1,117 @@
+"""Training augmentation: mirrored people and rigs, other motion speeds, other camera crops and aspect ratios.
+
+- :func:`mirror_sequence`: a whole shard sequence reflected through the world's x = 0 plane, left and right
+  swapped (devices, joints, bones). Reflection keeps every frame proper: ``R' = M R M`` with
+  ``M = diag(-1, 1, 1)``, i.e. quaternion ``(x, y, z, w) -> (x, -y, -z, w)``. The rig's grip offsets and
+  device turns are mirror images of each other, so a mirrored left controller is a right one.
+- :func:`retime_sequence`: the same motion played faster or slower (every clock scaled about its start).
+- :func:`crop_and_flip`: for the keypoint net, a batch of frames cropped (other aspect ratios and fields of
+  view than the renders': 16:9 sensors, zoomed lenses) and/or mirrored, with labels and intrinsics to match.
+
+Shape legend: ``N`` headset samples, ``K`` camera frames, ``B`` batch, ``J`` = 22 joints, devices (head,
+left, right); images (B, h, w, C).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+import cv2
+import numpy as np
+
+# SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
+MIRROR_JOINTS: Final = np.array(
+    [0, 2, 1, 3, 5, 4, 6, 8, 7, 9, 11, 10, 12, 14, 13, 15, 17, 16, 19, 18, 21, 20]
+)
+MIRROR_DEVICES: Final = np.array([0, 2, 1])
+_QUAT_SIGNS: Final = np.array([1.0, -1.0, -1.0, 1.0])
+_X_SIGNS: Final = np.array([-1.0, 1.0, 1.0])
+
+
+def mirror_sequence(seq: dict[str, Any]) -> dict[str, Any]:
+    """A shard sequence's motion, tracks and truth mirrored (a new dict; images and camera labels are the
+    source's: ``mirror_of`` names it, and stage-2 mirrors the keypoints it predicts from them)."""
+    out = dict(seq)
+    poses = np.array(seq["hmd_poses"], dtype=np.float64)[:, MIRROR_DEVICES]
+    poses[..., :3] *= _X_SIGNS
+    poses[..., 3:] *= _QUAT_SIGNS
+    out["hmd_poses"] = poses.astype(seq["hmd_poses"].dtype)
+    out["hmd_valid"] = np.asarray(seq["hmd_valid"])[:, MIRROR_DEVICES]
+    out["gt_local_quat"] = (np.asarray(seq["gt_local_quat"])[:, MIRROR_JOINTS] * _QUAT_SIGNS).astype(
+        seq["gt_local_quat"].dtype
+    )
+    out["gt_joints_m"] = (np.asarray(seq["gt_joints_m"])[:, MIRROR_JOINTS] * _X_SIGNS).astype(
+        seq["gt_joints_m"].dtype
+    )
+    if "gt_root_m" in seq:
+        out["gt_root_m"] = (np.asarray(seq["gt_root_m"]) * _X_SIGNS).astype(seq["gt_root_m"].dtype)
+    out["bone_scale"] = np.asarray(seq["bone_scale"])[MIRROR_JOINTS]
+    out["mirror_of"] = seq
+    out["images_name"] = seq.get("images_name", seq["name"])
+    out["name"] = f"{seq['name']}~mirrored"
+    return out
+
+
+def mirror_world_keypoints(kp_world: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stage-1 keypoints (K, J, 3) in the world and their confidence (K, J), as the mirrored body's."""
+    return kp_world[:, MIRROR_JOINTS] * _X_SIGNS, confidence[:, MIRROR_JOINTS]
+
+
+def retime_sequence(seq: dict[str, Any], speed: float) -> dict[str, Any]:
+    """The sequence played ``speed`` times as fast: every clock scaled by 1 / speed about the first sample."""
+    out = dict(seq)
+    t0 = int(seq["hmd_t_us"][0])
+    for key in ("hmd_t_us", "cam_t_us"):
+        out[key] = (t0 + (np.asarray(seq[key], dtype=np.int64) - t0) / speed).astype(np.int64)
+    out["images_name"] = seq.get("images_name", seq["name"])
+    out["name"] = f"{seq['name']}~x{speed:.3f}"
+    return out
+
+
+def crop_and_flip(
+    rng: np.random.Generator,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    uv: np.ndarray,
+    visible: np.ndarray,
+    intrinsics: np.ndarray,
+    size_wh: np.ndarray,
+    joints_cam_m: np.ndarray,
+    crop_p: float = 0.5,
+    flip_p: float = 0.5,
+    keep_x: tuple[float, float] = (0.7, 1.0),
+    keep_y: tuple[float, float] = (0.5, 1.0),
+) -> tuple[np.ndarray, ...]:
+    """A batch of resized frames with labels -> the same, some cropped (then resized back) and some mirrored.
+
+    rgb (B, h, w, 3), depth (B, h, w); uv (B, J, 2) normalised to the camera's image; visible (B, J);
+    intrinsics (B, 4) and size_wh (B, 2) of each frame's camera, pixels; joints_cam_m (B, J, 3). Returns new
+    arrays in that order. A cropped frame is a camera with the crop's size and shifted principal point; a
+    joint the crop leaves out is no longer visible. Vertical keeps go lower than horizontal ones: that is
+    how a 5:4 render becomes a 16:9 sensor's view.
+    """
+    rgb, depth = rgb.copy(), depth.copy()
+    uv, visible = uv.astype(np.float64, copy=True), visible.copy()
+    intrinsics, size_wh = intrinsics.astype(np.float64, copy=True), size_wh.astype(np.float64, copy=True)
+    joints_cam_m = joints_cam_m.copy()
+    h, w = rgb.shape[1:3]
+    for b in np.flatnonzero(rng.random(len(rgb)) < crop_p):
+        keep = np.array([rng.uniform(*keep_x), rng.uniform(*keep_y)])
+        crop_wh = np.maximum(np.round(keep * (w, h)).astype(int), 8)
+        corner = np.array([rng.integers(0, w - crop_wh[0] + 1), rng.integers(0, h - crop_wh[1] + 1)])
+        (x0, y0), (cw, ch) = corner, crop_wh
+        rgb[b] = cv2.resize(rgb[b, y0 : y0 + ch, x0 : x0 + cw], (w, h), interpolation=cv2.INTER_AREA)
+        depth[b] = cv2.resize(depth[b, y0 : y0 + ch, x0 : x0 + cw], (w, h), interpolation=cv2.INTER_NEAREST)
+        pixel = size_wh[b] / (w, h)  # camera pixels per stored pixel
+        corner_px, crop_px = corner * pixel, crop_wh * pixel
+        uv[b] = (uv[b] * size_wh[b] - corner_px) / crop_px
+        intrinsics[b, 2:] -= corner_px
+        size_wh[b] = crop_px
+        visible[b] &= ((uv[b] >= 0.0) & (uv[b] <= 1.0)).all(-1)
+    for b in np.flatnonzero(rng.random(len(rgb)) < flip_p):
+        rgb[b], depth[b] = rgb[b, :, ::-1], depth[b, :, ::-1]
+        uv[b] = uv[b, MIRROR_JOINTS] * (-1.0, 1.0) + (1.0, 0.0)
+        visible[b] = visible[b, MIRROR_JOINTS]
+        joints_cam_m[b] = joints_cam_m[b, MIRROR_JOINTS] * _X_SIGNS
+        intrinsics[b, 2] = size_wh[b, 0] - 1.0 - intrinsics[b, 2]
+    return rgb, depth, uv.astype(np.float32), visible, intrinsics, size_wh, joints_cam_m

@@ -1,0 +1,89 @@
+"""Augmentation keeps labels true: mirrored sequences are bodies, cropped and flipped frames are cameras."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from egoposevr.model.inputs import lift_keypoints
+from egoposevr.model.rig import DEFAULT_OFFSETS_M, DEVICE_FROM_JOINT, TRACKED_JOINTS, joints_from_devices
+from egoposevr.model.skeleton import NUM_JOINTS, forward_kinematics, rest_offsets
+from egoposevr.model.training.augment import (
+    MIRROR_JOINTS,
+    crop_and_flip,
+    mirror_sequence,
+    retime_sequence,
+)
+
+
+def _sequence(rng: np.random.Generator, n: int = 5) -> dict:
+    """A random posed body with its devices where the rig puts them."""
+    local = Rotation.random(n * NUM_JOINTS, random_state=1).as_matrix().reshape(n, NUM_JOINTS, 3, 3)
+    local = np.einsum("...ij->...ij", local)
+    scale = rng.uniform(0.9, 1.1, NUM_JOINTS)
+    root = rng.normal(0, 1, (n, 3))
+    joints, glob = forward_kinematics(local, root, rest_offsets(scale))
+    poses = np.zeros((n, 3, 7))
+    for d, j in enumerate(TRACKED_JOINTS):
+        poses[:, d, :3] = joints[:, j] + np.einsum("nij,j->ni", glob[:, j], DEFAULT_OFFSETS_M[d])
+        poses[:, d, 3:] = Rotation.from_matrix(glob[:, j] @ DEVICE_FROM_JOINT).as_quat()
+    return {
+        "name": "s", "hmd_t_us": np.arange(n) * 11_111, "cam_t_us": np.arange(2) * 33_333,
+        "hmd_poses": poses.astype(np.float32), "hmd_valid": rng.random((n, 3)) < 0.7,
+        "gt_local_quat": Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(n, NUM_JOINTS, 4),
+        "gt_joints_m": joints, "gt_root_m": root, "bone_scale": scale,
+    }  # fmt: skip
+
+
+def test_a_mirrored_sequence_is_a_body_with_its_devices_on_it() -> None:
+    seq = _sequence(np.random.default_rng(0))
+    mirrored = mirror_sequence(seq)
+    local = (
+        Rotation.from_quat(mirrored["gt_local_quat"].reshape(-1, 4)).as_matrix().reshape(-1, NUM_JOINTS, 3, 3)
+    )
+    # The mean body is not exactly symmetric; with a symmetric rest skeleton FK would match to 1e-9.
+    offsets = rest_offsets(mirrored["bone_scale"])
+    offsets[MIRROR_JOINTS] = rest_offsets(seq["bone_scale"]) * [-1.0, 1.0, 1.0]
+    joints, _ = forward_kinematics(local, mirrored["gt_root_m"], offsets)
+    np.testing.assert_allclose(joints, mirrored["gt_joints_m"], atol=1e-9)
+    tracked, _ = joints_from_devices(mirrored["hmd_poses"].astype(np.float64))
+    np.testing.assert_allclose(tracked, mirrored["gt_joints_m"][:, list(TRACKED_JOINTS)], atol=1e-5)
+    np.testing.assert_array_equal(mirrored["hmd_valid"][:, 1], seq["hmd_valid"][:, 2])
+    assert mirrored["mirror_of"] is seq and mirrored["images_name"] == "s"
+
+
+def test_retiming_scales_the_clocks_only() -> None:
+    seq = _sequence(np.random.default_rng(1))
+    fast = retime_sequence(seq, 2.0)
+    np.testing.assert_array_equal(fast["hmd_t_us"], seq["hmd_t_us"] // 2)
+    np.testing.assert_array_equal(fast["cam_t_us"], seq["cam_t_us"] // 2)
+    assert fast["hmd_poses"] is seq["hmd_poses"] and fast["images_name"] == "s"
+
+
+@pytest.mark.parametrize(("crop_p", "flip_p"), [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
+def test_cropped_and_flipped_frames_lift_to_their_joints(crop_p: float, flip_p: float) -> None:
+    rng = np.random.default_rng(2)
+    b, w, h = 6, 40, 32
+    cam_wh = np.array([[320.0, 256.0]] * b)
+    intrinsics = np.array([[160.0, 150.0, 161.0, 120.0]] * b)
+    joints = np.stack([rng.uniform(-1.0, 1.0, NUM_JOINTS), rng.uniform(-0.8, 0.8, NUM_JOINTS),
+                       rng.uniform(1.0, 2.0, NUM_JOINTS)], -1)[None].repeat(b, 0)  # fmt: skip
+    px = joints[..., :2] / joints[..., 2:] * intrinsics[:, None, :2] + intrinsics[:, None, 2:]
+    uv = (px + 0.5) / cam_wh[:, None]
+    visible = ((uv >= 0) & (uv <= 1)).all(-1)
+    rgb = rng.integers(0, 255, (b, h, w, 3), dtype=np.uint8)
+    depth = rng.integers(0, 5000, (b, h, w), dtype=np.uint16)
+    out = crop_and_flip(rng, rgb, depth, uv, visible, intrinsics, cam_wh, joints, crop_p, flip_p)
+    rgb2, depth2, uv2, visible2, intrinsics2, wh2, joints2 = out
+    assert rgb2.shape == rgb.shape and depth2.shape == depth.shape
+    for k in range(b):
+        lifted = lift_keypoints(uv2[k].astype(np.float64), joints2[k, :, 2], intrinsics2[k], wh2[k])
+        np.testing.assert_allclose(lifted[visible2[k]], joints2[k][visible2[k]], atol=1e-4)
+        assert (((uv2[k] >= 0) & (uv2[k] <= 1)).all(-1) >= visible2[k]).all()
+    if flip_p:
+        np.testing.assert_allclose(joints2[:, 1, 0], -joints[:, 2, 0])
+    if flip_p and not crop_p:
+        np.testing.assert_array_equal(rgb2[:, :, ::-1], rgb)
+    if crop_p:
+        assert (wh2[:, 1] < cam_wh[:, 1]).all() and visible2.sum() < visible.sum()
