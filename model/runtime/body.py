@@ -1,6 +1,6 @@
 """Body size from the headset and the camera: a per-session running estimate of the skeleton's bone lengths.
 
-FK, KPO and the rotation re-derivation need the wearer's bone lengths. Three sources, in order of evidence:
+FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sources, in order of evidence:
 
 1. **Height.** The highest head-joint height the headset has shown (people stand up at some point) scales
    the mean SMPL body, within ``SCALE_RANGE``, assuming a stage reference space (floor at y = 0).
@@ -10,29 +10,16 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Three sou
 3. **A fitted body regressor** (:class:`BodyRegressor`, one per RGB-D visual encoder, made by ``egoposevr
    fit-body`` from the training split): from the height and the measured lengths to every bone's length,
    including the arms, collars, neck and head the camera never sees. Proportions come in families (the
-   retargeted CMU bodies all have wide hips, a short mid-spine and neck and a long head bone against
-   SMPL's; the procedural ones are scaled SMPL bodies), and the hips and lower spine the camera sees tell
-   them apart. The regressor finds the families in its training bodies (k-means), tells them apart with a
-   linear discriminant and has one ridge expert per family. On the validation split the summed
-   bone-length error at a sequence's end falls from 41 cm (height only; 36 cm with the measured legs) to
-   14 cm (18 cm with one ridge map for all bodies), and `egoposevr`'s MPJPE from 2.74 to 2.28 cm (upper
-   body) and 6.64 to 5.91 cm (lower body) with the 8 000-step weights of the time. With the true bones
-   the 16 000-step weights would score 1.69 cm upper instead of 2.20: the gap is as large after a
-   sequence's first 4 s (1.50 against 1.90 cm) as before, so it is the bones' remaining error (about 1 cm
-   per procedural arm and leg bone, 2 cm on the CMU hips), not the wait for measurements. On the bundled
-   128×96 recordings (procedural bodies, a resolution the regressor never saw) the single ridge map made
-   upper-body MPJPE worse (0.88 -> 1.13, 1.07 -> 1.48, 1.27 -> 2.33 cm against the legs-only body); the
-   mixture stays within 0.05 cm of it (0.93, 1.09, 1.32 cm).
+   retargeted CMU bodies against the scaled SMPL ones), and the hips and lower spine the camera sees tell
+   them apart: the regressor finds the families in its training bodies (k-means), tells them apart with a
+   linear discriminant and has one ridge expert per family.
+4. **A calibration** (:meth:`BodyCalibrator.calibrate`, runtime/calibration.py), when the session asked for
+   one: its standing head height replaces the running one and its arms replace the estimated ones.
 
 Without a regressor, RGB-D models keep the height scale and put the measured thigh, shin and foot medians
-(30 sightings or more) in place. RGB-only models measure nothing: their keypoints guess depth, and both
-their raw lengths and a regressor fitted on them made hmd-rgb worse (LoadedModel.measures_body).
-
-Tried and dropped: a per-bone ridge regression from five headset statistics (height, reach, raised and
-hanging wrists, sideways reach). It learned the CMU proportions from statistics the procedural bodies share
-and made validation MPJPE worse (hmd upper body 3.71 -> 5.29 cm): the headset alone cannot tell the
-families apart, the camera can. Adding the camera's arm bones, the controllers' reach or span, or squared
-features to the regressor moved the summed bone error by less than 1 cm.
+(30 sightings or more) in place. RGB-only models measure nothing: their keypoints guess depth
+(LoadedModel.measures_body). MODEL_CARD.md ("Body regressor") has the measurements behind these choices and
+what was tried and dropped.
 
 Shape legend: ``J`` = 22 joints (bone j joins joint j to its parent; bone 0 is unused); ``B`` sighted bones;
 ``F = 2 + 2B`` regressor features; tracked rows (head, left wrist, right wrist).
