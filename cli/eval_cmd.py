@@ -7,7 +7,8 @@ body behaves like one: foot skating and floor error while the true foot is plant
 true legs are still, jerk (model/training/plausibility.py defines each). --by-category adds
 MPJPE per motion category (stand with the upper body moving, walk, crouch or bend, leg actions, other: read
 from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D keypoint error
-on joints in view and not occluded. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
+on joints in view and not occluded; --calibrate serves each sequence after the T-pose calibration (PROTOCOL.md
+§4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
 evaluated like any split.
 
 Example:
@@ -35,6 +36,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--keypoints",
         action="store_true",
         help="also each visual encoder's 3D keypoint error on visible joints",
+    )
+    parser.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="serve each sequence after the T-pose calibration its own rig and body would give "
+        "(rig-pool datasets)",
     )
     parser.add_argument(
         "--providers",
@@ -88,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
             progress,
             by_category=args.by_category,
             providers=providers,
+            calibrate=args.calibrate,
         )
         keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
     except (DatasetError, ModelError) as error:

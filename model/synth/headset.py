@@ -12,12 +12,21 @@ Shape legend: ``N`` headset samples, ``J`` = 22 joints; device order head, left,
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..rig import DEVICE_FROM_JOINT, HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GRIP_OFFSET_M
-from ..skeleton import HEAD, LEFT_WRIST, RIGHT_WRIST, forward_kinematics
+from ..skeleton import (
+    FOOT_JOINT_HEIGHT_M,
+    HEAD,
+    LEFT_WRIST,
+    NUM_JOINTS,
+    RIGHT_WRIST,
+    forward_kinematics,
+    rest_offsets,
+)
 from .motion import Motion, sample_at
 
 
@@ -63,6 +72,30 @@ class HeadsetTrack:
     root_pos_m: np.ndarray
     joints_m: np.ndarray
     motion_t_s: np.ndarray
+
+
+def rig_from_fields(fields: dict[str, Any]) -> HeadsetRig:
+    """A HeadsetRig from a manifest's per-sequence ``headset`` entry (JSON lists as tuples; unknown keys,
+    from a newer engine, ignored)."""
+    names = {f.name for f in dataclasses.fields(HeadsetRig)}
+    return HeadsetRig(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in names})
+
+
+def tpose_samples(
+    bone_scale: np.ndarray, rig: HeadsetRig, rate_hz: float, seconds: float, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A user with these bones and this rig holding a T-pose on the floor (PROTOCOL.md §4.1's calibration),
+    still but for the rig's tracking noise -> t_us (N,), poses (N, 3, 7), valid (N, 3)."""
+    local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3))
+    joints, glob = forward_kinematics(local, np.zeros(3), rest_offsets(bone_scale))
+    joints = joints - [0.0, joints[[10, 11], 1].min() - FOOT_JOINT_HEIGHT_M, 0.0]
+    n = int(seconds * rate_hz)
+    poses = np.repeat(device_poses(joints[None], glob[None], rig), n, axis=0)
+    rng = np.random.default_rng(seed)
+    poses[:, 0, :3] += rng.normal(0.0, rig.head_noise_m, (n, 3))
+    poses[:, 1:, :3] += rng.normal(0.0, rig.hand_noise_m, (n, 2, 3))
+    t_us = (np.arange(n) * 1e6 / rate_hz).astype(np.int64)
+    return t_us, poses, np.ones((n, 3), dtype=bool)
 
 
 def device_tilts(rig: HeadsetRig) -> np.ndarray:

@@ -16,6 +16,7 @@ Shape legend: ``N`` headset samples, ``J`` = 22 joints.
 
 from __future__ import annotations
 
+import json
 import statistics
 import time
 from collections.abc import Callable
@@ -26,12 +27,13 @@ import numpy as np
 
 from ..inputs import decode_rgbd
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
+from ..runtime.calibration import DEFAULT_SECONDS, Calibration, CalibrationCollector
 from ..runtime.frames import encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import LOWER_BODY, UPPER_BODY
-from .dataset import load_split
+from .dataset import DatasetError, load_split
 from .plausibility import plausibility, summarize_plausibility
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
@@ -164,6 +166,28 @@ def motion_category(seq: dict[str, Any]) -> str:
     return "other"
 
 
+def calibrate_like_a_user(pipeline: Any, seq: dict[str, Any], headset: dict[str, Any]) -> Calibration:
+    """Run the T-pose calibration a user of this sequence's rig would do, and apply it to ``pipeline``."""
+    from ..synth.headset import rig_from_fields, tpose_samples
+
+    rate_hz = 1e6 / float(np.median(np.diff(seq["hmd_t_us"])))
+    collector = CalibrationCollector("tpose", DEFAULT_SECONDS, pipeline.model.info.rig_offsets_m)
+    samples = tpose_samples(seq["bone_scale"], rig_from_fields(headset), rate_hz, DEFAULT_SECONDS + 0.5)
+    for sample in zip(*samples, strict=True):
+        calibration = collector.push(*sample)
+        if calibration is not None:
+            pipeline.calibrate(calibration)
+            return calibration
+    raise AssertionError("the T-pose was shorter than the calibration")  # tpose_samples lasts longer
+
+
+def sequence_rigs(data_dir: Path, split: str) -> dict[str, dict[str, Any]]:
+    """{sequence name: its headset draw} from the manifest (rig-pool datasets; empty otherwise)."""
+    manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
+    sources = manifest["splits"][split].get("sources", [])
+    return {s["name"]: s["rig"]["headset"] for s in sources if "rig" in s}
+
+
 def evaluate(
     data_dir: Path,
     split: str,
@@ -172,11 +196,17 @@ def evaluate(
     on_sequence: Callable[[str, int, int], None] | None = None,
     by_category: bool = False,
     providers: tuple[str, ...] = DEFAULT_PROVIDERS,
+    calibrate: bool = False,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
     baseline); with ``by_category``,
-    each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}."""
+    each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}.
+    With ``calibrate`` every sequence is served after the T-pose calibration its rig and body would give
+    (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig)."""
     seqs = load_split(data_dir, split, limit)
+    rigs = sequence_rigs(data_dir, split) if calibrate else {}
+    if calibrate and any(s["name"] not in rigs for s in seqs):
+        raise DatasetError(f"{data_dir}: --calibrate needs each sequence's rig in manifest.json (--rig-pool)")
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
@@ -187,6 +217,8 @@ def evaluate(
         pipeline = pipeline_for(model)
         errors = []
         for i, seq in enumerate(seqs):
+            if calibrate:
+                calibrate_like_a_user(pipeline, seq, rigs[seq["name"]])
             errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))

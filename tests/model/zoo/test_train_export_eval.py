@@ -255,3 +255,31 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny
     assert all(k["joints"] > 0 and 0 <= k["median_cm"] <= k["p90_cm"] for k in report["keypoints"].values())
     categories = report["models"]["egoposevr"]["categories"]
     assert sum(c["sequences"] for c in categories.values()) == 1  # the val split's one kick
+
+
+def test_eval_calibrate_serves_after_each_rigs_tpose_and_needs_the_rigs(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    rigged = tmp_path / "rigged"
+    synth = ["synth", "--procedural", "2", "--families", "walk", "--seed", "5", "--rig-pool", "train"]
+    small = [
+        "--resolution",
+        "80x64",
+        "--seconds",
+        "3",
+        "--no-progress",
+        "--out",
+        str(rigged),
+        "--split",
+        "val",
+    ]
+    assert main([*synth, *small]) == 0
+    capsys.readouterr()
+    args = ["eval", "--data", str(rigged), "--models-dir", str(tiny_weights), "--models", "procedural,hmd"]
+    out = tmp_path / "calibrated.json"
+    assert main([*args, "--calibrate", "--no-progress", "--json", str(out)]) == 0
+    results = json.loads(out.read_text())["models"]
+    assert all(np.isfinite(results[m]["hpe_cm"]) for m in ("procedural", "hmd"))
+    unrigged = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "hmd"]
+    assert main([*unrigged, "--calibrate", "--no-progress"]) == 2
+    assert "--calibrate needs each sequence's rig" in capsys.readouterr().err
