@@ -23,6 +23,7 @@ const state = (window.viewerState = {
   connected: false, session: null, model: null, models: [], poses: 0, lastSeq: null, fps: 0,
   serverMs: null, camera: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
   headset: null, // from `session` messages: is an input client connected (null: not told yet)
+  calibration: null, // the newest `calibration` message: {status, message, ...}
 });
 
 const $ = (id) => document.getElementById(id);
@@ -55,6 +56,7 @@ function onMessage(msg) {
   else if (msg.type === "pose") { onPose(msg); }
   else if (msg.type === "error") { state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`]; }
   else if (msg.type === "session") { state.headset = msg.input; }
+  else if (msg.type === "calibration") { state.calibration = msg; }
   // Any other type is one this viewer does not know: ignored (PROTOCOL.md §8).
 }
 
@@ -91,6 +93,8 @@ function fillModels() {
 }
 
 $("session").onchange = (e) => connect(e.target.value);
+$("calibrate").onclick = () =>
+  ws && ws.readyState === 1 && ws.send(encode({ type: "calibrate", v: 1, pose: "tpose", seconds: 2.0 }));
 $("model").onchange = (e) => ws && ws.readyState === 1 && ws.send(encode({ type: "select_model", v: 1, model: e.target.value }));
 
 // ------------------------------------------------------------------------------------------ kinematics
@@ -237,7 +241,8 @@ function frame() {
   view.draw();
   const s = state;
   const headset = s.headset === null ? "" : s.headset ? " · headset connected" : " · no headset";
-  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}${headset}` : "connecting…";
+  const calibration = s.calibration ? ` · calibration ${s.calibration.status}: ${s.calibration.message}` : "";
+  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}${headset}${calibration}` : "connecting…";
   $("hud").textContent = s.poses
     ? `poses ${s.poses}  ·  ${s.fps} FPS  ·  server ${s.serverMs?.toFixed(1) ?? "?"} ms  ·  camera ${s.camera === null ? "n/a" : s.camera ? "on" : "off"}  ·  skipped ${s.skipped}` +
       (s.errors.length ? `  ·  last error ${s.errors[s.errors.length - 1]}` : "")

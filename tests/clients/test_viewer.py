@@ -120,6 +120,13 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             browser.evaluate('(() => { const s = document.getElementById("model"); s.value = "hmd-rgbd";'
                              ' s.dispatchEvent(new Event("change")); })()')  # fmt: skip
             browser.wait_for(lambda s: s.get("model") == "hmd-rgbd")
+            # The calibrate button asks for a T-pose; a walking recording is not one, and the page says so.
+            browser.evaluate('document.getElementById("calibrate").click()')
+            state = browser.wait_for(
+                lambda s: (s.get("calibration") or {}).get("status") == "failed", timeout=20
+            )
+            assert state["calibration"]["message"]  # why, for the operator
+            assert "calibration failed" in browser.evaluate('document.getElementById("status").textContent')
         finally:
             browser.close()
 
