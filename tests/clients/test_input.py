@@ -8,6 +8,7 @@ import socket
 import numpy as np
 import pytest
 from loopback import RECORDINGS, running_server
+from syntheticusers import User, holding
 
 from egoposevr.clients.input import HeadsetClient, InputClientError, encode_frame
 from egoposevr.model.inputs import decode_rgbd
@@ -95,3 +96,22 @@ def test_encode_frame_round_trips_and_checks_its_input():
         encode_frame(rgb, depth.astype(np.float32))
     with pytest.raises(ValueError, match="rgb must be"):
         encode_frame(rgb[..., 0], depth)
+
+
+@pytest.mark.asyncio
+async def test_calibrate_returns_the_servers_verdict_while_the_rig_streams():
+    t_us, poses, valid = holding(User(height_scale=1.05), seconds=3.0)
+
+    async def stream_tpose(headset: HeadsetClient) -> None:
+        for t, p, v in zip(t_us, poses, valid, strict=True):
+            await headset.send_hmd(int(t), p[0], p[1], p[2], v)
+            await asyncio.sleep(0.004)
+
+    with running_server() as server:
+        async with HeadsetClient(server.url, "rig-calibrates", model="procedural") as headset:
+            streaming = asyncio.create_task(stream_tpose(headset))
+            result = await headset.calibrate("tpose", seconds=1.0, timeout_s=20)
+            await streaming
+            assert result.status == "done" and result.head_height_m > 1.6
+            cleared = await headset.clear_calibration()
+            assert cleared.status == "cleared"
