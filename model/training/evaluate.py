@@ -7,7 +7,8 @@ asks for a pose. Metrics, per the paper's Tables 2-3:
 - MPJPE (cm): mean joint position error of the served world joints, no alignment; upper / lower body;
 - PA-MPJPE (cm): the same after a per-frame similarity Procrustes fit over all 22 joints;
 - MPJRE (deg): geodesic angle between served and true local rotations (row 0: pelvis global);
-- H-PE (cm): wrists' position error;  Jitter (m/s³): mean norm of the third time derivative of positions;
+- H-PE (cm): wrists' position error; H-PE lost: the same over the wrists whose controller is lost at that
+  sample (``lost_share``: how often that is);  Jitter (m/s³): mean norm of the third time derivative of positions;
 - FPS: one stream, batch 1, a NEW RGB-D frame before every headset sample (decode + visual encoder
   included), wall clock, median of ``FPS_REPEATS`` runs.
 
@@ -41,6 +42,7 @@ FPS_SAMPLES = 200
 FPS_REPEATS = 3
 METRIC_KEYS = (
     "mpjpe_u_cm", "mpjpe_l_cm", "pa_mpjpe_u_cm", "pa_mpjpe_l_cm", "mpjre_u_deg", "mpjre_l_deg", "hpe_cm",
+    "hpe_lost_cm", "lost_share",
     "jitter", "foot_skate_cm_s", "floor_float_cm", "floor_penetration_cm", "leg_leakage_cm", "jerk", "jerk_true",
     "fps",
 )  # fmt: skip
@@ -94,6 +96,7 @@ def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -
         "rot": np.degrees(geodesic_angle(rots, gt_rot)),
         "jitter": np.linalg.norm(third, axis=-1).mean(-1),
         "plausibility": plausibility(joints, gt, np.asarray(seq["hmd_t_us"])),
+        "lost": ~np.asarray(seq["hmd_valid"], dtype=bool)[:, 1:],  # (N, 2) left, right controller lost
     }
 
 
@@ -103,6 +106,8 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
     pa = np.concatenate([e["pa"] for e in errors])
     rot = np.concatenate([e["rot"] for e in errors])
     jitter = np.concatenate([e["jitter"] for e in errors])
+    lost = np.concatenate([e["lost"] for e in errors])  # (N, 2), the wrists' order
+    wrists = pos[:, WRISTS]
     return {
         "mpjpe_u_cm": 100 * float(pos[:, UPPER_BODY].mean()),
         "mpjpe_l_cm": 100 * float(pos[:, LOWER_BODY].mean()),
@@ -110,7 +115,9 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
         "pa_mpjpe_l_cm": 100 * float(pa[:, LOWER_BODY].mean()),
         "mpjre_u_deg": float(rot[:, UPPER_BODY].mean()),
         "mpjre_l_deg": float(rot[:, LOWER_BODY].mean()),
-        "hpe_cm": 100 * float(pos[:, WRISTS].mean()),
+        "hpe_cm": 100 * float(wrists.mean()),
+        "hpe_lost_cm": 100 * float(wrists[lost].mean()) if lost.any() else float("nan"),
+        "lost_share": float(lost.mean()),
         "jitter": float(jitter.mean()) if len(jitter) else 0.0,
         **summarize_plausibility([e["plausibility"] for e in errors]),
     }
@@ -311,13 +318,13 @@ def markdown_table(results: dict[str, dict[str, float]]) -> str:
     """The paper's Tables 2-3 shape: one row per model."""
     head = (
         "| model | MPJPE-U cm | MPJPE-L cm | PA-MPJPE-U cm | PA-MPJPE-L cm | MPJRE-U ° | MPJRE-L ° | H-PE cm "
-        "| Jitter m/s³ | FPS |"
+        "| H-PE lost cm | Jitter m/s³ | FPS |"
     )
-    rows = [head, "|" + "---|" * 10]
+    rows = [head, "|" + "---|" * 11]
     for name, m in results.items():
         rows.append(
             f"| {name} | {m['mpjpe_u_cm']:.2f} | {m['mpjpe_l_cm']:.2f} | {m['pa_mpjpe_u_cm']:.2f} | "
             f"{m['pa_mpjpe_l_cm']:.2f} | {m['mpjre_u_deg']:.2f} | {m['mpjre_l_deg']:.2f} | {m['hpe_cm']:.2f} | "
-            f"{m['jitter']:.1f} | {m['fps']:.0f} |"
+            f"{m['hpe_lost_cm']:.2f} | {m['jitter']:.1f} | {m['fps']:.0f} |"
         )
     return "\n".join(rows)
