@@ -99,7 +99,7 @@ PRESETS: dict[str, TrainConfig] = {
     # For tests: seconds.
     "tiny": TrainConfig(
         visual_steps=30, fusion_steps=30, batch=8, visual_width=40, visual_height=32, window=8,
-        visual_window=3, d_model=16, joint_dim=8, warmup_steps=5,
+        visual_window=3, d_model=16, joint_dim=8, warmup_steps=5, mirror_p=0.0, crop_p=0.0,
     ),
 }  # fmt: skip
 
