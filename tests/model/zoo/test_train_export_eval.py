@@ -10,9 +10,10 @@ from egoposevr.model.runtime import hands
 from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.skeleton import rest_offsets
+from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
 from egoposevr.model.training.dataset import load_split, split_camera
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
-from egoposevr.model.training.train import load_checkpoint
+from egoposevr.model.training.train import PRESETS, build_net, load_checkpoint, prepare_fusion_sequence
 from egoposevr.model.weights import model_files
 from egoposevr.model.zoo import ZOO
 
@@ -283,3 +284,16 @@ def test_eval_calibrate_serves_after_each_rigs_tpose_and_needs_the_rigs(
     unrigged = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "hmd"]
     assert main([*unrigged, "--calibrate", "--no-progress"]) == 2
     assert "--calibrate needs each sequence's rig" in capsys.readouterr().err
+
+
+def test_a_mirrored_sequence_trains_on_the_mirror_of_its_keypoints_and_truth(tiny_data, tiny_runs):
+    seq = load_split(tiny_data, "val")[0]
+    visual = build_net(load_checkpoint(tiny_runs / "visual-rgbd.pt"))
+    config = PRESETS["tiny"]
+    plain = prepare_fusion_sequence(seq, np.random.default_rng(0), config, visual, {})
+    mirrored = prepare_fusion_sequence(mirror_sequence(seq), np.random.default_rng(0), config, visual, {})
+    flip = np.array([-1.0, 1.0, 1.0])
+    np.testing.assert_allclose(mirrored.kp_world, plain.kp_world[:, MIRROR_JOINTS] * flip, atol=1e-6)
+    np.testing.assert_allclose(mirrored.confidence, plain.confidence[:, MIRROR_JOINTS])
+    np.testing.assert_allclose(mirrored.joints_h, plain.joints_h[:, MIRROR_JOINTS] * flip, atol=1e-5)
+    np.testing.assert_array_equal(mirrored.valid, plain.valid[:, [0, 2, 1]])
