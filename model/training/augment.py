@@ -30,7 +30,7 @@ _X_SIGNS: Final = np.array([-1.0, 1.0, 1.0])
 
 def mirror_sequence(seq: dict[str, Any]) -> dict[str, Any]:
     """A shard sequence's motion, tracks and truth mirrored (a new dict; images and camera labels are the
-    source's: ``mirror_of`` names it, and stage-2 mirrors the keypoints it predicts from them)."""
+    source's: ``mirror_of`` is it, ``images_key`` its key, and stage-2 mirrors the keypoints it predicts from them)."""
     out = dict(seq)
     poses = np.array(seq["hmd_poses"], dtype=np.float64)[:, MIRROR_DEVICES]
     poses[..., :3] *= _X_SIGNS
@@ -47,8 +47,8 @@ def mirror_sequence(seq: dict[str, Any]) -> dict[str, Any]:
         out["gt_root_m"] = (np.asarray(seq["gt_root_m"]) * _X_SIGNS).astype(seq["gt_root_m"].dtype)
     out["bone_scale"] = np.asarray(seq["bone_scale"])[MIRROR_JOINTS]
     out["mirror_of"] = seq
-    out["images_name"] = seq.get("images_name", seq["name"])
-    out["name"] = f"{seq['name']}~mirrored"
+    out["images_key"] = seq.get("images_key", seq["key"])
+    out["key"] = f"{seq['key']}~mirrored"
     return out
 
 
@@ -63,8 +63,8 @@ def retime_sequence(seq: dict[str, Any], speed: float) -> dict[str, Any]:
     t0 = int(seq["hmd_t_us"][0])
     for key in ("hmd_t_us", "cam_t_us"):
         out[key] = (t0 + (np.asarray(seq[key], dtype=np.int64) - t0) / speed).astype(np.int64)
-    out["images_name"] = seq.get("images_name", seq["name"])
-    out["name"] = f"{seq['name']}~x{speed:.3f}"
+    out["images_key"] = seq.get("images_key", seq["key"])
+    out["key"] = f"{seq['key']}~x{speed:.3f}"
     return out
 
 

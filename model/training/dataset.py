@@ -83,6 +83,8 @@ def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> li
         if limit is not None and len(seqs) >= limit:
             seqs = seqs[:limit]
             break
+    for index, seq in enumerate(seqs):
+        seq["key"] = f"{split}/{index}"  # names repeat (one capture in several conversions); keys do not
     if any("camera" not in s for s in seqs):  # shards made before cameras were drawn per sequence
         camera = split_camera(data_dir, split)
         for seq in seqs:

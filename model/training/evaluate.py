@@ -188,11 +188,16 @@ def calibrate_like_a_user(pipeline: Any, seq: dict[str, Any], headset: dict[str,
     raise AssertionError("the T-pose was shorter than the calibration")  # tpose_samples lasts longer
 
 
-def sequence_rigs(data_dir: Path, split: str) -> dict[str, dict[str, Any]]:
-    """{sequence name: its headset draw} from the manifest (rig-pool datasets; empty otherwise)."""
+def sequence_rigs(data_dir: Path, split: str, seqs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each sequence's headset draw from the manifest, in the split's order (names repeat: one capture in
+    several conversions); raises DatasetError when the manifest has no rigs (no --rig-pool) or disagrees."""
     manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
-    sources = manifest["splits"][split].get("sources", [])
-    return {s["name"]: s["rig"]["headset"] for s in sources if "rig" in s}
+    sources = manifest["splits"][split].get("sources", [])[: len(seqs)]
+    if len(sources) < len(seqs) or any(
+        "rig" not in src or src["name"] != seq["name"] for src, seq in zip(sources, seqs, strict=False)
+    ):
+        raise DatasetError(f"{data_dir}: --calibrate needs each sequence's rig in manifest.json (--rig-pool)")
+    return [src["rig"]["headset"] for src in sources]
 
 
 def evaluate(
@@ -211,9 +216,7 @@ def evaluate(
     With ``calibrate`` every sequence is served after the T-pose calibration its rig and body would give
     (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig)."""
     seqs = load_split(data_dir, split, limit)
-    rigs = sequence_rigs(data_dir, split) if calibrate else {}
-    if calibrate and any(s["name"] not in rigs for s in seqs):
-        raise DatasetError(f"{data_dir}: --calibrate needs each sequence's rig in manifest.json (--rig-pool)")
+    rigs = sequence_rigs(data_dir, split, seqs) if calibrate else []
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
@@ -225,7 +228,7 @@ def evaluate(
         errors = []
         for i, seq in enumerate(seqs):
             if calibrate:
-                calibrate_like_a_user(pipeline, seq, rigs[seq["name"]])
+                calibrate_like_a_user(pipeline, seq, rigs[i])
             errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))

@@ -415,7 +415,7 @@ def prepare_fusion_sequence(
         shot = seq.get("mirror_of", seq)  # whose headset the images were taken from
         uv, depth_m, zeta = _cached(
             cache,
-            (visual.cfg.channels, seq.get("images_name", seq["name"])),
+            (visual.cfg.channels, seq.get("images_key", seq["key"])),
             lambda: predict_keypoints(visual, *decode_frames(shot, size)),
         )
         kp_world, conf = frame_keypoints(
@@ -428,7 +428,7 @@ def prepare_fusion_sequence(
     return FusionSequence(
         hmd=_cached(
             cache,
-            ("hmd", seq["name"]),
+            ("hmd", seq["key"]),
             lambda: np.concatenate(
                 [hmd_features(t_us, poses, seq["hmd_valid"]), tracking_features(t_us, seq["hmd_valid"])],
                 axis=-1,

@@ -29,7 +29,7 @@ def _sequence(rng: np.random.Generator, n: int = 5) -> dict:
         poses[:, d, :3] = joints[:, j] + np.einsum("nij,j->ni", glob[:, j], DEFAULT_OFFSETS_M[d])
         poses[:, d, 3:] = Rotation.from_matrix(glob[:, j] @ DEVICE_FROM_JOINT).as_quat()
     return {
-        "name": "s", "hmd_t_us": np.arange(n) * 11_111, "cam_t_us": np.arange(2) * 33_333,
+        "name": "s", "key": "val/0", "hmd_t_us": np.arange(n) * 11_111, "cam_t_us": np.arange(2) * 33_333,
         "hmd_poses": poses.astype(np.float32), "hmd_valid": rng.random((n, 3)) < 0.7,
         "gt_local_quat": Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(n, NUM_JOINTS, 4),
         "gt_joints_m": joints, "gt_root_m": root, "bone_scale": scale,
@@ -50,7 +50,7 @@ def test_a_mirrored_sequence_is_a_body_with_its_devices_on_it() -> None:
     tracked, _ = joints_from_devices(mirrored["hmd_poses"].astype(np.float64))
     np.testing.assert_allclose(tracked, mirrored["gt_joints_m"][:, list(TRACKED_JOINTS)], atol=1e-5)
     np.testing.assert_array_equal(mirrored["hmd_valid"][:, 1], seq["hmd_valid"][:, 2])
-    assert mirrored["mirror_of"] is seq and mirrored["images_name"] == "s"
+    assert mirrored["mirror_of"] is seq and mirrored["images_key"] == "val/0"
 
 
 def test_retiming_scales_the_clocks_only() -> None:
@@ -58,7 +58,7 @@ def test_retiming_scales_the_clocks_only() -> None:
     fast = retime_sequence(seq, 2.0)
     np.testing.assert_array_equal(fast["hmd_t_us"], seq["hmd_t_us"] // 2)
     np.testing.assert_array_equal(fast["cam_t_us"], seq["cam_t_us"] // 2)
-    assert fast["hmd_poses"] is seq["hmd_poses"] and fast["images_name"] == "s"
+    assert fast["hmd_poses"] is seq["hmd_poses"] and fast["images_key"] == "val/0"
 
 
 @pytest.mark.parametrize(("crop_p", "flip_p"), [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
