@@ -2,7 +2,7 @@
 of standing still.
 
 The running body estimate (:mod:`.body`) needs no help, but it only learns the height once the user stands
-up and never learns how they hold the controllers. A ``calibrate`` request (PROTOCOL.md §4.8) asks the user
+up and never learns how they hold the controllers. A ``calibrate`` request (PROTOCOL.md §4.1) asks the user
 to hold one of two poses while :class:`CalibrationCollector` gathers the headset samples:
 
 - ``stand``: standing straight, looking ahead. Measures the head joint's standing height and how the
@@ -37,6 +37,7 @@ from ..hmd import ignore_untracked
 from ..rig import DEFAULT_OFFSETS_M, DEVICE_FROM_JOINT, joints_from_devices
 from ..rotations import quat_xyzw_to_matrix
 from ..skeleton import HEAD, REST_JOINTS_M
+from . import kernels
 from .body import SCALE_RANGE, STANDING_HEAD_HEIGHT_M, height_scale
 
 CalibrationPose = Literal["stand", "tpose"]
@@ -52,8 +53,6 @@ MAX_ARM_HEIGHT_M: Final = 0.25  # a controller this far above or below the shoul
 MAX_FACING_DEG: Final = 35.0  # the arm line's normal against the head's heading
 ARM_SCALE_RANGE: Final = (0.75, 1.35)  # arm length against the mean body's, after the height scale
 LEFT_SHOULDER, RIGHT_SHOULDER, LEFT_WRIST, RIGHT_WRIST = 16, 17, 20, 21
-LEFT_ARM_BONES: Final = (18, 20)  # upper arm (shoulder -> elbow) and forearm (elbow -> wrist)
-RIGHT_ARM_BONES: Final = (19, 21)
 _UP: Final = np.array([0.0, 1.0, 0.0])
 
 
@@ -83,37 +82,21 @@ class Calibration:
         """(D, 4) xyzw quaternions of ``corrections``."""
         return Rotation.from_matrix(self.corrections).as_quat()
 
-    def summary(self) -> dict[str, float | str]:
-        """Plain numbers for the protocol's ``calibration`` message and the logs."""
-        turns = [float(np.degrees(Rotation.from_matrix(c).magnitude())) for c in self.corrections]
-        out: dict[str, float | str] = {"pose": self.pose, "head_height_m": round(self.head_height_m, 4)}
-        if self.arm_span_m is not None:
-            out["arm_span_m"] = round(self.arm_span_m, 4)
-        out["corrections_deg"] = [round(t, 2) for t in turns]  # type: ignore[assignment]
-        return out
-
 
 def canonical_poses(poses: np.ndarray, calibration: Calibration | None) -> np.ndarray:
-    """poses (..., D, 7) as the wearer's devices report them -> as the default rig would (a copy).
+    """poses (D, 7) as the wearer's devices report them -> as the default rig would (a copy).
 
-    ``R' = R @ C`` is the quaternion product ``q ⊗ c``: a few µs for one sample, no matrix round trip."""
+    ``R' = R @ C`` is the quaternion product ``q ⊗ c`` (a compiled kernel: no matrix round trip)."""
     if calibration is None:
         return poses
     out = np.array(poses, dtype=np.float64, copy=True)
-    out[..., 3:] = quat_multiply_xyzw(out[..., 3:], calibration.correction_quats)
+    out[:, 3:] = kernels.quats_multiply(np.ascontiguousarray(out[:, 3:]), calibration.correction_quats)
     return out
 
 
-def quat_multiply_xyzw(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a ⊗ b of (..., 4) xyzw quaternions (the rotation a @ b)."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)  # fmt: skip
+def body_measurements(calibration: Calibration | None) -> tuple[float | None, float | None]:
+    """(head height m, arm scale) for :meth:`BodyCalibrator.calibrate`; (None, None) without a calibration."""
+    return (None, None) if calibration is None else (calibration.head_height_m, calibration.arm_scale)
 
 
 class CalibrationCollector:

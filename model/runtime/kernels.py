@@ -131,6 +131,15 @@ def quats_to_rotvecs(quat_xyzw: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(**_JIT)
+def quats_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamilton products a[i]·b[i] of (n, 4) xyzw quaternions (the rotations a[i] @ b[i])."""
+    out = np.empty((a.shape[0], 4))
+    for i in range(a.shape[0]):
+        out[i] = _quat_multiply(a[i], b[i])
+    return out
+
+
+@numba.njit(**_JIT)
 def rotvecs_to_matrices(rotvec: np.ndarray) -> np.ndarray:
     """(n, 3) rotation vectors -> (n, 3, 3), through the quaternion [sin(θ/2) k, cos(θ/2)] (series near 0)."""
     quat = np.empty((rotvec.shape[0], 4))
@@ -530,6 +539,7 @@ def _call_every_kernel() -> None:
     pos, glob = forward_kinematics_one(eye, np.zeros(3), offsets, parents)
     matrices_to_rotvecs(glob)
     quats_to_rotvecs(np.array([[0.0, 0.0, 0.0, 1.0]]))
+    quats_multiply(np.array([[0.0, 0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 0.0, 1.0]]))
     rotvecs_to_matrices(np.zeros((1, 3)))
     links = np.array([[1, 0], [2, 1]], dtype=np.int64)
     observed = np.array([False, False, True])

@@ -25,7 +25,7 @@ from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
-from .calibration import Calibration, canonical_poses
+from .calibration import Calibration, body_measurements, canonical_poses
 from .filters import OneEuroFilter
 from .frames import (
     CachedFrame,
@@ -98,10 +98,7 @@ class Pipeline:
         self._apply_calibration()
 
     def _apply_calibration(self) -> None:
-        cal = self.calibration
-        self.body.calibrate(
-            None if cal is None else cal.head_height_m, None if cal is None else cal.arm_scale
-        )
+        self.body.calibrate(*body_measurements(self.calibration))
         if not self.fixed_body:
             self.offsets = rest_offsets(self.body.bone_scale)
 

@@ -36,7 +36,7 @@ from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..skeleton import FOOT_JOINT_HEIGHT_M, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
-from .calibration import Calibration, canonical_poses
+from .calibration import Calibration, body_measurements, canonical_poses
 from .filters import OneEuroFilter
 from .kpo import rederive_rotations
 from .loading import ModelInfo
@@ -128,10 +128,7 @@ class ProceduralPipeline:
     def calibrate(self, calibration: Calibration | None) -> None:
         """As :meth:`Pipeline.calibrate <egoposevr.model.runtime.pipeline.Pipeline.calibrate>`."""
         self.calibration = calibration
-        self.body.calibrate(
-            None if calibration is None else calibration.head_height_m,
-            None if calibration is None else calibration.arm_scale,
-        )
+        self.body.calibrate(*body_measurements(calibration))
         if not self.fixed_body:
             self._set_offsets(rest_offsets(self.body.bone_scale))
 

@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 from egoposevr.model import rotations as r
 from egoposevr.model import skeleton as sk
 from egoposevr.model.runtime import kernels, kpo
+from egoposevr.model.runtime.calibration import Calibration
 from egoposevr.model.runtime.loading import LoadedModel
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.weights import WEIGHTS_DIR
@@ -84,6 +85,12 @@ def test_kpo_kernel_reaches_no_higher_energy_than_any_small_perturbation():
         assert kpo.kpo_energy(nudged, pred, targets, observed, w) > best
 
 
+def test_quaternion_products_match_scipy():
+    a, b = Rotation.random(5, random_state=3), Rotation.random(5, random_state=4)
+    got = kernels.quats_multiply(a.as_quat(), b.as_quat())
+    np.testing.assert_allclose(Rotation.from_quat(got).as_matrix(), (a * b).as_matrix(), atol=1e-12)
+
+
 def test_serving_never_compiles_after_warm_up():
     """A pose after warm-up must not wait seconds for numba: every call's argument types were compiled then."""
     kernels.warm_up()
@@ -93,6 +100,10 @@ def test_serving_never_compiles_after_warm_up():
     pipeline.push_rgbd(0, rgb, depth, np.array([100.0, 100.0, 64.0, 48.0]))
     head = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
     hands = np.array([[0.2, -0.5, 0, 0, 0, 0, 0], [-0.2, -0.5, 0, 0, 0, 0, 0]])
+    turns = Rotation.from_euler("x", [[5.0], [20.0], [-20.0]], degrees=True).as_matrix()
+    pipeline.calibrate(
+        Calibration("tpose", 1.6, turns, arm_scale=1.0)
+    )  # device rotations go through a kernel
     for i in range(5):
         poses = np.vstack([head, head + hands])
         pipeline.push_hmd(i * 11_111, poses, np.array([True, i % 2 == 0, True]))
