@@ -134,7 +134,6 @@ class Session:
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
         self._collector: tuple[Calibrate, CalibrationCollector] | None = None  # run() only
-        self._calibration: MeasuredCalibration | None = None  # run() only: kept across switches, reconnects
 
     # ------------------------------------------------------------------------------ event loop side
     @property
@@ -238,8 +237,9 @@ class Session:
         result = RunResult()
         if job.model is not None:
             self._pipeline_model_name, model = job.model
+            calibration = self._pipeline.calibration  # the wearer's: it outlives the model
             self._pipeline = pipeline_for(model)
-            self._pipeline.calibrate(self._calibration)
+            self._pipeline.calibrate(calibration)
         elif job.reset:
             self._pipeline.reset()
             self._abandon_calibration("the input client reconnected", result)
@@ -292,7 +292,6 @@ class Session:
     def _start_calibration(self, request: Calibrate, result: RunResult) -> None:
         self._abandon_calibration("a newer calibrate replaced it", result)
         if request.clear:
-            self._calibration = None
             self._pipeline.calibrate(None)
             message = "calibration cleared; the body is estimated as the session goes"
             result.notices.append(Calibration(status="cleared", pose=request.pose, message=message))
@@ -323,7 +322,7 @@ class Session:
             return
         if measured is None:
             return
-        self._collector, self._calibration = None, measured
+        self._collector = None
         self._pipeline.calibrate(measured)
         result.notices.append(_calibration_done(request, measured))
 
