@@ -1,0 +1,356 @@
+// Test program for the package's UnityEngine-free core (Runtime/Core), compiled with Mono by
+// tests/clients/test_unity_core.py, which runs it in three modes and checks what it prints or writes:
+//
+//   golden GOLDEN_DIR OPENXR_DIR    every fixture decodes and re-encodes to the same bytes (generic and typed);
+//                                   the client messages built from their fields give the fixtures' bytes
+//   convert IN.msgpack OUT.msgpack  frame conversions and SMPL retargeting on inputs from Python, results back
+//   live URL SESSION RGB DEPTH      a session against a real server: hello, hmd at 90 Hz, rgbd at 30 Hz, poses
+//                                   back, a render client seeing them, select_model, a malformed message
+//   reconnect URL SESSION           the server goes away (after "up" is printed, until the test restarts it once
+//                                   "down" is printed): the client comes back by itself, with its model
+//
+// Exit status 0: every check passed; otherwise the first failed check is printed.
+using System;
+using System.Collections.Generic;
+using System.IO;
+using System.Linq;
+using System.Net.WebSockets;
+using System.Threading;
+using System.Threading.Tasks;
+using EgoPose.Protocol;
+
+static class CoreTests
+{
+    static int checks;
+
+    static int Main(string[] args)
+    {
+        try
+        {
+            switch (args[0])
+            {
+                case "golden": Golden(args[1], args[2]); break;
+                case "convert": Convert(args[1], args[2]); break;
+                case "live": Live(args[1], args[2], args[3], args[4]); break;
+                case "reconnect": Reconnect(args[1], args[2]); break;
+                default: throw new ArgumentException("unknown mode " + args[0]);
+            }
+            Console.WriteLine("ok: " + checks + " checks");
+            return 0;
+        }
+        catch (Exception exc)
+        {
+            Console.WriteLine("FAILED: " + exc);
+            return 1;
+        }
+    }
+
+    static void Check(bool condition, string what)
+    {
+        checks++;
+        if (!condition) throw new Exception("check failed: " + what);
+    }
+
+    static void SameBytes(byte[] expected, byte[] actual, string what)
+    {
+        checks++;
+        if (expected.SequenceEqual(actual)) return;
+        int at = 0;
+        while (at < Math.Min(expected.Length, actual.Length) && expected[at] == actual[at]) at++;
+        throw new Exception(string.Format("{0}: bytes differ at offset {1} (expected {2} bytes, got {3})", what, at,
+            expected.Length, actual.Length));
+    }
+
+    // ------------------------------------------------------------------------------------------------ golden
+    static void Golden(string goldenDir, string openxrDir)
+    {
+        var files = Directory.GetFiles(goldenDir, "*.msgpack").Concat(Directory.GetFiles(openxrDir, "*.msgpack"));
+        foreach (string path in files.OrderBy(p => p))
+        {
+            byte[] bytes = File.ReadAllBytes(path);
+            string name = Path.GetFileName(path);
+            SameBytes(bytes, MsgPack.Encode(MsgPack.Decode(bytes)), name + " generic round trip");
+            var typed = Protocol.DecodeFromServer(bytes);
+            if (typed != null) SameBytes(bytes, typed.Encode(), name + " typed round trip");
+        }
+        var golden = new Func<string, MsgMap>(n => (MsgMap)MsgPack.Decode(File.ReadAllBytes(Path.Combine(goldenDir, n + ".msgpack"))));
+        foreach (var built in ClientExamples(golden))
+            SameBytes(File.ReadAllBytes(Path.Combine(goldenDir, built.Key + ".msgpack")), built.Value.Encode(),
+                built.Key + " built from fields");
+        foreach (string serverType in new[] { "welcome", "pose", "models", "error", "session", "calibration", "pong" })
+            Check(Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, serverType + ".msgpack"))) != null,
+                serverType + " decodes as a server message");
+        Check(Protocol.DecodeFromServer(MsgPack.Encode(new MsgMap().Add("type", "from_the_future").Add("v", 1L))) == null,
+            "an unknown message type is ignored (null)");
+        var pose = (Pose)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "pose.msgpack")));
+        Check(pose.Seq == 42 && pose.BodyPose[9] == 0.5f && pose.GlobalOrient[1] == 3.125f, "pose fields");
+        var error = (Error)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "error.msgpack")));
+        Check(error.Code == "wrong_length" && !error.Fatal && error.RefType == "hmd" && error.RefSeq == 43, "error fields");
+        MustRefuse(new byte[] { 0x81, 0xa4 }, "truncated");
+        MustRefuse(new byte[] { 0xd4, 0x01, 0x02 }, "an extension type");
+        MustRefuse(new byte[] { 0x81, 0x01, 0x02 }, "a non-string key");
+        MustRefuse(new byte[] { 0x90, 0x90 }, "trailing bytes");
+        MustRefuse(new byte[] { 0xdd, 0xff, 0xff, 0xff, 0xff }, "an array longer than the data");
+    }
+
+    static void MustRefuse(byte[] bytes, string what)
+    {
+        checks++;
+        try
+        {
+            Protocol.DecodeFromServer(bytes);
+        }
+        catch (ProtocolException)
+        {
+            return;
+        }
+        throw new Exception("accepted " + what);
+    }
+
+    /// <summary>The client messages of protocol/examples.py, built field by field as an app would.</summary>
+    static Dictionary<string, Message> ClientExamples(Func<string, MsgMap> golden)
+    {
+        float half = 0.7071067690849304f;
+        var rgbd = golden("rgbd");
+        return new Dictionary<string, Message>
+        {
+            { "hello", new Hello { Role = "input", Session = "room-1", Model = "egoposevr", Token = "s3cret", Client = "unity/1.0" } },
+            {
+                "hmd", new Hmd
+                {
+                    Seq = 42, TUs = 1000000,
+                    Head = new[] { 0f, 1.625f, 0f, 0f, 0f, 0f, 1f },
+                    Left = new[] { -0.25f, 1f, -0.25f, 0f, 0f, 0f, 1f },
+                    Right = new[] { 0.25f, 1f, -0.25f, 0f, half, 0f, half },
+                    Valid = new[] { true, true, false },
+                }
+            },
+            {
+                "rgbd", new Rgbd
+                {
+                    Seq = 7, TUs = 1000500, Width = 4, Height = 2, Intrinsics = new[] { 2f, 2f, 2f, 1f },
+                    Rgb = (byte[])rgbd.Get("rgb"), Depth = (byte[])rgbd.Get("depth"),
+                    CamFromHead = new[] { 1f, 0f, 0f, 0f, 0f, 0f, 1f, 0.125f, 0f, -1f, 0f, -0.0625f, 0f, 0f, 0f, 1f },
+                }
+            },
+            { "select_model", new SelectModel { Model = "hmd" } },
+            { "list_models", new ListModels() },
+            { "ping", new Ping { Nonce = 3, TUs = 1000900 } },
+            { "calibrate", new Calibrate { Pose = "tpose", Seconds = 2f } },
+        };
+    }
+
+    // ----------------------------------------------------------------------------------------------- convert
+    static void Convert(string inPath, string outPath)
+    {
+        var input = (MsgMap)MsgPack.Decode(File.ReadAllBytes(inPath));
+        var output = new MsgMap();
+        var openxr = new MsgMap();
+        foreach (var case_ in (MsgMap)input.Get("openxr"))
+        {
+            var devices = (List<object>)case_.Value;
+            var hmd = Frames.HmdFromUnity(7, 2000000, Device(devices[0]), Device(devices[1]), Device(devices[2]));
+            openxr.Add(case_.Key, hmd.Encode());
+        }
+        output.Add("openxr", openxr);
+        var tpose = Floats(input.Get("tpose_world"));
+        var world = new List<object>();
+        var avatar = new List<object>();
+        var hips = new List<object>();
+        foreach (object item in (List<object>)input.Get("poses"))
+        {
+            var pose = (MsgMap)item;
+            var w = SmplRetarget.WorldRotations(Floats(pose.Get("global_orient")), Floats(pose.Get("body_pose")));
+            world.Add(w);
+            avatar.Add(SmplRetarget.AvatarWorldRotations(w, tpose));
+            hips.Add(SmplRetarget.HipsPosition(Floats(pose.Get("transl")), 0.9f));
+        }
+        output.Add("world", world).Add("avatar", avatar).Add("hips", hips);
+        File.WriteAllBytes(outPath, MsgPack.Encode(output));
+    }
+
+    static UnityDevicePose Device(object item)
+    {
+        var map = (MsgMap)item;
+        return new UnityDevicePose(Floats(map.Get("position")), Floats(map.Get("rotation")), (int)(long)map.Get("state"));
+    }
+
+    static float[] Floats(object list)
+    {
+        return ((List<object>)list).Select(v => v is double ? (float)(double)v : (float)v).ToArray();
+    }
+
+    // -------------------------------------------------------------------------------------------------- live
+    static void Live(string url, string session, string rgbPath, string depthPath)
+    {
+        var input = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Model = "egoposevr" });
+        var render = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Role = "render" });
+        input.Start();
+        WaitFor(() => input.State == ConnectionState.Open, "the input client is welcomed");
+        Check(input.Welcome.Session == session && input.Welcome.Role == "input" && input.Welcome.Model == "egoposevr",
+            "welcome names the session, the role and the model");
+        render.Start();
+        WaitFor(() => render.State == ConnectionState.Open, "the render client is welcomed");
+        var joined = WaitForMessage<SessionStatus>(render, m => m.Event == "joined", "the render client's session message");
+        Check(joined.Input, "the render client sees the input client");
+
+        byte[] rgb = File.ReadAllBytes(rgbPath), depth = File.ReadAllBytes(depthPath);
+        var sent = StreamHeadset(input, rgb, depth, 90, 0, 90);
+        // The newest sample is always answered; older ones may be skipped when the machine is busy (§newest-wins).
+        WaitFor(() => input.LatestPose != null && input.LatestPose.Seq == 89, "the last headset sample is answered");
+        Pose pose;
+        Check(input.TryTakePose(out pose), "a pose is waiting");
+        Check(sent.ContainsKey(pose.Seq) && pose.TUs == sent[pose.Seq], "pose.seq and t_us answer an hmd");
+        Check(pose.GlobalOrient.Length == 3 && pose.BodyPose.Length == 63 && pose.Transl.Length == 3
+              && pose.Joints.Length == 66, "pose shapes");
+        Check(pose.Model == "egoposevr" && pose.Camera == true, "the fusion model used the camera");
+        Check(!input.TryTakePose(out pose), "a pose is taken once");
+        WaitFor(() => render.LatestPose != null && render.LatestPose.Seq == 89, "the render client receives the poses");
+        Check(render.PosesReceived == input.PosesReceived, "the render client receives every pose the input client does");
+
+        input.Send(new SelectModel { Model = "hmd" });
+        WaitForMessage<Models>(input, m => m.Active == "hmd", "models answers select_model");
+        WaitForMessage<Models>(render, m => m.Active == "hmd", "the render client hears of the switch");
+        StreamHeadset(input, rgb, depth, 90, 90, 30);
+        WaitFor(() => input.TryTakePose(out pose) && pose.Seq == 119, "poses after the switch");
+        Check(pose.Model == "hmd", "poses come from the new model");
+
+        MalformedMessage(url, session);
+        input.Send(new Ping { Nonce = 77 });
+        WaitForMessage<Pong>(input, m => m.Nonce == 77, "the input client still answers pings");
+        Check(input.Reconnects == 0 && input.DroppedSends == 0, "no reconnects and nothing dropped");
+        render.Dispose();
+        input.Dispose();
+        Console.WriteLine("poses: input " + input.PosesReceived + ", render " + render.PosesReceived);
+    }
+
+    static void Reconnect(string url, string session)
+    {
+        var input = new EgoPoseConnection(new ConnectionOptions
+        {
+            Url = url, Session = session, MinBackoff = TimeSpan.FromMilliseconds(50), MaxBackoff = TimeSpan.FromMilliseconds(400),
+        });
+        input.Start();
+        WaitFor(() => input.State == ConnectionState.Open, "the input client is welcomed");
+        input.Send(new SelectModel { Model = "hmd" });
+        WaitForMessage<Models>(input, m => m.Active == "hmd", "models answers select_model");
+        StreamHeadset(input, new byte[0], new byte[0], 90, 0, 9);
+        Pose pose = null;
+        WaitFor(() => input.TryTakePose(out pose), "a pose");
+        Console.WriteLine("up");
+        WaitFor(() => input.State == ConnectionState.Waiting, "the client notices the server is gone");
+        Check(!input.Send(new Hmd { Seq = 100, TUs = 5000000 }), "hmd is refused while the connection is down");
+        Console.WriteLine("down");
+        WaitFor(() => input.State == ConnectionState.Open, "the client reconnects by itself");
+        Check(input.Welcome.Model == "hmd", "the new session resumes the model");
+        Check(input.Reconnects >= 1 && input.DroppedSends == 1, "one reconnect counted, the refused hmd counted");
+        StreamHeadset(input, new byte[0], new byte[0], 90, 200, 9);
+        WaitFor(() => input.TryTakePose(out pose) && pose.Seq >= 200, "poses after the reconnect");
+        Check(pose != null && pose.Model == "hmd", "from the resumed model");
+        input.Dispose();
+    }
+
+    /// <summary>hmd at <paramref name="hz"/> with an rgbd every third sample; {seq: t_us} of the hmd sent.</summary>
+    static Dictionary<long, long> StreamHeadset(EgoPoseConnection input, byte[] rgb, byte[] depth, int hz, int first, int count)
+    {
+        var sent = new Dictionary<long, long>();
+        var start = DateTime.UtcNow;
+        for (int i = first; i < first + count; i++)
+        {
+            long tUs = 1000000 + i * 1000000L / hz;
+            double sway = 0.05 * Math.Sin(i * 0.1);
+            var hmd = new Hmd
+            {
+                Seq = i, TUs = tUs,
+                Head = new[] { (float)sway, 1.6f, 0f, 0f, 0f, 0f, 1f },
+                Left = new[] { -0.25f, 1.0f, -0.25f, 0f, 0f, 0f, 1f },
+                Right = new[] { 0.25f, 1.0f, -0.25f, 0f, 0f, 0f, 1f },
+            };
+            Check(input.Send(hmd), "hmd " + i + " queued");
+            sent[i] = tUs;
+            if (i % 3 == 0 && rgb.Length > 0)
+            {
+                input.Send(new Rgbd
+                {
+                    Seq = i / 3, TUs = tUs, Width = 160, Height = 128, Intrinsics = new[] { 80f, 80f, 80f, 64f },
+                    Rgb = rgb, Depth = depth,
+                });
+            }
+            var due = start + TimeSpan.FromTicks((i - first + 1) * TimeSpan.TicksPerSecond / hz);
+            var wait = due - DateTime.UtcNow;
+            if (wait > TimeSpan.Zero) Thread.Sleep(wait);
+        }
+        return sent;
+    }
+
+    /// <summary>Bytes that are no msgpack value, on a raw socket: an error, not fatal, and the socket stays up.</summary>
+    static void MalformedMessage(string url, string session)
+    {
+        using (var socket = new ClientWebSocket())
+        {
+            var token = new CancellationTokenSource(TimeSpan.FromSeconds(10)).Token;
+            socket.ConnectAsync(new Uri(url + "?session=" + session), token).Wait();
+            Send(socket, new Hello { Role = "render", Session = session }.Encode(), token);
+            Send(socket, new byte[] { 0xc1 }, token);
+            Error error = null;
+            while (error == null)
+                error = Receive(socket, token) as Error;
+            Check(error.Code == "malformed" && !error.Fatal, "a malformed message gets a non-fatal malformed error");
+            Send(socket, new Ping { Nonce = 5 }.Encode(), token);
+            Pong pong = null;
+            while (pong == null)
+                pong = Receive(socket, token) as Pong;
+            Check(pong.Nonce == 5 && socket.State == WebSocketState.Open, "the connection stays up after it");
+        }
+    }
+
+    static void Send(ClientWebSocket socket, byte[] data, CancellationToken token)
+    {
+        socket.SendAsync(new ArraySegment<byte>(data), WebSocketMessageType.Binary, true, token).Wait();
+    }
+
+    static Message Receive(ClientWebSocket socket, CancellationToken token)
+    {
+        var buffer = new byte[1 << 20];
+        int length = 0;
+        WebSocketReceiveResult result;
+        do
+        {
+            result = socket.ReceiveAsync(new ArraySegment<byte>(buffer, length, buffer.Length - length), token).Result;
+            length += result.Count;
+        } while (!result.EndOfMessage);
+        return Protocol.DecodeFromServer(buffer, 0, length);
+    }
+
+    static T WaitForMessage<T>(EgoPoseConnection connection, Func<T, bool> wanted, string what) where T : Message
+    {
+        var deadline = DateTime.UtcNow + TimeSpan.FromSeconds(15);
+        while (DateTime.UtcNow < deadline)
+        {
+            Message message;
+            while (connection.TryDequeue(out message))
+            {
+                var typed = message as T;
+                if (typed != null && wanted(typed))
+                {
+                    checks++;
+                    return typed;
+                }
+            }
+            Thread.Sleep(5);
+        }
+        throw new Exception("timed out waiting for " + what + " (state " + connection.State + ", last error "
+                            + connection.LastError + ")");
+    }
+
+    static void WaitFor(Func<bool> condition, string what)
+    {
+        var deadline = DateTime.UtcNow + TimeSpan.FromSeconds(30);
+        while (!condition())
+        {
+            if (DateTime.UtcNow > deadline) throw new Exception("timed out waiting until " + what);
+            Thread.Sleep(5);
+        }
+        checks++;
+    }
+}

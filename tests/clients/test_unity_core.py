@@ -1,0 +1,189 @@
+"""The Unity package's C# core (clients/unity/Runtime/Core), compiled with Mono and run against the golden
+fixtures, numbers computed here, and a real server on loopback. Skipped, saying so, where Mono is missing
+(Debian: apt-get install mono-devel; .ci/run installs it)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+from loopback import running_server
+from scipy.spatial.transform import Rotation
+
+from egoposevr.model.skeleton import PARENTS, forward_kinematics, rest_offsets
+from egoposevr.protocol.examples import OPENXR_INPUTS
+from egoposevr.protocol.openxr import ORIENTATION_VALID, POSITION_VALID
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGE = ROOT / "clients" / "unity"
+GOLDEN = ROOT / "tests" / "protocol" / "golden"
+OPENXR = ROOT / "tests" / "protocol" / "openxr"
+MCS, MONO = shutil.which("mcs"), shutil.which("mono")
+pytestmark = pytest.mark.skipif(
+    MCS is None or MONO is None, reason="needs Mono (Debian: apt-get install mono-devel)"
+)
+MIRROR = np.diag([1.0, 1.0, -1.0])  # protocol <-> Unity (PROTOCOL.md §3.1)
+
+
+@pytest.fixture(scope="module")
+def program(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """CoreTests.exe built from the package's core and its test program, warnings as errors. The core builds
+    without UnityEngine's assemblies: that it compiles here is the check that it needs none."""
+    exe = tmp_path_factory.mktemp("unity") / "CoreTests.exe"
+    sources = [*sorted((PACKAGE / "Runtime" / "Core").glob("*.cs")), PACKAGE / "Tests~" / "CoreTests.cs"]
+    build = [
+        MCS,
+        "-langversion:7.2",
+        "-warnaserror+",
+        "-r:System.Net.Http",
+        f"-out:{exe}",
+        *map(str, sources),
+    ]
+    result = subprocess.run(build, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return exe
+
+
+def run(program: Path, *args: str, timeout: float = 120) -> str:
+    result = subprocess.run([MONO, str(program), *args], capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result.stdout
+
+
+def test_golden_fixtures_round_trip_byte_for_byte(program: Path) -> None:
+    assert run(program, "golden", str(GOLDEN), str(OPENXR)).startswith("ok: ")
+
+
+def _unity_device(pose: list[float], flags: int) -> dict[str, object]:
+    """What Unity's XR input reports for an OpenXR location: the pose mirrored, and InputTrackingState bits."""
+    state = (1 if flags & POSITION_VALID else 0) | (2 if flags & ORIENTATION_VALID else 0)
+    x, y, z, qx, qy, qz, qw = pose
+    return {"position": [x, y, -z], "rotation": [-qx, -qy, qz, qw], "state": state}
+
+
+def _random_poses(rng: np.random.Generator, n: int) -> list[dict[str, list[float]]]:
+    poses = []
+    for _ in range(n):
+        global_orient = Rotation.from_euler("yx", [rng.uniform(-np.pi, np.pi), rng.uniform(-0.3, 0.3)])
+        poses.append(
+            {
+                "global_orient": global_orient.as_rotvec().tolist(),
+                "body_pose": rng.uniform(-0.6, 0.6, 63).tolist(),
+                "transl": [rng.uniform(-1, 1), rng.uniform(0.8, 1.0), rng.uniform(-1, 1)],
+            }
+        )
+    return poses
+
+
+@pytest.fixture(scope="module")
+def converted(program: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    """(inputs, outputs) of the C# conversions: OpenXR cases, random SMPL poses, a random avatar T-pose."""
+    rng = np.random.default_rng(7)
+    inputs = {
+        "openxr": {
+            name: [_unity_device(pose, flags) for pose, flags in devices]
+            for name, devices in OPENXR_INPUTS.items()
+        },
+        "poses": _random_poses(rng, 8),
+        # Every avatar rig rests its bones its own way: random rest rotations stand for any of them.
+        "tpose_world": Rotation.random(22, random_state=3).as_quat().ravel().tolist(),
+    }
+    folder = tmp_path_factory.mktemp("convert")
+    (folder / "in.msgpack").write_bytes(msgpack.packb(inputs))
+    run(program, "convert", str(folder / "in.msgpack"), str(folder / "out.msgpack"))
+    return inputs, msgpack.unpackb((folder / "out.msgpack").read_bytes())
+
+
+def test_unity_xr_poses_give_the_openxr_walkthroughs_bytes(converted: tuple[dict, dict]) -> None:
+    """PROTOCOL.md §3.3's three worked examples, reached from what Unity reports instead of from OpenXR."""
+    _, out = converted
+    for name in OPENXR_INPUTS:
+        assert out["openxr"][name] == (OPENXR / f"{name}.msgpack").read_bytes(), name
+
+
+def _smpl_world(pose: dict[str, list[float]]) -> Rotation:
+    local = Rotation.from_rotvec([pose["global_orient"], *np.reshape(pose["body_pose"], (21, 3))])
+    world = [local[0]]
+    for j in range(1, 22):
+        world.append(world[PARENTS[j]] * local[j])
+    return Rotation.concatenate(world)
+
+
+def test_world_rotations_match_smpl_chain(converted: tuple[dict, dict]) -> None:
+    inputs, out = converted
+    for pose, world in zip(inputs["poses"], out["world"], strict=True):
+        got = Rotation.from_quat(np.reshape(world, (22, 4)))
+        assert (got * _smpl_world(pose).inv()).magnitude().max() < 1e-5
+
+
+def test_retargeted_avatar_reproduces_the_served_joints(converted: tuple[dict, dict]) -> None:
+    """An avatar whose bones rest at arbitrary rotations, posed by the C# world rotations, puts its joints
+    where SMPL FK puts the served ones (mirrored into Unity's frame): rest-pose differences are handled."""
+    inputs, out = converted
+    tpose = Rotation.from_quat(np.reshape(inputs["tpose_world"], (22, 4)))
+    # The avatar's T-pose faces Unity's +Z: SMPL's rest (facing the protocol's +Z) mirrored, turned 180°.
+    yaw180 = Rotation.from_euler("y", np.pi).as_matrix()
+    offsets_unity = (yaw180 @ MIRROR @ rest_offsets().T).T
+    parents = np.maximum(PARENTS, 0)
+    local_offsets = tpose[parents].inv().apply(offsets_unity)  # each bone's offset in its parent's rest frame
+    for pose, avatar, hips in zip(inputs["poses"], out["avatar"], out["hips"], strict=True):
+        world = Rotation.from_quat(np.reshape(avatar, (22, 4)))
+        joints = np.zeros((22, 3))
+        for j in range(1, 22):
+            joints[j] = joints[PARENTS[j]] + world[PARENTS[j]].apply(local_offsets[j])
+        served, _ = forward_kinematics(_smpl_world_local(pose), np.zeros(3))
+        np.testing.assert_allclose(joints, served @ MIRROR, atol=1e-5)
+        transl = np.array(pose["transl"])
+        np.testing.assert_allclose(hips, [transl[0], 0.9 * transl[1], -transl[2]], atol=1e-6)
+
+
+def _smpl_world_local(pose: dict[str, list[float]]) -> np.ndarray:
+    """(22, 3, 3) local rotations (the pelvis's global) for skeleton.forward_kinematics."""
+    rotvecs = np.concatenate([pose["global_orient"], pose["body_pose"]]).reshape(22, 3)
+    return Rotation.from_rotvec(rotvecs).as_matrix()
+
+
+def _camera_images(folder: Path) -> tuple[Path, Path]:
+    """A 160×128 JPEG and 16-bit millimetre PNG: a floor 1.5 m away with a warm patch."""
+    rgb = np.full((128, 160, 3), 90, np.uint8)
+    rgb[40:90, 60:100] = (40, 120, 200)
+    depth = np.full((128, 160), 1500, np.uint16)
+    ok_rgb, jpeg = cv2.imencode(".jpg", rgb)
+    ok_depth, png = cv2.imencode(".png", depth)
+    assert ok_rgb and ok_depth
+    (folder / "rgb.jpg").write_bytes(jpeg.tobytes())
+    (folder / "depth.png").write_bytes(png.tobytes())
+    return folder / "rgb.jpg", folder / "depth.png"
+
+
+def test_live_session_against_a_real_server(program: Path, tmp_path: Path) -> None:
+    rgb, depth = _camera_images(tmp_path)
+    with running_server() as server:
+        out = run(program, "live", server.url, "unity-live", str(rgb), str(depth))
+    assert "ok: " in out, out
+
+
+def test_reconnects_and_resumes_the_model(program: Path) -> None:
+    command = [MONO, str(program), "reconnect"]
+    with running_server() as server:
+        port = server.server.port
+        with subprocess.Popen(
+            [*command, server.url, "unity-resume"], stdout=subprocess.PIPE, text=True
+        ) as child:
+            assert child.stdout is not None
+            try:
+                assert child.stdout.readline().strip() == "up"
+                server.stop()
+                assert child.stdout.readline().strip() == "down"
+                with running_server(port=port):
+                    out = child.stdout.read()
+                    assert child.wait(60) == 0, out
+            finally:
+                if child.poll() is None:
+                    child.kill()
+    assert "ok: " in out, out
