@@ -55,6 +55,24 @@ def run(program: Path, *args: str, timeout: float = 120) -> str:
     return result.stdout
 
 
+def test_unity_layer_and_sample_compile_against_unity_signatures(tmp_path: Path) -> None:
+    """Runtime/Unity and the sample, built against a stub of the UnityEngine API they call (Tests~): catches a
+    typo or a wrong type here; what the calls do in Unity is not tested."""
+    sources = [
+        *sorted((PACKAGE / "Runtime").rglob("*.cs")),
+        *sorted((PACKAGE / "Samples~").rglob("*.cs")),
+        PACKAGE / "Tests~" / "UnityEngineStub.cs",
+    ]
+    build = [MCS, "-langversion:7.2", "-warnaserror+", "-target:library", "-r:System.Net.Http"]
+    result = subprocess.run(
+        [*build, f"-out:{tmp_path / 'unity.dll'}", *map(str, sources)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
 def test_golden_fixtures_round_trip_byte_for_byte(program: Path) -> None:
     assert run(program, "golden", str(GOLDEN), str(OPENXR)).startswith("ok: ")
 
