@@ -1,0 +1,52 @@
+// An Unreal Engine 5 actor component that streams the headset and both motion controllers to an EgoPose server
+// and keeps the newest served body (joints in Unreal's world, cm), drawn as debug lines. A starting point for a
+// C++ client: the wire format and the frame conversions are EgoPoseProtocol.h (compiled and tested by the
+// project); this Unreal glue is documentation, NOT compiled or run by the project's tests (no Unreal here).
+//
+// Build.cs: PublicDependencyModuleNames.AddRange(new[] { "Core", "CoreUObject", "Engine", "WebSockets",
+// "HeadMountedDisplay" }); put msgpack-cxx's include folder (header-only) on PublicIncludePaths.
+#pragma once
+
+#include "Components/ActorComponent.h"
+#include "CoreMinimal.h"
+#include "EgoPoseProtocol.h"
+#include "EgoPoseComponent.generated.h"
+
+class IWebSocket;
+
+UCLASS(ClassGroup = (EgoPose), meta = (BlueprintSpawnableComponent))
+class UEgoPoseComponent : public UActorComponent {
+    GENERATED_BODY()
+
+   public:
+    UEgoPoseComponent();
+
+    // ws://HOST:PORT/ws of the server; the session is appended as ?session=.
+    UPROPERTY(EditAnywhere, Category = "EgoPose") FString Url = TEXT("ws://127.0.0.1:8765/ws");
+    UPROPERTY(EditAnywhere, Category = "EgoPose") FString Session = TEXT("default");
+    UPROPERTY(EditAnywhere, Category = "EgoPose") FString Model;  // empty: the session's or the server's default
+    UPROPERTY(EditAnywhere, Category = "EgoPose") bool bDrawSkeleton = true;
+
+    // The newest served joints (22, SMPL order of PROTOCOL.md §3), Unreal world space, cm.
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<FVector> Joints;
+
+    UFUNCTION(BlueprintCallable, Category = "EgoPose") void SelectModel(const FString& Name);
+
+   protected:
+    virtual void BeginPlay() override;
+    virtual void EndPlay(const EEndPlayReason::Type Reason) override;
+    virtual void TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTick) override;
+
+   private:
+    void Connect();
+    void OnRawMessage(const void* Data, SIZE_T Size, SIZE_T BytesRemaining);
+    void SendHmd();
+    void Send(const msgpack::sbuffer& Buffer);
+
+    TSharedPtr<IWebSocket> Socket;
+    TArray<uint8> Partial;  // a message arriving in several frames
+    bool bWelcomed = false;
+    int64 Seq = 0;
+    double ReconnectAt = 0;  // FPlatformTime::Seconds() of the next attempt after a drop
+    double Backoff = 0.25;
+};
