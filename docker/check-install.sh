@@ -21,10 +21,12 @@ port="$(grep -o 'ws://127.0.0.1:[0-9]*' "$work/log" | head -1 | cut -d: -f3)"
 [ -n "$port" ] || { cat "$work/log"; echo "check-install: the server did not start" >&2; exit 1; }
 python - "$port" <<'PY'
 import sys, urllib.request
-for path in ("/healthz", "/readyz"):
+# The viewer's files are package data: the page, a nested vendored module and the avatar must be installed.
+for path in ("/healthz", "/readyz", "/viewer/", "/viewer/vendor/three/addons/loaders/GLTFLoader.js",
+             "/viewer/vendor/three-vrm/three-vrm.module.min.js", "/viewer/avatar/mannequin.vrm"):
     with urllib.request.urlopen(f"http://127.0.0.1:{sys.argv[1]}{path}", timeout=5) as reply:
         assert reply.status == 200, (path, reply.status)
-print("check-install: /healthz and /readyz answer 200 from the image's install steps")
+print("check-install: /healthz, /readyz and the viewer's files answer 200 from the image's install steps")
 PY
 kill -TERM "$pid"
 wait "$pid"

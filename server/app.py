@@ -52,7 +52,7 @@ FRAME_LANE_NICE = 10  # CFS gives a nice-10 thread ~1/10 of a core against a bus
 VIEWER_DIR = Path(str(importlib.resources.files("egoposevr.clients") / "viewer"))
 STATIC_TYPES = {
     ".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8",
-    ".md": "text/plain; charset=utf-8", ".png": "image/png",
+    ".md": "text/plain; charset=utf-8", ".png": "image/png", ".vrm": "model/gltf-binary",
 }  # fmt: skip
 # websockets refuses frames above max_size by closing with 1009 and no explanation; the headroom lets a
 # message up to twice the protocol limit arrive so that the client gets a `too_large` error first.

@@ -1,14 +1,16 @@
 // EgoPoseVR web viewer: joins a session as a `render` client (PROTOCOL.md) and draws every pose.
 //
-// The avatar is capsules between the 22 SMPL joints (`pose.joints`); the headset and controllers are boxes
-// placed and turned by the SMPL rotations (`global_orient`, `body_pose`) through forward kinematics, with the
-// device offsets of model/rig.py. The ground truth (`pose.truth`, recorded sessions) is a grey line ghost.
+// The avatar is a skinned VRM humanoid driven by the SMPL rotations (avatar.js; the bundled mannequin, or a .vrm
+// dropped on the page), or, toggled off or without one, capsules between the 22 SMPL joints (`pose.joints`). The
+// headset and controllers are boxes placed and turned by the SMPL rotations (`global_orient`, `body_pose`)
+// through forward kinematics, with the device offsets of model/rig.py. The ground truth (`pose.truth`, recorded
+// sessions) is a grey line ghost.
 // World: right-handed, y up, metres, as on the wire. `window.viewerState` exposes what the page saw (tests
 // and curious users read it). Without WebGL the page falls back to a 2D canvas projection.
-import * as THREE from "./vendor/three/three.module.js";
+import * as THREE from "three";
+import { Avatar, PARENTS, globalRotations, parseVrm } from "./avatar.js";
 
 const { encode, decode } = window.MessagePack;
-const PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19];
 const LEFT = new Set([1, 4, 7, 10, 13, 16, 18, 20]);
 const RIGHT = new Set([2, 5, 8, 11, 14, 17, 19, 21]);
 // Devices on the body (model/rig.py): offsets in the joint's frame; device = joint turned 180° about y.
@@ -24,6 +26,7 @@ const state = (window.viewerState = {
   serverMs: null, camera: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
   headset: null, // from `session` messages: is an input client connected (null: not told yet)
   calibration: null, // the newest `calibration` message: {status, message, ...}
+  avatar: { loaded: false, name: null, error: null }, // the skinned avatar (null name: capsules only)
 });
 
 const $ = (id) => document.getElementById(id);
@@ -104,21 +107,6 @@ function jointsOf(flat) {
   return out;
 }
 
-function axisAngle(x, y, z) {
-  const angle = Math.hypot(x, y, z);
-  if (angle < 1e-9) return new THREE.Quaternion();
-  return new THREE.Quaternion().setFromAxisAngle(new THREE.Vector3(x / angle, y / angle, z / angle), angle);
-}
-
-function globalRotations(pose) {
-  const rot = [axisAngle(...pose.global_orient)];
-  for (let j = 1; j < 22; j++) {
-    const b = pose.body_pose.slice(3 * (j - 1), 3 * j);
-    rot.push(rot[PARENTS[j]].clone().multiply(axisAngle(...b)));
-  }
-  return rot;
-}
-
 function colourOf(j) { return LEFT.has(j) ? 0xff8c3c : RIGHT.has(j) ? 0x3ca0ff : 0xe6e6e6; }
 
 // ------------------------------------------------------------------------------------------ WebGL scene
@@ -155,6 +143,32 @@ function webglView(stage) {
   truthLines.visible = false; scene.add(truthLines);
   const focus = new THREE.Vector3(0, 1, 0);
   const up = new THREE.Vector3(0, 1, 0);
+  let avatar = null, lastPose = null;
+
+  async function loadAvatar(bytes, name) {
+    try {
+      const next = new Avatar(await parseVrm(bytes), name);
+      if (avatar) scene.remove(avatar.vrm.scene);
+      avatar = next; scene.add(avatar.vrm.scene);
+      state.avatar = { loaded: true, name, error: null };
+      if (lastPose) show(lastPose);
+    } catch (error) {
+      console.warn("avatar not loaded:", error);
+      state.avatar = { loaded: Boolean(avatar), name: avatar ? avatar.name : null, error: `${name}: ${error.message || error}` };
+    }
+  }
+  fetch("avatar/mannequin.vrm").then((r) => r.arrayBuffer()).then((b) => loadAvatar(b, "mannequin.vrm"));
+  stage.addEventListener("dragover", (event) => event.preventDefault());
+  stage.addEventListener("drop", async (event) => { // the user's own avatar: a .vrm dropped on the page
+    event.preventDefault();
+    const file = event.dataTransfer.files[0];
+    if (file) await loadAvatar(await file.arrayBuffer(), file.name);
+  });
+  window.viewerAvatar = { // for tests and the curious: load bytes, or pose the avatar and read its bones back
+    load: (bytes, name) => loadAvatar(bytes, name),
+    pose: (pose) => { avatar.show(pose); return avatar.bonePositions(); },
+    legM: () => avatar.legM,
+  };
 
   function resize() {
     const w = stage.clientWidth, h = stage.clientHeight;
@@ -163,7 +177,12 @@ function webglView(stage) {
   window.addEventListener("resize", resize); resize();
 
   function show(pose) {
+    lastPose = pose;
     const joints = jointsOf(pose.joints);
+    const skinned = Boolean(avatar) && $("avatar").checked;
+    if (avatar) { avatar.vrm.scene.visible = skinned; if (skinned) avatar.show(pose); }
+    bones.forEach((mesh) => { mesh.visible = !skinned; });
+    spheres.forEach((mesh) => { mesh.visible = !skinned; });
     for (let j = 1; j < 22; j++) {
       const a = joints[PARENTS[j]], b = joints[j], mesh = bones[j - 1];
       const length = a.distanceTo(b);
@@ -222,6 +241,7 @@ function canvasView(stage) {
     }
     for (let j = 1; j < 22; j++) line([joints[PARENTS[j]], joints[j]], "#" + colourOf(j).toString(16).padStart(6, "0"), 5);
   }
+  state.avatar = { loaded: false, name: null, error: "no WebGL: capsules in 2D" };
   return { show: (p) => { pose = p; }, draw, name: "2d" };
 }
 

@@ -14,15 +14,20 @@ import threading
 import time
 import urllib.request
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import pytest
 from loopback import RECORDINGS, Client, running_server
+from scipy.spatial.transform import Rotation
 from websockets.sync.client import connect
 
+from egoposevr.clients.avatar import VRM_BONES
 from egoposevr.clients.replay import Recording, Replayer
+from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+from egoposevr.server.app import VIEWER_DIR
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (Debian: apt-get install chromium)")
@@ -131,13 +136,69 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             browser.close()
 
 
+def _known_pose() -> tuple[dict[str, list[float]], np.ndarray]:
+    """A pose served for a body with 10 % longer bones than the mannequin, and its (22, 3, 3) local rotations."""
+    rng = np.random.default_rng(5)
+    rotvecs = np.vstack([Rotation.from_euler("yx", [2.5, 0.2]).as_rotvec(), rng.uniform(-0.5, 0.5, (21, 3))])
+    local = Rotation.from_rotvec(rotvecs).as_matrix()
+    transl = np.array([0.3, 0.95, -0.2])
+    joints, _ = forward_kinematics(local, transl, rest_offsets(np.full(22, 1.1)))
+    pose = {"global_orient": rotvecs[0].tolist(), "body_pose": rotvecs[1:].ravel().tolist(),
+            "transl": transl.tolist(), "joints": joints.ravel().tolist()}  # fmt: skip
+    return pose, local
+
+
+DROP_FILE = """(async (name, bytes) => {
+  const data = new DataTransfer();
+  data.items.add(new File([bytes], name));
+  document.getElementById("stage").dispatchEvent(new DragEvent("drop", {dataTransfer: data, bubbles: true, cancelable: true}));
+})"""
+
+
+def test_the_avatar_follows_a_known_pose_and_a_dropped_vrm_replaces_it(tmp_path):
+    """The skinned avatar's own bones land where FK of the served rotations on the avatar's skeleton puts them
+    (hips height scaled to its legs), read back from the page; a .vrm dropped on the page replaces it, and a
+    broken one leaves it and says why."""
+    with running_server() as server:
+        browser = Browser(f"{server.http}/viewer/", str(tmp_path / "profile"))
+        try:
+            state = browser.wait_for(lambda s: (s.get("avatar") or {}).get("loaded"))
+            assert state["avatar"]["name"] == "mannequin.vrm" and state["renderer"] == "webgl"
+            pose, local = _known_pose()
+            bones = json.loads(
+                browser.evaluate(f"JSON.stringify(window.viewerAvatar.pose({json.dumps(pose)}))")
+            )
+            served_leg = sum(np.linalg.norm(np.subtract(*np.reshape(pose["joints"], (22, 3))[[a, b]]))
+                             for a, b in ((1, 4), (4, 7)))  # fmt: skip
+            scale = browser.evaluate("window.viewerAvatar.legM()") / served_leg
+            root = np.multiply(pose["transl"], [1.0, scale, 1.0])
+            expected, _ = forward_kinematics(
+                local, root, rest_offsets()
+            )  # the mannequin's skeleton is SMPL's rest
+            for j, bone in enumerate(VRM_BONES):
+                np.testing.assert_allclose(bones[bone], expected[j], atol=2e-3, err_msg=bone)
+            vrm = (Path(VIEWER_DIR) / "avatar" / "mannequin.vrm").read_bytes()
+            as_js = f"new Uint8Array({json.dumps(list(vrm))})"
+            browser.evaluate(f'{DROP_FILE}("mine.vrm", {as_js})')
+            browser.wait_for(lambda s: (s.get("avatar") or {}).get("name") == "mine.vrm")
+            browser.evaluate(f'{DROP_FILE}("broken.vrm", new Uint8Array([1, 2, 3]))')
+            state = browser.wait_for(lambda s: (s.get("avatar") or {}).get("error"))
+            assert state["avatar"]["name"] == "mine.vrm" and state["avatar"]["error"].startswith("broken.vrm")
+        finally:
+            browser.close()
+
+
 def test_the_viewer_is_served_offline_with_its_vendored_libraries():
     with running_server() as server:
         for path in ("/viewer/", "/viewer/viewer.js", "/viewer/vendor/three/three.module.js",
                      "/viewer/vendor/three/three.core.js", "/viewer/vendor/msgpack/msgpack.min.js",
-                     "/viewer/vendor/three/LICENSE", "/viewer/vendor/msgpack/LICENSE"):  # fmt: skip
+                     "/viewer/vendor/three/LICENSE", "/viewer/vendor/msgpack/LICENSE", "/viewer/avatar.js",
+                     "/viewer/vendor/three/addons/loaders/GLTFLoader.js", "/viewer/vendor/three-vrm/LICENSE",
+                     "/viewer/vendor/three-vrm/three-vrm.module.min.js", "/viewer/avatar/README.md"):  # fmt: skip
             status, body = server.get(path)
             assert status == 200 and body, path
+        with urllib.request.urlopen(f"{server.http}/viewer/avatar/mannequin.vrm", timeout=5) as reply:
+            assert reply.headers["Content-Type"] == "model/gltf-binary" and reply.read(4) == b"glTF"
         assert "http" not in server.get("/viewer/")[1].replace("http-equiv", "")  # no CDN links
         assert server.get("/viewer/../server/app.py")[0] == 404
         assert server.get("/viewer/nope.js")[0] == 404

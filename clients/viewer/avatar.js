@@ -1,0 +1,96 @@
+// A skinned humanoid avatar (VRM 0.x or 1.0, through three-vrm) driven by a pose's SMPL rotations.
+//
+// three-vrm's "normalized" humanoid gives every bone a rest rotation of identity in a T-pose facing +Z (VRM 1.0;
+// VRM 0.x rests facing -Z), which is SMPL's rest pose. So a bone's normalized local rotation is the SMPL world
+// rotation of its nearest present ancestor, inverted, times its own: missing optional bones (upperChest, toes,
+// shoulders) are skipped without bending the chain. The hips go to `transl`, their height scaled by the avatar's
+// leg length over the served one so that feet of any avatar meet the floor. World: right-handed, y up, metres.
+import * as THREE from "three";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { VRMLoaderPlugin } from "./vendor/three-vrm/three-vrm.module.min.js";
+
+export const PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19];
+// VRM humanoid bone of each SMPL joint (PROTOCOL.md §3 order).
+export const VRM_BONES = [
+  "hips", "leftUpperLeg", "rightUpperLeg", "spine", "leftLowerLeg", "rightLowerLeg", "chest", "leftFoot",
+  "rightFoot", "upperChest", "leftToes", "rightToes", "neck", "leftShoulder", "rightShoulder", "head",
+  "leftUpperArm", "rightUpperArm", "leftLowerArm", "rightLowerArm", "leftHand", "rightHand",
+];
+const YAW_180 = new THREE.Quaternion(0, 1, 0, 0);
+
+function axisAngle(x, y, z) {
+  const angle = Math.hypot(x, y, z);
+  if (angle < 1e-9) return new THREE.Quaternion();
+  return new THREE.Quaternion().setFromAxisAngle(new THREE.Vector3(x / angle, y / angle, z / angle), angle);
+}
+
+/** World rotations of the 22 SMPL joints from global_orient [3] and body_pose [63]. */
+export function globalRotations(pose) {
+  const rot = [axisAngle(...pose.global_orient)];
+  for (let j = 1; j < 22; j++) {
+    rot.push(rot[PARENTS[j]].clone().multiply(axisAngle(...pose.body_pose.slice(3 * (j - 1), 3 * j))));
+  }
+  return rot;
+}
+
+function legLength(a, b, c) { return a.distanceTo(b) + b.distanceTo(c); }
+
+function jointAt(flat, j) { return new THREE.Vector3(flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]); }
+
+/** Parse .vrm bytes into a three-vrm VRM. */
+export async function parseVrm(bytes) {
+  const loader = new GLTFLoader();
+  loader.register((parser) => new VRMLoaderPlugin(parser));
+  const gltf = await loader.parseAsync(bytes, "");
+  const vrm = gltf.userData.vrm;
+  if (!vrm || !vrm.humanoid) throw new Error("not a VRM humanoid (no VRM extension)");
+  return vrm;
+}
+
+/** A loaded VRM and how to pose it. */
+export class Avatar {
+  constructor(vrm, name) {
+    this.vrm = vrm;
+    this.name = name;
+    this.vrm0 = vrm.meta?.metaVersion === "0";
+    const humanoid = vrm.humanoid;
+    this.nodes = VRM_BONES.map((bone) => humanoid.getNormalizedBoneNode(bone));
+    // Each joint's nearest ancestor that the avatar has (-1: none above).
+    this.present = PARENTS.map((p) => { while (p >= 0 && !this.nodes[p]) p = PARENTS[p]; return p; });
+    vrm.scene.updateMatrixWorld(true);
+    const at = (bone) => humanoid.getRawBoneNode(bone).getWorldPosition(new THREE.Vector3());
+    this.legM = legLength(at("leftUpperLeg"), at("leftLowerLeg"), at("leftFoot"));
+    vrm.scene.traverse((o) => { o.frustumCulled = false; }); // skinned bounds lag behind the pose
+  }
+
+  /** Put the avatar in `pose` (a protocol pose: global_orient, body_pose, transl, joints). */
+  show(pose) {
+    const rot = globalRotations(pose);
+    for (let j = 0; j < 22; j++) {
+      const node = this.nodes[j];
+      if (!node) continue;
+      const p = this.present[j];
+      const local = p >= 0 ? rot[p].clone().invert().multiply(rot[j]) : rot[j].clone();
+      if (this.vrm0) { // VRM 0.x rests facing -Z: turn the root, and every local rotation into the turned frame
+        if (p < 0) local.multiply(YAW_180);
+        else local.premultiply(YAW_180).multiply(YAW_180);
+      }
+      node.quaternion.copy(local);
+    }
+    const served = legLength(jointAt(pose.joints, 1), jointAt(pose.joints, 4), jointAt(pose.joints, 7));
+    const scale = served > 0.1 ? this.legM / served : 1;
+    this.nodes[0].position.set(pose.transl[0], pose.transl[1] * scale, pose.transl[2]);
+    this.vrm.update(0);
+    this.vrm.scene.updateMatrixWorld(true);
+  }
+
+  /** {bone: [x, y, z]} world positions of the avatar's own (raw) bones: what the skin follows. */
+  bonePositions() {
+    const out = {};
+    for (const bone of VRM_BONES) {
+      const node = this.vrm.humanoid.getRawBoneNode(bone);
+      if (node) out[bone] = node.getWorldPosition(new THREE.Vector3()).toArray();
+    }
+    return out;
+  }
+}
