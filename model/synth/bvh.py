@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Final
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, global_to_local, rest_offsets
+from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, REST_JOINTS_M, global_to_local, rest_offsets
 from .motion import Motion, ground, resample
 
 if TYPE_CHECKING:
@@ -387,6 +387,38 @@ def _place_hubs(
         target_m[:, j] = driver_pos_m[:, j] + driver_rot[:, j] @ local
 
 
+SPINE_CHAIN: Final = (3, 6, 9)  # spine1, spine2, spine3
+# Where SMPL's spine2 sits between spine1 and spine3, measured along the line joining them (about 0.71).
+SPINE2_FRACTION: Final = float(
+    np.dot(REST_JOINTS_M[6] - REST_JOINTS_M[3], REST_JOINTS_M[9] - REST_JOINTS_M[3])
+    / np.sum((REST_JOINTS_M[9] - REST_JOINTS_M[3]) ** 2)
+)
+
+
+def _keep_spine_in_order(
+    target_m: np.ndarray, driver_pos_m: np.ndarray, driver_rot: np.ndarray, tpose: int
+) -> None:
+    """Put spine3 and spine2 of ``target_m`` (F, J, 3) back in order, in place, when the rig's trunk is short.
+
+    A short trunk (CMU's BVH conversions: shoulders 29 cm above the hips, where SMPL has 56) makes the spine3
+    hub, fitted to the neck and collars, land below the point that spine2 takes from the source's spine joints.
+    Retargeted as is, spine2 folds back on itself (140-180° bends, undone by spine3: the positions still fit,
+    the rotations are nonsense, and a longer trunk driven by them hunches). Then spine3 sits at its rotation
+    driver (the source's chest joint: a hub far from its driver would swing with every turn of it), and spine2
+    where SMPL has it on the line spine1 -> spine3, riding with its own driver.
+    """
+    s1, s2, s3 = (target_m[tpose, j] for j in SPINE_CHAIN)
+    axis = s3 - s1
+    length_sq = float(axis @ axis)
+    if length_sq > 1e-12 and 0.2 < float((s2 - s1) @ axis) / length_sq < 0.95:
+        return
+    _, spine2, spine3 = SPINE_CHAIN
+    target_m[:, spine3] = driver_pos_m[:, spine3]
+    moved = s1 + SPINE2_FRACTION * (target_m[tpose, spine3] - s1)
+    local = driver_rot[tpose, spine2].T @ (moved - driver_pos_m[tpose, spine2])
+    target_m[:, spine2] = driver_pos_m[:, spine2] + driver_rot[:, spine2] @ local
+
+
 def retarget(
     target_pos_m: np.ndarray,
     driver_rot: np.ndarray,
@@ -560,6 +592,7 @@ def retarget_bvh(clip: BvhClip, mapping: RigMapping | None = None, name: str = "
     target = mapped_positions(pos_m, clip.names, mapping)
     driver_rot = rot[:, drivers]
     _place_hubs(target, pos_m[:, drivers], driver_rot, tpose, mapping)
+    _keep_spine_in_order(target, pos_m[:, drivers], driver_rot, tpose)
     tpose_rot = driver_rot[tpose]
     keep = np.arange(len(target)) != tpose
     target, driver_rot = target[keep], driver_rot[keep]

@@ -21,13 +21,31 @@ UNIT_M = CMU_MAPPING.metres_per_unit
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 
-def _rig() -> list[tuple[str, str | None, np.ndarray]]:
-    """(name, parent, offset in CMU units): CMU's joint names and zero-length hubs on SMPL proportions."""
+# The trunk of CMU's own BVH files (its 06_01.bvh, CMU units): shoulders 29 cm above the hips, where SMPL's
+# are 56 cm; the neck and the clavicles pivot at Spine1.
+CMU_TRUNK = {
+    "Spine": np.array([-0.00908, 2.00015, -0.35323]),
+    "Spine1": np.array([0.05647, 2.02258, 0.04270]),
+    "Neck1": np.array([-0.02074, 1.73711, 0.13117]),
+    "Head": np.array([-0.02359, 1.73615, -0.24320]),
+    "LeftArm": np.array([3.20537, 1.11432, -0.27680]),
+    "RightArm": np.array([-3.20537, 1.11432, -0.27680]),
+}
+
+
+def _rig(trunk: dict[str, np.ndarray] | None = None) -> list[tuple[str, str | None, np.ndarray]]:
+    """(name, parent, offset in CMU units): CMU's joint names and zero-length hubs on SMPL proportions, the
+    trunk's offsets replaced by ``trunk``'s where given."""
     rest = REST_JOINTS_M / UNIT_M
 
     def rel(a: str, b: str) -> np.ndarray:
         return rest[J[b]] - rest[J[a]]
 
+    rig = _smpl_proportioned(rel)
+    return [(name, parent, (trunk or {}).get(name, offset)) for name, parent, offset in rig]
+
+
+def _smpl_proportioned(rel) -> list[tuple[str, str | None, np.ndarray]]:
     rig = [("Hips", None, np.zeros(3)), ("LowerBack", "Hips", np.zeros(3))]
     rig += [("Spine", "LowerBack", rel("pelvis", "spine1")), ("Spine1", "Spine", rel("spine1", "spine2"))]
     # CMU's neck: a pivot at Spine1, then two short bones up to the Head joint.
@@ -53,9 +71,9 @@ AMPLITUDE = {"LowerBack": 8, "Neck": 10, "Neck1": 12, "Head": 8, "LHipJoint": 0,
 AMPLITUDE |= {"LeftShoulder": 0, "RightShoulder": 0}
 
 
-def write_bvh(frames: int = 240, seed: int = 0) -> str:
+def write_bvh(frames: int = 240, seed: int = 0, trunk: dict[str, np.ndarray] | None = None) -> str:
     """BVH text: frame 0 a T-pose, then smooth random motion, 120 Hz, ZYX rotation channels."""
-    rig = _rig()
+    rig = _rig(trunk)
     rng = np.random.default_rng(seed)
     lines = ["HIERARCHY"]
     depth = {}
@@ -203,6 +221,23 @@ def test_rig_without_a_mapped_joint_is_refused(tmp_path):
         load_bvh_motion(path, CMU_MAPPING)
     with pytest.raises(BvhError, match="cannot find the legs and spine"):
         load_bvh_motion(path)
+
+
+def test_a_short_trunk_does_not_fold_the_spine(tmp_path):
+    """CMU's trunk puts the spine3 hub (fitted to the neck and collars) below where spine2 reads from the
+    source: spine2 must stay between spine1 and spine3, not bend 140-180° back on itself."""
+    path = tmp_path / "cmu_trunk.bvh"
+    path.write_text(write_bvh(trunk=CMU_TRUNK))
+    result = retarget_bvh(parse_bvh(path.read_text()))
+    local_rot = result.motion.local_rot
+    spine2_deg = np.degrees(geodesic_angle(local_rot[:, J["spine2"]], np.eye(3)[None]))
+    assert spine2_deg.max() < 60.0, spine2_deg.max()
+    joints = result.motion.joints()
+    up = joints[:, J["spine3"]] - joints[:, J["spine1"]]
+    along = np.einsum("fi,fi->f", joints[:, J["spine2"]] - joints[:, J["spine1"]], up) / np.einsum(
+        "fi,fi->f", up, up
+    )
+    assert ((along > 0.2) & (along < 0.95)).all()  # spine1 -> spine2 -> spine3 in order, every frame
 
 
 def test_rotation_channel_order_follows_the_file():
