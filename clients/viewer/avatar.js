@@ -35,7 +35,12 @@ export function globalRotations(pose) {
 
 function legLength(a, b, c) { return a.distanceTo(b) + b.distanceTo(c); }
 
-function jointAt(flat, j) { return new THREE.Vector3(flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]); }
+/** The 22 joints of a flat [66] array (`pose.joints`, `pose.truth`) as vectors. */
+export function jointsOf(flat) {
+  const out = [];
+  for (let j = 0; j < 22; j++) out.push(new THREE.Vector3(flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]));
+  return out;
+}
 
 /** Parse .vrm bytes into a three-vrm VRM. */
 export async function parseVrm(bytes) {
@@ -77,7 +82,8 @@ export class Avatar {
       }
       node.quaternion.copy(local);
     }
-    const served = legLength(jointAt(pose.joints, 1), jointAt(pose.joints, 4), jointAt(pose.joints, 7));
+    const joints = jointsOf(pose.joints);
+    const served = legLength(joints[1], joints[4], joints[7]);
     const scale = served > 0.1 ? this.legM / served : 1;
     this.nodes[0].position.set(pose.transl[0], pose.transl[1] * scale, pose.transl[2]);
     this.vrm.update(0);

@@ -8,7 +8,7 @@
 // World: right-handed, y up, metres, as on the wire. `window.viewerState` exposes what the page saw (tests
 // and curious users read it). Without WebGL the page falls back to a 2D canvas projection.
 import * as THREE from "three";
-import { Avatar, PARENTS, globalRotations, parseVrm } from "./avatar.js";
+import { Avatar, PARENTS, globalRotations, jointsOf, parseVrm } from "./avatar.js";
 
 const { encode, decode } = window.MessagePack;
 const LEFT = new Set([1, 4, 7, 10, 13, 16, 18, 20]);
@@ -100,13 +100,7 @@ $("calibrate").onclick = () =>
   ws && ws.readyState === 1 && ws.send(encode({ type: "calibrate", v: 1, pose: "tpose", seconds: 2.0 }));
 $("model").onchange = (e) => ws && ws.readyState === 1 && ws.send(encode({ type: "select_model", v: 1, model: e.target.value }));
 
-// ------------------------------------------------------------------------------------------ kinematics
-function jointsOf(flat) {
-  const out = [];
-  for (let j = 0; j < 22; j++) out.push(new THREE.Vector3(flat[3 * j], flat[3 * j + 1], flat[3 * j + 2]));
-  return out;
-}
-
+// ------------------------------------------------------------------------------------------ colours
 function colourOf(j) { return LEFT.has(j) ? 0xff8c3c : RIGHT.has(j) ? 0x3ca0ff : 0xe6e6e6; }
 
 // ------------------------------------------------------------------------------------------ WebGL scene

@@ -382,9 +382,23 @@ def _place_hubs(
             projector = np.eye(3) - np.outer(direction, direction)
             normal_sum += projector
             point_sum += projector @ target_m[tpose, kid]
-        hub_t = np.linalg.solve(normal_sum, point_sum)
-        local = driver_rot[tpose, j].T @ (hub_t - driver_pos_m[tpose, j])
-        target_m[:, j] = driver_pos_m[:, j] + driver_rot[:, j] @ local
+        _ride_with_driver(
+            target_m, driver_pos_m, driver_rot, tpose, j, np.linalg.solve(normal_sum, point_sum)
+        )
+
+
+def _ride_with_driver(
+    target_m: np.ndarray,
+    driver_pos_m: np.ndarray,
+    driver_rot: np.ndarray,
+    tpose: int,
+    j: int,
+    at_tpose: np.ndarray,
+) -> None:
+    """Set joint j of ``target_m`` (F, J, 3) to the point that is ``at_tpose`` at the T-pose frame and moves
+    rigidly with j's rotation driver (driver_pos_m (F, J, 3), driver_rot (F, J, 3, 3)) in every other frame."""
+    local = driver_rot[tpose, j].T @ (at_tpose - driver_pos_m[tpose, j])
+    target_m[:, j] = driver_pos_m[:, j] + driver_rot[:, j] @ local
 
 
 SPINE_CHAIN: Final = (3, 6, 9)  # spine1, spine2, spine3
@@ -415,8 +429,7 @@ def _keep_spine_in_order(
     _, spine2, spine3 = SPINE_CHAIN
     target_m[:, spine3] = driver_pos_m[:, spine3]
     moved = s1 + SPINE2_FRACTION * (target_m[tpose, spine3] - s1)
-    local = driver_rot[tpose, spine2].T @ (moved - driver_pos_m[tpose, spine2])
-    target_m[:, spine2] = driver_pos_m[:, spine2] + driver_rot[:, spine2] @ local
+    _ride_with_driver(target_m, driver_pos_m, driver_rot, tpose, spine2, moved)
 
 
 def retarget(
