@@ -4,8 +4,12 @@ Writes <name>.onnx per model and the visual encoders they share (visual-rgb.onnx
 --out, each with its config, joint order and units in the ONNX metadata, and checks every graph against
 torch (max |difference| must stay under 1e-4). The bundled weights are model/weights/.
 
-Example:
+--add-batch-axis rewrites model files exported for batch 1 (before the server batched sessions) in place
+so that their fusion net takes a batch axis, checked against the original row by row.
+
+Examples:
   egoposevr export --runs runs/cpu16 --out model/weights
+  egoposevr export --add-batch-axis model/weights/egoposevr.onnx model/weights/hmd.onnx
 """
 
 from __future__ import annotations
@@ -16,15 +20,22 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=Path, required=True, metavar="DIR", help="checkpoints from train")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR")
+    parser.add_argument("--runs", type=Path, metavar="DIR", help="checkpoints from train")
+    parser.add_argument("--out", type=Path, metavar="DIR")
     parser.add_argument("--model", default="all", help="zoo names, comma-separated, or all (default)")
+    parser.add_argument("--add-batch-axis", type=Path, nargs="+", metavar="ONNX",
+                        help="give these fusion graphs a batch axis, in place (no --runs/--out)")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
     from ..model.training.export import PARITY_TOL, export_zoo
     from ..model.zoo import resolve
 
+    if args.add_batch_axis:
+        return _add_batch_axis(args.add_batch_axis)
+    if args.runs is None or args.out is None:
+        print("egoposevr export: --runs and --out are required", file=sys.stderr)
+        return 2
     try:
         names = resolve(args.model)
         errors = export_zoo(names, args.runs, args.out)
@@ -39,4 +50,17 @@ def run(args: argparse.Namespace) -> int:
     if worst > PARITY_TOL:
         print(f"egoposevr export: parity {worst:.2e} exceeds {PARITY_TOL:.0e}", file=sys.stderr)
         return 1
+    return 0
+
+
+def _add_batch_axis(paths: list[Path]) -> int:
+    from ..model.training.export import add_batch_axis
+
+    for path in paths:
+        try:
+            worst = add_batch_axis(path)
+        except (ValueError, FileNotFoundError) as error:
+            print(f"egoposevr export: {error}", file=sys.stderr)
+            return 2
+        print(f"{path}: batch axis; batch of 8 against rows one by one: max |difference| = {worst:.2e}")
     return 0

@@ -28,6 +28,7 @@ from typing import Final
 
 import numpy as np
 
+from ..protocol.errors import InputError
 from .runtime import kernels
 
 DEVICES: Final = ("head", "left", "right")
@@ -78,11 +79,11 @@ class HmdFeatureExtractor:
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         valid = np.ascontiguousarray(valid, dtype=np.bool_)
         if poses.shape != (3, 7) or valid.shape != (3,):
-            raise ValueError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
+            raise InputError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
         if not np.isfinite(poses[valid]).all():
-            raise ValueError("tracked poses must be finite")
+            raise InputError("tracked poses must be finite")
         if ((poses[:, 3:] ** 2).sum(-1)[valid] < 1e-12).any():
-            raise ValueError("quaternion of zero length")
+            raise InputError("quaternion of zero length")
         return kernels.hmd_feature_step(
             int(t_us), poses, valid, self._history_t_us, self._history_pose, self._history_len,
             self._velocity, self._last_t_us, self._held, _TIMING,
@@ -101,7 +102,7 @@ def ignore_untracked(poses: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """
     poses, valid = np.array(poses, dtype=np.float64), np.asarray(valid, dtype=bool)
     if poses.shape != (3, 7) or valid.shape != (3,):
-        raise ValueError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
+        raise InputError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
     poses[~valid] = PLACEHOLDER_POSE
     return poses
 

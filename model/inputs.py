@@ -18,6 +18,7 @@ from typing import Final
 import cv2
 import numpy as np
 
+from ..protocol.errors import InputError
 from .hmd import FEATURE_DIM, VALIDITY_DIM
 from .rotations import quat_xyzw_to_matrix
 from .runtime.filters import OneEuroFilter
@@ -79,7 +80,7 @@ def encoded_image_size(data: bytes) -> tuple[int, int]:
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     if data[:2] == b"\xff\xd8":
         return _jpeg_size(data)
-    raise ValueError("image is neither a PNG with an IHDR header nor a JPEG")
+    raise InputError("image is neither a PNG with an IHDR header nor a JPEG")
 
 
 # JPEG start-of-frame markers carry the size; C4 (Huffman), C8 (reserved) and CC (arithmetic) do not.
@@ -90,7 +91,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     i = 2
     while i + 4 <= len(data):
         if data[i] != 0xFF:
-            raise ValueError(f"JPEG marker expected at byte {i}")
+            raise InputError(f"JPEG marker expected at byte {i}")
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
@@ -99,7 +100,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
         if marker in _JPEG_SOF and i + 9 <= len(data):
             return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
         i += 2 + length
-    raise ValueError("JPEG has no frame header")
+    raise InputError("JPEG has no frame header")
 
 
 def decode_rgbd(
@@ -113,17 +114,17 @@ def decode_rgbd(
         for name, data in (("rgb", rgb_jpeg), ("depth", depth_png)):
             size = encoded_image_size(data)
             if size != tuple(expected_wh):
-                raise ValueError(
+                raise InputError(
                     f"{name} image is {size[0]}x{size[1]}, the message says {expected_wh[0]}x{expected_wh[1]}"
                 )
     bgr = cv2.imdecode(np.frombuffer(rgb_jpeg, np.uint8), cv2.IMREAD_COLOR)
     depth = cv2.imdecode(np.frombuffer(depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
     if bgr is None or depth is None:
-        raise ValueError("rgb or depth image does not decode")
+        raise InputError("rgb or depth image does not decode")
     if depth.dtype != np.uint16 or depth.ndim != 2:
-        raise ValueError(f"depth must be a 16-bit single-channel PNG, got {depth.dtype} {depth.shape}")
+        raise InputError(f"depth must be a 16-bit single-channel PNG, got {depth.dtype} {depth.shape}")
     if depth.shape != bgr.shape[:2]:
-        raise ValueError(f"rgb {bgr.shape[:2]} and depth {depth.shape} sizes differ")
+        raise InputError(f"rgb {bgr.shape[:2]} and depth {depth.shape} sizes differ")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth
 
 

@@ -6,7 +6,7 @@
 """
 
 from .codec import DEFAULT_MAX_MESSAGE_BYTES, decode, decode_from_server, encode
-from .errors import ErrorCode, ProtocolError
+from .errors import EgoPoseError, ErrorCode, InputError, ProtocolError
 from .messages import (
     CLIENT_MESSAGES,
     MESSAGE_TYPES,
@@ -39,10 +39,12 @@ __all__ = [
     "SERVER_MESSAGES",
     "Calibrate",
     "Calibration",
+    "EgoPoseError",
     "Error",
     "ErrorCode",
     "Hello",
     "Hmd",
+    "InputError",
     "ListModels",
     "Message",
     "ModelInfo",

@@ -1,9 +1,13 @@
-"""The one error type of the wire protocol, and the vocabulary of error codes.
+"""The project's error root, the wire protocol's error type, and the vocabulary of error codes.
 
-Exception tree (everything the protocol raises)::
+Exception tree (the protocol is the lowest package, so the root lives here)::
 
     Exception
-    └── ProtocolError          .code: ErrorCode, .message: str, .fatal: bool
+    └── EgoPoseError           the project's own errors
+        └── InputError         (also a ValueError) what a client sent cannot be used: the client's fault.
+            │                  The server answers it with an ``error`` reply and goes on; anything else
+            │                  that escapes a run is ours: logged once with its traceback, ``internal``.
+            └── ProtocolError  .code: ErrorCode, .message: str, .fatal: bool
                                raised by decode() for anything malformed; the server turns it into an
                                ``error`` message with the same code, so clients see one vocabulary.
 
@@ -49,7 +53,16 @@ class ErrorCode(StrEnum):
     SHUTTING_DOWN = "shutting_down"  # the server is stopping (fatal)
 
 
-class ProtocolError(Exception):
+class EgoPoseError(Exception):
+    """The root of the project's own errors."""
+
+
+class InputError(EgoPoseError, ValueError):
+    """Input that cannot be used (a wrong shape, a non-finite number, an image that does not decode): the
+    sender's fault, reported to it. A ValueError too, so library callers can catch it as one."""
+
+
+class ProtocolError(InputError):
     """A message that does not follow protocol v1.
 
     ``code`` is machine-readable (an :class:`ErrorCode`), ``message`` says what was expected and what came.

@@ -5,9 +5,10 @@ serve (one task per connection, one sender task per connection, one inference wo
 rescan task) → ``stop`` (refuse new hellos and connections, tell every client ``shutting_down`` and close with
 1001, wait a bounded time, abort what is left, flush recordings).
 
-Threads: the event loop receives, decodes (microseconds), routes and sends; each session's inference runs in
-the shared worker pool (onnxruntime and OpenCV release the GIL), one job at a time per session, so the loop
-never waits for a model. HTTP: ``/healthz`` (alive), ``/readyz`` (models loaded, not stopping), ``/metrics``
+Threads: the event loop receives, decodes (microseconds), routes and sends; the sessions' inference runs in
+the scheduler's worker pool and frame lane (server/scheduler.py: onnxruntime, OpenCV and the compiled kernels
+release the GIL), one job at a time per session, several sessions' jobs batched, so the loop never waits for
+a model. HTTP: ``/healthz`` (alive), ``/readyz`` (models loaded, not stopping), ``/metrics``
 (Prometheus), ``/api/sessions`` (JSON), ``/viewer/`` (the web viewer); the WebSocket is ``/ws?session=ID``.
 """
 
@@ -18,10 +19,8 @@ import contextlib
 import importlib.resources
 import json
 import logging
-import os
 import signal
 import socket
-import threading
 import time
 import urllib.parse
 from collections.abc import AsyncIterator
@@ -36,18 +35,17 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from ..model.runtime.loading import LoadedModel, resolve_providers
-from ..protocol import Error, ErrorCode
+from ..model.runtime.loading import resolve_providers
+from ..protocol import ErrorCode
 from .config import ConfigError, ServerConfig
 from .hub import CLOSE_NORMAL, Client, Hub
 from .metrics import CONTENT_TYPE, Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
-from .session import FrameResult, RunResult, Session, encode_received_frame, error_about
+from .scheduler import Scheduler
 
 log = logging.getLogger("egoposevr.server")
 WS_PATH = "/ws"
-FRAME_LANE_NICE = 10  # CFS gives a nice-10 thread ~1/10 of a core against a busy nice-0 one
 # The web viewer's static files ship inside the clients package (data only: the server imports no client code).
 VIEWER_DIR = Path(str(importlib.resources.files("egoposevr.clients") / "viewer"))
 STATIC_TYPES = {
@@ -80,18 +78,13 @@ class Server:
             if config.record
             else None
         )
+        self.scheduler = Scheduler(
+            self.metrics, config.workers, config.batch_window_ms * 1e-3, config.max_batch
+        )
         self.hub = Hub(
-            config, self.registry, self.metrics, self.recorder,
-            on_work=self._wake_session, on_session_end=self._end_session, server_name=server_name(),
-        )  # fmt: skip
-        self._pool = ThreadPoolExecutor(config.workers, thread_name_prefix="egoposevr-infer")
-        # Camera-only jobs (decode + visual encoder) run on their own thread at a lower OS priority, so
-        # that on a busy machine the headset jobs of every session get the cores first.
-        self._frame_lane = ThreadPoolExecutor(
-            1, thread_name_prefix="egoposevr-frames", initializer=_lower_priority
+            config, self.registry, self.metrics, self.scheduler, self.recorder, server_name=server_name()
         )
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="egoposevr-models")
-        self._workers: dict[Session, tuple[asyncio.Event, asyncio.Task[None]]] = {}
         self._connections: set[ServerConnection] = set()
         self._ws: WsServer | None = None
         self._rescan_task: asyncio.Task[None] | None = None
@@ -181,12 +174,9 @@ class Server:
                     ws.transport.abort()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._ws.wait_closed(), 1.0)
-        for _, task in self._workers.values():
-            task.cancel()
+        self.scheduler.close()
         if self.recorder is not None:
             self.recorder.close_all()
-        self._pool.shutdown(wait=False, cancel_futures=True)
-        self._frame_lane.shutdown(wait=False, cancel_futures=True)
         self._loader.shutdown(wait=False, cancel_futures=True)
         log.info("stopped")
 
@@ -299,78 +289,6 @@ class Server:
                     await wake.wait()
         except ConnectionClosed:
             return
-
-    # ------------------------------------------------------------------------------ inference
-    def _wake_session(self, session: Session) -> None:
-        if session not in self._workers:
-            event = asyncio.Event()
-            self._workers[session] = (event, asyncio.create_task(self._infer(session, event)))
-        self._workers[session][0].set()
-
-    def _end_session(self, session: Session) -> None:
-        worker = self._workers.pop(session, None)
-        if worker is not None:
-            worker[1].cancel()
-
-    async def _infer(self, session: Session, event: asyncio.Event) -> None:
-        """The session's worker: take everything pending, run it in the pool, publish; again while work.
-        Camera frames go to the lane after the headset's pose, into the gap before its next sample."""
-        loop = asyncio.get_running_loop()
-        failed = False
-        while True:
-            await event.wait()
-            event.clear()
-            while (job := self.hub.take_job(session)) is not None:
-                try:
-                    result = await loop.run_in_executor(self._pool, session.run, job)
-                except Exception:
-                    if self.stopping:  # the pool refuses work while shutting down
-                        return
-                    if not failed:  # logged once per session: a model that fails tends to fail every time
-                        log.exception("inference failed in session %s", session.id)
-                    failed = True
-                    newest = job.samples[-1].msg if job.samples else None
-                    error = error_about(
-                        ErrorCode.INTERNAL,
-                        "server error while running the model; the session goes on",
-                        (newest.type, newest.seq) if newest is not None else (None, None),
-                    )
-                    result = RunResult(errors=[error])
-                self.hub.publish(session, result)
-                if result.pose is not None:
-                    # Let the senders write this pose before the next job or lane frame takes the GIL.
-                    await asyncio.sleep(0)
-            self._dispatch_frame(session)
-
-    def _dispatch_frame(self, session: Session) -> None:
-        """Start the session's newest camera frame on the frame lane, unless one is there already."""
-        taken = session.take_frame()
-        if taken is None:
-            return
-        future = asyncio.get_running_loop().run_in_executor(self._frame_lane, encode_received_frame, *taken)
-        future.add_done_callback(lambda done: self._frame_encoded(session, taken[1], done))
-
-    def _frame_encoded(self, session: Session, model: LoadedModel, done: asyncio.Future[FrameResult]) -> None:
-        """Back on the loop: errors go to the input client now; the frame waits for the next headset job."""
-        if done.cancelled():
-            return
-        if (exc := done.exception()) is not None:
-            log.error("frame encoding failed in session %s", session.id, exc_info=exc)
-            result = FrameResult(
-                errors=[Error(code=ErrorCode.INTERNAL.value, message="server error encoding a frame")]
-            )
-        else:
-            result = done.result()
-        if not session.offer_encoded(result, model):
-            self.metrics.replaced_frames.inc()
-        self.hub.publish(session, RunResult(errors=result.errors))
-        if session in self._workers:  # a newer frame may be waiting for the lane
-            self._workers[session][0].set()
-
-
-def _lower_priority() -> None:
-    with contextlib.suppress(OSError, AttributeError):  # Linux: a thread is a task with its own nice value
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), FRAME_LANE_NICE)
 
 
 def _response(

@@ -1,4 +1,5 @@
-"""Per-client outgoing queues: small, bounded, drop-oldest, so a slow reader never slows anyone else.
+"""Per-client outgoing queues (small, bounded, drop-oldest, so a slow reader never slows anyone else) and
+the fan-out of a session's results to them.
 
 Each connection owns one :class:`Outbox`. Poses go to a queue of ``pose_capacity`` (a handful): when a viewer
 falls behind, its oldest poses are dropped and counted, and the headset's inference never waits on it.
@@ -11,6 +12,13 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from ..protocol import encode
+from .metrics import Metrics
+
+if TYPE_CHECKING:
+    from .session import RunResult, Session
 
 CONTROL_CAPACITY = 64
 
@@ -59,3 +67,25 @@ class Outbox:
         if self.poses:
             return self.poses.popleft()
         return None
+
+
+def publish(session: Session, result: RunResult, metrics: Metrics) -> None:
+    """Deliver one run's pose to every client of the session, its notices to every client and its errors
+    to the input client; counted. Never blocks: a full outbox drops its oldest pose."""
+    for error in result.errors:
+        if session.input is not None:
+            session.input.outbox.put_control(encode(error))
+        metrics.errors.labels(error.code).inc()
+    if result.stale_frame:
+        metrics.stale_frames.inc()
+    for notice in result.notices:
+        encoded = encode(notice)
+        for member in session.clients:
+            member.outbox.put_control(encoded)
+    if result.pose is None:
+        return
+    metrics.poses.labels(result.model).inc()
+    metrics.observe_timing(result.timing_us)
+    for member in session.clients:
+        if not member.outbox.put_pose(result.pose):
+            metrics.dropped_poses.labels(member.role).inc()

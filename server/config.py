@@ -81,6 +81,14 @@ class ServerConfig(BaseSettings):
     ping_interval_s: float = Field(20.0, gt=0, description="WebSocket keep-alive ping period")
     ping_timeout_s: float = Field(20.0, gt=0, description="close a connection whose pong is this late")
     shutdown_timeout_s: float = Field(5.0, gt=0, description="bound on a graceful stop")
+    batch_window_ms: float = Field(
+        1.0,
+        ge=0,
+        le=11.1,
+        description="cross-session batching: a ready headset job waits at most this long for other sessions' "
+        "jobs on the same model to run as one fusion-net call (0: off, every job runs alone)",
+    )
+    max_batch: int = Field(16, ge=1, le=64, description="most sessions' jobs in one batch")
     frame_lane: bool = Field(
         True,
         description="decode + encode camera frames on a low-priority thread beside the headset jobs "

@@ -1,9 +1,11 @@
 """The protocol logic of every connection: handshake, roles, limits and routing into sessions. No sockets.
 
 The app's glue calls ``connect`` when a WebSocket opens, ``receive`` for each frame it reads, ``disconnect``
-when it closes, ``take_job`` / ``publish`` around each inference, and ``shutdown`` when stopping. Everything
-a client should get is put in its :class:`~egoposevr.server.broadcast.Outbox`; a fatal error also asks the
-outbox to close with the WebSocket code PROTOCOL.md §6 gives. All methods run on the event loop.
+when it closes, and ``shutdown`` when stopping. A message with work for the model goes into its session and
+the session goes to the :class:`~egoposevr.server.scheduler.Scheduler` (``wake``); the scheduler delivers
+the results itself, so nothing calls back into the hub. Everything a client should get is put in its
+:class:`~egoposevr.server.broadcast.Outbox`; a fatal error also asks the outbox to close with the WebSocket
+code PROTOCOL.md §6 gives. All methods run on the event loop.
 
 Errors never escape ``receive``: a message that cannot be used gets an ``error`` reply (with its ``seq`` when
 it had one) and is counted; the connection stays up unless the error is fatal.
@@ -39,7 +41,8 @@ from .config import ServerConfig
 from .metrics import Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
-from .session import Job, Received, RunResult, Session, TokenBucket, error_about
+from .scheduler import Scheduler
+from .session import Received, Session, TokenBucket, error_about
 
 CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_TOO_BIG, CLOSE_INTERNAL, CLOSE_TRY_LATER = (
     1000, 1001, 1008, 1009, 1011, 1013,
@@ -82,13 +85,12 @@ class Hub:
         config: ServerConfig,
         registry: ModelRegistry,
         metrics: Metrics,
+        scheduler: Scheduler,
         recorder: Recorder | None = None,
-        on_work: Callable[[Session], None] = lambda s: None,
-        on_session_end: Callable[[Session], None] = lambda s: None,
         server_name: str = "egoposevr/0",
     ) -> None:
         self.config, self.registry, self.metrics, self.recorder = config, registry, metrics, recorder
-        self.on_work, self.on_session_end, self.server_name = on_work, on_session_end, server_name
+        self.scheduler, self.server_name = scheduler, server_name
         self.sessions: dict[str, Session] = {}
         self.clients: set[Client] = set()
         self.ready = False  # models loaded
@@ -120,7 +122,7 @@ class Hub:
         if not session.clients:
             del self.sessions[session.id]
             self.metrics.sessions.set(len(self.sessions))
-            self.on_session_end(session)
+            self.scheduler.forget(session)
 
     def shutdown(self) -> None:
         """Tell every client the server is stopping (fatal, close 1001); refuse new hellos."""
@@ -214,19 +216,19 @@ class Hub:
             self._record(client, data, received.recv_ns)
             if session.offer_hmd(received):
                 self.metrics.skipped_samples.inc()
-            self.on_work(session)
+            self.scheduler.wake(session)
         elif isinstance(msg, Rgbd):
             self._record(client, data, received.recv_ns)
             if not session.offer_rgbd(received):
                 self.metrics.replaced_frames.inc()
-            self.on_work(session)
+            self.scheduler.wake(session)
         elif isinstance(msg, SelectModel):
             self._record(client, data, received.recv_ns)
             self._select(client, msg.model, msg)
         elif isinstance(msg, Calibrate):
             self._record(client, data, received.recv_ns)
             session.request_calibration(msg)
-            self.on_work(session)
+            self.scheduler.wake(session)
         elif isinstance(msg, ListModels):
             client.outbox.put_control(encode(self._models(session)))
         elif isinstance(msg, Ping):
@@ -395,33 +397,6 @@ class Hub:
     def _record(self, client: Client, data: bytes | str, recv_ns: int) -> None:
         if self.recorder is not None and isinstance(data, bytes):
             self.recorder.record(client, data, recv_ns)
-
-    # ------------------------------------------------------------------------------ inference
-    def take_job(self, session: Session) -> Job | None:
-        job = session.take_job()
-        if job is not None and len(job.samples) > 1:
-            self.metrics.skipped_samples.inc(len(job.samples) - 1)
-        return job
-
-    def publish(self, session: Session, result: RunResult) -> None:
-        """Deliver one run's pose to every client of the session and its errors to the input client."""
-        for error in result.errors:
-            if session.input is not None:
-                session.input.outbox.put_control(encode(error))
-            self.metrics.errors.labels(error.code).inc()
-        if result.stale_frame:
-            self.metrics.stale_frames.inc()
-        for notice in result.notices:
-            encoded = encode(notice)
-            for member in session.clients:
-                member.outbox.put_control(encoded)
-        if result.pose is None:
-            return
-        self.metrics.poses.labels(result.model).inc()
-        self.metrics.observe_timing(result.timing_us)
-        for member in session.clients:
-            if not member.outbox.put_pose(result.pose):
-                self.metrics.dropped_poses.labels(member.role).inc()
 
     def internal_error(self, client: Client, what: str) -> None:
         self.fail(client, ErrorCode.INTERNAL, f"server error while {what}; the connection closes", fatal=True)

@@ -65,6 +65,11 @@ class Metrics:
             registry=r,
         )  # fmt: skip
 
+        self.batch_size = Histogram(
+            "egoposevr_batch_size", "Sessions whose headset jobs ran as one batch (one fusion-net call)",
+            buckets=(1, 2, 3, 4, 6, 8, 12, 16, 32, 64), registry=r,
+        )  # fmt: skip
+
     def observe_timing(self, timing_us: dict[str, int]) -> None:
         for stage, us in timing_us.items():
             self.stage_seconds.labels(stage).observe(us * 1e-6)

@@ -1,17 +1,18 @@
 """One session: its clients, its model, the headset's pending work and the inference pipeline.
 
-No sockets and no asyncio. Threading contract: everything except :meth:`Session.run` is called on the event
-loop; ``run`` is called in a worker thread with a job from :meth:`Session.take_job`, and never twice at once
-for one session (the app's per-session worker awaits each run before taking the next job). Only ``run``
-touches the pipeline, so model switches and resets travel inside the job.
+A state machine without sockets, threads or asyncio; its pipeline is made by the injected ``make_pipeline``
+(tests use a fake). Threading contract: everything except :meth:`Session.begin`, :meth:`Session.finish` and
+:meth:`Session.run` (= begin, the fusion net, finish) is called on the event loop; those are called in a
+worker thread with a job from :meth:`Session.take_job`, one job at a time per session (the scheduler keeps at
+most one in flight). Only they touch the pipeline, so model switches and resets travel inside the job.
 
 Newest wins: headset samples that arrive while inference is busy wait in ``pending``; the next job answers
 only the newest of them and feeds the older ones to the pipeline as history (``observe_hmd``), counting them
 as skipped. Only the newest RGB-D frame is kept; a frame replaced before use is counted.
 
 Frame lane (``frame_lane=True``, what the server runs): camera frames never ride on a headset job. The loop
-takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frame` (image decode +
-visual encoder, stateless) on the app's low-priority lane thread, beside the session's headset jobs; the
+takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frames` (image decode +
+visual encoder, stateless, several sessions' frames in one encoder call) on the scheduler's low-priority lane thread, beside the session's headset jobs; the
 result comes back through :meth:`Session.offer_encoded`, and the next headset job adds it to the pipeline's
 cache (:meth:`Pipeline.add_frame`, in capture order) before answering. One frame is in the lane per session
 at a time; frames arriving meanwhile replace each other (counted). Without the lane (``--no-frame-lane``), a
@@ -23,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -30,11 +32,11 @@ import numpy as np
 from ..model.inputs import decode_rgbd
 from ..model.runtime.calibration import Calibration as MeasuredCalibration
 from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
-from ..model.runtime.frames import EncodedFrame, encode_frame
+from ..model.runtime.frames import EncodedFrame, check_frame, encode_frames
 from ..model.runtime.loading import LoadedModel
-from ..model.runtime.pipeline import PoseResult
+from ..model.runtime.pipeline import PendingPose, PoseResult, run_fusion
 from ..model.runtime.procedural import pipeline_for
-from ..protocol import Calibrate, Calibration, Error, ErrorCode, Hmd, Pose, Ref, Rgbd, encode
+from ..protocol import Calibrate, Calibration, Error, ErrorCode, Hmd, InputError, Pose, Ref, Rgbd, encode
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
@@ -85,6 +87,18 @@ class RunResult:
     notices: list[Calibration] = dataclasses.field(default_factory=list)  # for every client of the session
 
 
+@dataclasses.dataclass
+class Started:
+    """A run between :meth:`Session.begin` and :meth:`Session.finish`."""
+
+    started_ns: int  # perf_counter ns when the run began
+    result: RunResult
+    newest: Received | None = None  # the sample answered
+    skipped: int = 0
+    pending: PendingPose | None = None  # its pose up to the fusion net
+    image_us: int | None = None
+
+
 class TokenBucket:
     """The per-session message-rate cap: ``rate_hz`` sustained, ``burst`` at once."""
 
@@ -112,6 +126,7 @@ class Session:
         model: LoadedModel,
         rate: TokenBucket,
         frame_lane: bool = False,
+        make_pipeline: Callable[[Any], Any] = pipeline_for,
     ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it
@@ -130,7 +145,8 @@ class Session:
         self._next_model: tuple[str, LoadedModel] | None = None
         self._reset = False
         self._calibrate: list[Calibrate] = []  # requests for the next job
-        self._pipeline = pipeline_for(model)  # run() only
+        self._make_pipeline = make_pipeline  # a model -> its per-session pipeline (tests inject a fake)
+        self._pipeline = make_pipeline(model)  # run() only
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
         self._collector: tuple[Calibrate, CalibrationCollector] | None = None  # run() only
@@ -175,6 +191,11 @@ class Session:
         self.frame = None
         self._encoded.clear()
         self._reset = self._next_model is None
+
+    @property
+    def next_model(self) -> LoadedModel:
+        """The model the next job runs (a pending switch's): the scheduler batches sessions by it."""
+        return self._model
 
     @property
     def has_work(self) -> bool:
@@ -233,41 +254,56 @@ class Session:
     # ------------------------------------------------------------------------------ worker thread side
     def run(self, job: Job) -> RunResult:
         """Push the job through the pipeline; the newest sample's pose comes back encoded."""
-        started_ns = time.perf_counter_ns()
-        result = RunResult()
+        started = self.begin(job)
+        return self.finish(started, run_fusion([started.pending])[0] if started.pending else None)
+
+    def begin(self, job: Job) -> Started:
+        """:meth:`run` up to the fusion net: switch or reset, calibration requests, frames, the history
+        samples, then the newest sample's net inputs (``Started.pending``; None when nothing is answered).
+        The scheduler runs several sessions' nets as one batch, then :meth:`finish` each."""
+        started = Started(time.perf_counter_ns(), RunResult())
+        result = started.result
         if job.model is not None:
             self._pipeline_model_name, model = job.model
             calibration = self._pipeline.calibration  # the wearer's: it outlives the model
-            self._pipeline = pipeline_for(model)
+            self._pipeline = self._make_pipeline(model)
             self._pipeline.calibrate(calibration)
         elif job.reset:
             self._pipeline.reset()
             self._abandon_calibration("the input client reconnected", result)
         for request in job.calibrate:
             self._start_calibration(request, result)
-        image_us = (
+        started.image_us = (
             self._push_frame(job.frame, result) if job.frame is not None else job.image_us
         )  # µs or None
         for encoded in job.encoded:
             result.stale_frame |= not self._pipeline.add_frame(encoded)
         for received in job.samples[:-1]:
             self._observe(received.msg, result)
-        if not job.samples:
+        if job.samples:
+            started.newest, started.skipped = job.samples[-1], job.skipped
+            started.pending = self._begin_pose(started.newest.msg, result)
+        return started
+
+    def finish(self, started: Started, sixd: np.ndarray | None) -> RunResult:
+        """The rest of :meth:`run` from the fusion net's output for ``started.pending`` (None for a pipeline
+        without a net, or when nothing is answered)."""
+        result, newest = started.result, started.newest
+        if started.pending is None:
             return result
-        newest = job.samples[-1]
-        pose = self._infer(newest.msg, result)
+        pose = self._finish_pose(started.pending, sixd, newest.msg, result)
         if pose is None:
             return result
         timing = {
             "decode": newest.decode_ns // 1000,
-            "queue": max(started_ns - newest.recv_ns - newest.decode_ns, 0) // 1000,
-            **({"image": image_us} if image_us is not None else {}),
+            "queue": max(started.started_ns - newest.recv_ns - newest.decode_ns, 0) // 1000,
+            **({"image": started.image_us} if started.image_us is not None else {}),
             **pose.timing_us,
             "encode": self._previous_encode_us,
         }
         timing["total"] = (time.perf_counter_ns() - newest.recv_ns) // 1000
         before_encode_ns = time.perf_counter_ns()
-        result.pose = encode_pose(pose, newest.msg, self._pipeline_model_name, timing, job.skipped)
+        result.pose = encode_pose(pose, newest.msg, self._pipeline_model_name, timing, started.skipped)
         self._previous_encode_us = (time.perf_counter_ns() - before_encode_ns) // 1000
         result.timing_us, result.model = timing, self._pipeline_model_name
         return result
@@ -282,7 +318,7 @@ class Session:
             return image_us
         try:
             pushed = self._pipeline.push_rgbd(msg.t_us, *frame)
-        except ValueError as exc:
+        except InputError as exc:
             result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg))
             return image_us
         result.stale_frame = not pushed and self._pipeline.model.visual is not None
@@ -330,16 +366,21 @@ class Session:
         self._collect(msg, result)
         try:
             self._pipeline.observe_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
-        except ValueError as exc:
+        except InputError as exc:
             result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg))
 
-    def _infer(self, msg: Hmd, result: RunResult) -> PoseResult | None:
+    def _begin_pose(self, msg: Hmd, result: RunResult) -> PendingPose | None:
         self._collect(msg, result)
         try:
-            pose = self._pipeline.push_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
-        except ValueError as exc:
+            return self._pipeline.begin_hmd(msg.t_us, np.asarray(msg.poses()), np.asarray(msg.valid))
+        except InputError as exc:
             result.errors.append(_error(ErrorCode.INVALID_FIELD, f"hmd {msg.seq}: {exc}", msg))
             return None
+
+    def _finish_pose(
+        self, pending: PendingPose, sixd: np.ndarray | None, msg: Hmd, result: RunResult
+    ) -> PoseResult | None:
+        pose = self._pipeline.finish_hmd(pending, sixd)
         if not (np.isfinite(pose.joints).all() and np.isfinite(pose.body_pose).all()):
             result.errors.append(
                 _error(ErrorCode.INTERNAL, f"hmd {msg.seq}: the model produced non-finite numbers", msg)
@@ -364,18 +405,33 @@ def _calibration_done(request: Calibrate, measured: MeasuredCalibration) -> Cali
 def encode_received_frame(received: Received, model: LoadedModel) -> FrameResult:
     """The frame lane's work on one ``rgbd`` message: decode the images, run the visual encoder. Stateless
     (any thread); malformed frames come back as errors with the message's seq."""
-    msg: Rgbd = received.msg
-    result = FrameResult()
-    frame, error, image_us = _decode_frame(msg)
-    if frame is None:
-        result.errors.append(error)
-        return result
-    result.image_us = image_us
-    try:
-        result.encoded = encode_frame(model, msg.t_us, *frame)
-    except ValueError as exc:
-        result.errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg))
-    return result
+    return encode_received_frames([(received, model)])[0]
+
+
+def encode_received_frames(frames: list[tuple[Received, LoadedModel]]) -> list[FrameResult]:
+    """:func:`encode_received_frame` on the new frames of several sessions: each is decoded on its own, and
+    the well-formed ones of one model go through its encoder as one batch."""
+    results = [FrameResult() for _ in frames]
+    batches: dict[int, list[int]] = {}
+    decoded: dict[int, tuple[Any, ...]] = {}
+    for i, (received, model) in enumerate(frames):
+        msg: Rgbd = received.msg
+        frame, error, results[i].image_us = _decode_frame(msg)
+        if frame is None:
+            results[i].errors.append(error)
+            continue
+        try:
+            check_frame(*frame)
+        except InputError as exc:
+            results[i].errors.append(_error(ErrorCode.INVALID_FIELD, f"rgbd {msg.seq}: {exc}", msg))
+            continue
+        decoded[i] = (msg.t_us, *frame)
+        batches.setdefault(id(model), []).append(i)
+    for indices in batches.values():
+        encoded = encode_frames(frames[indices[0]][1], [decoded[i] for i in indices])
+        for i, frame in zip(indices, encoded, strict=True):
+            results[i].encoded = frame
+    return results
 
 
 def _decode_frame(msg: Rgbd) -> tuple[tuple[Any, ...] | None, Error | None, int]:
@@ -384,7 +440,7 @@ def _decode_frame(msg: Rgbd) -> tuple[tuple[Any, ...] | None, Error | None, int]
     started = time.perf_counter_ns()
     try:
         rgb, depth = decode_rgbd(msg.rgb, msg.depth, expected_wh=(msg.width, msg.height))
-    except ValueError as exc:
+    except InputError as exc:
         error = _error(ErrorCode.IMAGE_DECODE, f"rgbd {msg.seq}: {exc}", msg)
         return None, error, (time.perf_counter_ns() - started) // 1000
     image_us = (time.perf_counter_ns() - started) // 1000

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ...protocol.errors import InputError
 from ..inputs import (
     VisibilityFilter,
     camera_to_world,
@@ -69,16 +70,16 @@ class CachedFrame:
 def check_frame(rgb: np.ndarray, depth_mm: np.ndarray, intrinsics: Any, cam_from_head: Any) -> None:
     """Raise ValueError unless the frame is usable: shapes, dtypes, finite positive intrinsics."""
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+        raise InputError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
     if depth_mm.shape != rgb.shape[:2] or depth_mm.dtype != np.uint16:
-        raise ValueError(f"depth must be {rgb.shape[:2]} uint16, got {depth_mm.shape} {depth_mm.dtype}")
+        raise InputError(f"depth must be {rgb.shape[:2]} uint16, got {depth_mm.shape} {depth_mm.dtype}")
     k = np.asarray(intrinsics, dtype=np.float64)
     if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
-        raise ValueError(f"intrinsics must be 4 finite numbers (fx, fy > 0, cx, cy), got {intrinsics}")
+        raise InputError(f"intrinsics must be 4 finite numbers (fx, fy > 0, cx, cy), got {intrinsics}")
     if cam_from_head is not None:
         m = np.asarray(cam_from_head, dtype=np.float64)
         if m.shape != (4, 4) or not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3]) - 1.0) > 1e-3:
-            raise ValueError("cam_from_head must be a finite (4, 4) rigid transform")
+            raise InputError("cam_from_head must be a finite (4, 4) rigid transform")
 
 
 def head_from_cam(model: LoadedModel, cam_from_head: np.ndarray | None) -> np.ndarray:
@@ -105,24 +106,29 @@ def encode_frame(
 ) -> EncodedFrame:
     """The visual encoder on one decoded frame (arguments as ``Pipeline.push_rgbd``). Stateless, so the
     server runs it beside the session's headset inference; the pipeline takes the result with ``add_frame``.
-    Raises ValueError for malformed frames or a model that reads no camera."""
-    check_frame(rgb, depth_mm, intrinsics, cam_from_head)
+    Raises InputError for malformed frames, ValueError for a model that reads no camera."""
+    return encode_frames(model, [(t_us, rgb, depth_mm, intrinsics, cam_from_head)])[0]
+
+
+def encode_frames(model: LoadedModel, frames: list[tuple[Any, ...]]) -> list[EncodedFrame]:
+    """:func:`encode_frame` on several frames (each its argument tuple after ``model``) in one encoder
+    call: the server's frame lane batches the new frames of several sessions that share an encoder.
+    Each frame's ``encode_us`` is the whole call's time."""
     if model.visual is None:
         raise ValueError(f"model {model.info.name} reads no camera")
+    for _, rgb, depth_mm, intrinsics, cam_from_head in frames:
+        check_frame(rgb, depth_mm, intrinsics, cam_from_head)
     started = time.perf_counter()
-    uv, depth_m, zeta = model.encode_frames(encoder_input(model, rgb, depth_mm)[None])
-    size_wh = (rgb.shape[1], rgb.shape[0])
-    intrinsics = np.asarray(intrinsics, dtype=np.float64)
-    return EncodedFrame(
-        t_us=int(t_us),
-        size_wh=size_wh,
-        intrinsics=intrinsics,
-        head_from_cam=head_from_cam(model, cam_from_head),
-        kp_cam=lift_keypoints(uv[0], depth_m[0], intrinsics, size_wh),
-        zeta=zeta[0],
-        encoder=model.info.visual_path,
-        encode_us=int((time.perf_counter() - started) * 1e6),
-    )
+    images = np.stack([encoder_input(model, rgb, depth_mm) for _, rgb, depth_mm, _, _ in frames])
+    uv, depth_m, zeta = model.encode_frames(images)
+    encoded = []
+    for i, (t_us, rgb, _, intrinsics, cam_from_head) in enumerate(frames):
+        size_wh = (rgb.shape[1], rgb.shape[0])
+        intrinsics = np.asarray(intrinsics, dtype=np.float64)
+        encoded.append((int(t_us), size_wh, intrinsics, head_from_cam(model, cam_from_head),
+                        lift_keypoints(uv[i], depth_m[i], intrinsics, size_wh), zeta[i]))  # fmt: skip
+    encode_us = int((time.perf_counter() - started) * 1e6)
+    return [EncodedFrame(*fields, encoder=model.info.visual_path, encode_us=encode_us) for fields in encoded]
 
 
 class KeypointCache:

@@ -150,6 +150,9 @@ class LoadedModel:
 
     def __init__(self, info: ModelInfo, fusion: ort.InferenceSession, visual: ort.InferenceSession | None):
         self.info, self.fusion, self.visual = info, fusion, visual
+        # A graph exported with a symbolic batch axis runs several sessions' windows in one call (the
+        # server's cross-session batching); one exported for batch 1 runs them one by one.
+        self.batchable = not isinstance(fusion.get_inputs()[0].shape[0], int)
 
     @classmethod
     def load(

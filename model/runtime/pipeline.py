@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Any
 
 import numpy as np
 
@@ -210,7 +211,34 @@ class Pipeline:
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
-        timing: dict[str, int] = {}
+        pending = self.begin_hmd(t_us, poses, valid)
+        return self.finish_hmd(pending, run_fusion([pending])[0])
+
+    def begin_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PendingPose:
+        """:meth:`push_hmd` up to the fusion net: the sample enters the stream and the net's inputs are
+        built. The server runs the nets of several sessions' pending poses as one batch (:func:`run_fusion`)
+        and then :meth:`finish_hmd` each; nothing else may touch this pipeline in between."""
+        started = time.perf_counter()
+        t_us = int(t_us)
+        _, valid, tracked_pos = self._ingest(t_us, poses, valid)
+        rot, origin = heading_frame(self.last_head_pose)
+        inputs = {"hmd": canonicalize_hmd(self.hmd_window, rot, origin)[None]}  # float32
+        features_done = time.perf_counter()
+        timing = {"features": int((features_done - started) * 1e6)}
+        camera: bool | None = None
+        if self.model.visual is not None:
+            if self.naive:
+                self.cache.reencode(self.model)
+            tokens, camera = self.cache.tokens(t_us, rot, origin)
+            inputs["visual"] = tokens[None]
+            timing["visual"] = self._pending_visual_us + int((time.perf_counter() - features_done) * 1e6)
+            self._pending_visual_us = 0
+        return PendingPose(t_us, valid, tracked_pos, rot, camera, timing, self.model, inputs)
+
+    def finish_hmd(self, pending: PendingPose, sixd: np.ndarray) -> PoseResult:
+        """The rest of :meth:`push_hmd` from the fusion net's output sixd (J, 6): FK, filter, KPO,
+        rotations."""
+        timing = dict(pending.timing_us)
         clock = time.perf_counter()
 
         def lap(stage: str) -> None:
@@ -219,24 +247,9 @@ class Pipeline:
             timing[stage] = int((now - clock) * 1e6)
             clock = now
 
-        t_us = int(t_us)
-        poses, valid, tracked_pos = self._ingest(t_us, poses, valid)
-        rot, origin = heading_frame(self.last_head_pose)
-        inputs = {"hmd": canonicalize_hmd(self.hmd_window, rot, origin)[None]}
-        lap("features")
-        camera: bool | None = None
-        if self.model.visual is not None:
-            if self.naive:
-                self.cache.reencode(self.model)
-            tokens, camera = self.cache.tokens(t_us, rot, origin)
-            inputs["visual"] = tokens[None]
-            timing["visual"] = self._pending_visual_us + int((time.perf_counter() - clock) * 1e6)
-            self._pending_visual_us = 0
-            clock = time.perf_counter()
-        sixd = self.model.fusion.run(None, inputs)[0][0]  # (J, 6)
-        lap("fusion")
+        t_us, valid, tracked_pos = pending.t_us, pending.valid, pending.tracked_pos
         local = kernels.sixd_to_matrices(sixd.astype(np.float64))
-        local[0] = rot @ local[0]  # pelvis: heading frame -> world
+        local[0] = pending.heading_rot @ local[0]  # pelvis: heading frame -> world
         joints, glob_pred = kernels.forward_kinematics_one(local, _ORIGIN, self.offsets, _PARENTS)
         joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
         lap("fk_filter")
@@ -262,6 +275,53 @@ class Pipeline:
             transl=joints[0].copy(),
             joints=joints,
             local_rot=local,
-            camera=camera,
+            camera=pending.camera,
             timing_us=timing,
         )
+
+
+@dataclasses.dataclass
+class PendingPose:
+    """A headset sample's pose up to the fusion net (:meth:`Pipeline.begin_hmd`): the net's inputs
+    (each with a leading batch axis of 1) and what :meth:`Pipeline.finish_hmd` needs afterwards."""
+
+    t_us: int
+    valid: np.ndarray  # (3,) bool
+    tracked_pos: np.ndarray  # (3, 3) head and wrist joints from the devices, m
+    heading_rot: np.ndarray  # (3, 3) heading frame -> world
+    camera: bool | None
+    timing_us: dict[str, int]  # stages so far; run_fusion adds "fusion"
+    model: Any  # LoadedModel
+    inputs: dict[str, np.ndarray]  # hmd (1, T, D) [, visual (1, Tv, 90)] float32; {} runs no net
+    done: PoseResult | None = None  # a pipeline without a net (procedural) answers in begin_hmd
+
+
+def run_fusion(pending: list[PendingPose]) -> list[np.ndarray | None]:
+    """The fusion nets of several pending poses -> each one's sixd (J, 6), in order. Poses of one model
+    whose graph has a batch axis (:attr:`LoadedModel.batchable`) run as one call; the call's time is every
+    one of its poses' ``fusion`` stage."""
+    out: list[np.ndarray | None] = [None] * len(pending)  # None where no net runs
+    for indices in _fusion_groups(pending):
+        started = time.perf_counter()
+        names = pending[indices[0]].inputs
+        feed = {name: np.concatenate([pending[i].inputs[name] for i in indices]) for name in names}
+        sixd = pending[indices[0]].model.fusion.run(None, feed)[0]  # (B, J, 6)
+        fusion_us = int((time.perf_counter() - started) * 1e6)
+        for row, i in enumerate(indices):
+            out[i] = sixd[row]
+            pending[i].timing_us["fusion"] = fusion_us
+    return out
+
+
+def _fusion_groups(pending: list[PendingPose]) -> list[list[int]]:
+    """Indices of ``pending`` that can share one fusion call: same model and a batch axis; else alone."""
+    groups: dict[int, list[int]] = {}
+    alone: list[list[int]] = []
+    for i, p in enumerate(pending):
+        if not p.inputs:
+            continue
+        if p.model.batchable:
+            groups.setdefault(id(p.model.fusion), []).append(i)
+        else:
+            alone.append([i])
+    return [*groups.values(), *alone]

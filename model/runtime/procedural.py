@@ -29,6 +29,7 @@ from typing import Final
 
 import numpy as np
 
+from ...protocol.errors import InputError
 from ..config import FusionConfig, ModelMetadata
 from ..hmd import ignore_untracked
 from ..inputs import heading_frame
@@ -40,7 +41,7 @@ from .calibration import Calibration, body_measurements, canonical_poses
 from .filters import OneEuroFilter
 from .kpo import rederive_rotations
 from .loading import ModelInfo
-from .pipeline import POSITION_BETA, POSITION_MIN_CUTOFF_HZ, PoseResult
+from .pipeline import POSITION_BETA, POSITION_MIN_CUTOFF_HZ, PendingPose, PoseResult
 
 NAME: Final = "procedural"
 DESCRIPTION: Final = "no network: pelvis under the head, planted feet that step, IK knees and arms (baseline)"
@@ -64,6 +65,8 @@ class ProceduralModel:
     """The servable face of the procedural baseline: what the registry lists and sessions select."""
 
     visual = None
+    fusion = None
+    batchable = False
     provider = "none"  # runs no network
 
     def __init__(self) -> None:
@@ -159,13 +162,22 @@ class ProceduralPipeline:
     def observe_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> None:
         self.push_hmd(t_us, poses, valid)
 
+    def begin_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PendingPose:
+        """As :meth:`Pipeline.begin_hmd`: no net runs, so the pose is done here."""
+        pose = self.push_hmd(t_us, poses, valid)
+        return PendingPose(pose.t_us, np.asarray(valid, dtype=bool), pose.joints[:0], np.eye(3), None,
+                           pose.timing_us, self.model, {}, done=pose)  # fmt: skip
+
+    def finish_hmd(self, pending: PendingPose, sixd: None) -> PoseResult:
+        return pending.done
+
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         started = time.perf_counter()
         t_us = int(t_us)
         valid = np.asarray(valid, dtype=bool)
         poses = ignore_untracked(poses, valid)
         if not np.isfinite(poses[valid]).all():
-            raise ValueError("tracked poses must be finite")
+            raise InputError("tracked poses must be finite")
         poses = canonical_poses(poses, self.calibration)
         if valid[0]:
             self.last_head = poses[0].copy()

@@ -76,6 +76,68 @@ def _parity(module: torch.nn.Module, path: Path, inputs: dict[str, np.ndarray]) 
     return max(float(np.abs(g - w.numpy()).max()) for g, w in zip(got, want, strict=True))
 
 
+def _fusion_inputs(cfg: Any, batch: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Random fusion-net inputs: hmd (B, T, D) [, visual (B, Tv, 90)] float32."""
+    rng = np.random.default_rng(seed)
+    dim = hmd_input_dim(cfg.device_validity)
+    inputs = {"hmd": rng.normal(size=(batch, cfg.window, dim)).astype(np.float32)}
+    if cfg.uses_camera:
+        inputs["visual"] = rng.normal(size=(batch, cfg.visual_window, VISUAL_TOKEN_DIM)).astype(np.float32)
+    return inputs
+
+
+def add_batch_axis(path: Path) -> float:
+    """Give a fusion graph exported for batch 1 a symbolic batch axis, in place, so that the server can
+    run several sessions' windows in one call; metadata and weights are kept. Returns the largest
+    difference between a batch of 8 and the same 8 rows run one by one by the original graph.
+
+    The exporter bakes the batch size into each Reshape's target shape; a leading 1 becomes -1 (infer).
+    Raises ValueError for a graph where that would be wrong (a Reshape whose target already infers an axis
+    or does not start with the batch) or whose batched outputs disagree with the original's.
+    """
+    original = onnx.load(str(path))
+    model = onnx.load(str(path))
+    graph = model.graph
+    first_dims = [v.type.tensor_type.shape.dim[0] for v in [*graph.input, *graph.output]]
+    if all(d.dim_param for d in first_dims):
+        return 0.0  # already batched
+    initializers = {i.name: i for i in graph.initializer}
+    for node in graph.node:
+        if node.op_type != "Reshape":
+            continue
+        shape = (
+            onnx.numpy_helper.to_array(initializers[node.input[1]]) if node.input[1] in initializers else None
+        )
+        if shape is None:
+            raise ValueError(f"{path}: Reshape {node.name} has a computed shape; re-export it instead")
+        if shape[0] == -1:
+            continue
+        if shape[0] != 1 or -1 in shape:
+            raise ValueError(f"{path}: Reshape {node.name} to {shape.tolist()} does not start with the batch")
+        shape = shape.copy()
+        shape[0] = -1
+        initializers[node.input[1]].CopyFrom(onnx.numpy_helper.from_array(shape, node.input[1]))
+    for dim in first_dims:
+        dim.ClearField("dim_value")
+        dim.dim_param = "batch"
+    del graph.value_info[:]  # shapes inferred for batch 1
+    onnx.checker.check_model(model)
+    worst = _batched_against_single(original, model)
+    if worst > PARITY_TOL:
+        raise ValueError(f"{path}: batched outputs differ from the original's by {worst:.2e}")
+    onnx.save(model, str(path))
+    return worst
+
+
+def _batched_against_single(single: onnx.ModelProto, batched: onnx.ModelProto, batch: int = 8) -> float:
+    one = ort.InferenceSession(single.SerializeToString(), providers=["CPUExecutionProvider"])
+    many = ort.InferenceSession(batched.SerializeToString(), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    feed = {i.name: rng.normal(size=(batch, *i.shape[1:])).astype(np.float32) for i in one.get_inputs()}
+    rows = [one.run(None, {k: v[b : b + 1] for k, v in feed.items()})[0] for b in range(batch)]
+    return float(np.abs(many.run(None, feed)[0] - np.concatenate(rows)).max())
+
+
 def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
     return {
         "data": ckpt.get("data"),
@@ -113,12 +175,10 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
     ckpt = load_checkpoint(runs_dir / f"fusion-{entry.fusion_name}.pt")
     net = build_net(ckpt)
     cfg = net.cfg
-    rng = np.random.default_rng(0)
-    inputs = {"hmd": rng.normal(size=(1, cfg.window, hmd_input_dim(cfg.device_validity))).astype(np.float32)}
-    if cfg.uses_camera:
-        inputs["visual"] = rng.normal(size=(1, cfg.visual_window, VISUAL_TOKEN_DIM)).astype(np.float32)
+    inputs = _fusion_inputs(cfg, batch=2)
     example = tuple(torch.from_numpy(v) for v in inputs.values())
-    _export(net, example, out_path, (list(inputs), ["rot6d"]), None)
+    batch = torch.export.Dim("batch", min=1, max=64)  # the server batches sessions (server/scheduler.py)
+    _export(net, example, out_path, (list(inputs), ["rot6d"]), {name: {0: batch} for name in inputs})
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
         inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
@@ -127,10 +187,10 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
         training=_training_record(ckpt),
         units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
               "config.device_validity]; visual: tokens (model/inputs.py); "
-              "rot6d (1, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
+              "rot6d (B, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
               "rows 1.. local rotations",
     ))  # fmt: skip
-    return _parity(net, out_path, inputs)
+    return max(_parity(net, out_path, _fusion_inputs(cfg, batch)) for batch in (1, 8))
 
 
 def export_zoo(names: list[str], runs_dir: Path, out_dir: Path) -> dict[str, float]:

@@ -667,7 +667,7 @@ def test_every_error_code_has_its_fatality_close_code_and_ref(strict_server):
         with Client(server.url, "b") as other:
             other.send(Hello(role="input", session="b", token="s3cret"))
             _check(_first_error(other), "server_full", other)
-        with mock.patch.object(Session, "run", side_effect=RuntimeError("injected fault")):
+        with mock.patch.object(Session, "begin", side_effect=RuntimeError("injected fault")):
             headset.send(EXAMPLES["hmd"])
             _check(_first_error(headset), "internal", headset)
 
@@ -703,18 +703,18 @@ def test_clients_ignore_unknown_message_types_and_fields():
 def test_the_python_clients_ignore_a_message_type_they_do_not_know(tmp_path):
     """A server that sends a type from the future before every pose: the mock headset (egoposevr replay) and
     a viewer (egoposevr render --session) still get every pose."""
-    from egoposevr.server.hub import Hub
+    from egoposevr.server import scheduler
 
-    publish = Hub.publish
+    publish = scheduler.publish
     future = pack({"type": "weather", "v": 1, "forecast": "sunny"})
 
-    def publish_with_news(hub: Hub, session: Any, result: Any) -> None:
+    def publish_with_news(session: Any, result: Any, metrics: Any) -> None:
         for member in session.clients:
             member.outbox.put_control(future)
-        publish(hub, session, result)
+        publish(session, result, metrics)
 
     report = tmp_path / "report.json"
-    with running_server() as server, mock.patch.object(Hub, "publish", publish_with_news):
+    with running_server() as server, mock.patch.object(scheduler, "publish", publish_with_news):
         walk = str(ROOT / "recordings" / "walk-0000.egrec")
         code = cli_main(["replay", walk, "--url", server.url, "--model", "hmd", "--seconds", "1.5",
                          "--json", str(report), "--quiet"])  # fmt: skip

@@ -12,6 +12,7 @@ from loopback import recorded_messages, server_config
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.protocol import Hello, Ping, SelectModel, decode, encode
 from egoposevr.protocol.examples import example_messages
+from egoposevr.server.broadcast import publish
 from egoposevr.server.hub import Hub
 from egoposevr.server.metrics import Metrics
 from egoposevr.server.registry import ModelRegistry
@@ -158,11 +159,24 @@ def test_frame_lane_drops_frames_for_a_model_without_a_camera(registry, samples)
     assert session.take_frame() is None and session.frame is None
 
 
+class RecordingScheduler:
+    """What the hub hands to the scheduler, recorded."""
+
+    def __init__(self) -> None:
+        self.woken, self.forgotten = [], []
+
+    def wake(self, session) -> None:
+        self.woken.append(session)
+
+    def forget(self, session) -> None:
+        self.forgotten.append(session)
+
+
 def hub_with(registry, **config) -> tuple[Hub, list, list]:
-    woken, ended = [], []
-    hub = Hub(server_config(**config), registry, Metrics(), on_work=woken.append, on_session_end=ended.append)
+    scheduler = RecordingScheduler()
+    hub = Hub(server_config(**config), registry, Metrics(), scheduler)
     hub.ready = True
-    return hub, woken, ended
+    return hub, scheduler.woken, scheduler.forgotten
 
 
 def sent(client) -> list:
@@ -209,7 +223,7 @@ def test_publish_reaches_every_client_and_a_full_queue_drops_the_oldest(registry
     session = hub.sessions["s"]
     for msg in samples[:3]:
         hub.receive(clients[0], encode(msg), time.perf_counter_ns())
-        hub.publish(session, session.run(hub.take_job(session)))
+        publish(session, session.run(session.take_job()), hub.metrics)
     for client in clients:
         assert [m.seq for m in sent(client)] == [
             s.seq for s in samples[1:3]

@@ -49,6 +49,40 @@ def test_export_parity_is_reported_under_the_tolerance(tiny_runs, tmp_path, caps
     assert len(errors) == 2 and max(errors) < 1e-4
 
 
+def test_fusion_graphs_take_a_batch_of_sessions(tiny_weights):
+    """Exported with a batch axis: eight windows in one call give each window's own answer."""
+    for name in ("hmd", "egoposevr"):
+        model = LoadedModel.load(tiny_weights / f"{name}.onnx")
+        assert model.batchable
+        rng = np.random.default_rng(1)
+        feed = {
+            i.name: rng.normal(size=(8, *i.shape[1:])).astype(np.float32) for i in model.fusion.get_inputs()
+        }
+        rows = [model.fusion.run(None, {k: v[b : b + 1] for k, v in feed.items()})[0] for b in range(8)]
+        np.testing.assert_allclose(model.fusion.run(None, feed)[0], np.concatenate(rows), atol=1e-5)
+
+
+def test_a_graph_exported_for_batch_one_gets_a_batch_axis(tiny_runs, tmp_path, capsys):
+    """Models exported before the server batched sessions (batch fixed at 1) are rewritten in place."""
+    import onnxruntime as ort
+    import torch
+
+    from egoposevr.model.training.export import _export, _fusion_inputs
+
+    ckpt = load_checkpoint(tiny_runs / "fusion-hmd-rgbd.pt")
+    net = build_net(ckpt)
+    inputs = _fusion_inputs(net.cfg, batch=1)
+    path = tmp_path / "old.onnx"
+    _export(net, tuple(torch.from_numpy(v) for v in inputs.values()), path, (list(inputs), ["rot6d"]), None)
+    assert main(["export", "--add-batch-axis", str(path)]) == 0
+    assert float(capsys.readouterr().out.rsplit("=", 1)[1]) < 1e-5
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    batch = _fusion_inputs(net.cfg, batch=8)
+    with torch.no_grad():
+        want = net(*(torch.from_numpy(v) for v in batch.values())).numpy()
+    np.testing.assert_allclose(session.run(None, batch)[0], want, atol=1e-4)
+
+
 @pytest.fixture(scope="module")
 def val(tiny_data):
     return load_split(tiny_data, "val")[0], split_camera(tiny_data, "val")
