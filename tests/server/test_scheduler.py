@@ -280,6 +280,8 @@ def test_a_batched_answer_equals_the_unbatched_one_for_every_session(registry, m
 
     batched, alone = replay(True), replay(False)
     worst = max(
-        float(np.abs(a - b).max()) for sa, sb in zip(batched, alone, strict=True) for a, b in zip(sa, sb, strict=True)
+        float(np.abs(a - b).max())
+        for sa, sb in zip(batched, alone, strict=True)
+        for a, b in zip(sa, sb, strict=True)
     )
     assert worst <= 1e-5
