@@ -2,7 +2,10 @@
 
 Starts a server in a subprocess unless --url is given. Reports end-to-end latency (hmd sent -> pose received,
 one clock) p50/p95/p99/max, the server-reported stages, skipped samples and the server's CPU use.
---sweep finds the most sessions that keep p99 within one 90 Hz frame (11.1 ms); --flat-out measures the
+--sweep finds the most sessions that keep p99 within one 90 Hz frame (11.1 ms) with no skipped sample, against
+two servers side by side: cross-session batching on (--batch-window-ms) and off; --sweep-repeats N runs it N
+times and reports the median. The load generator's own CPU is reported; on a machine with 4 or more cores
+the servers and the load generator are pinned to separate cores (--no-pin keeps them together); --flat-out measures the
 paper's full-pipeline FPS in-process (a new RGB-D frame every sample); --naive replays the first recording
 in-process through the incremental keypoint cache and through the paper's baseline that re-encodes the whole
 visual window per request, and reports how much the cache saves (the server has no such mode).
@@ -14,6 +17,7 @@ Examples:
   egoposevr bench                                   # egoposevr, 1 session, 20 s, 90 Hz + 30 Hz
   egoposevr bench --sessions 4 --models egoposevr,hmd --json bench.json --plot bench.png
   egoposevr bench --sweep --flat-out --naive --seconds 10
+  egoposevr bench --sweep --sweep-repeats 3 --seconds 10 --json sweep.json     # PERFORMANCE.md
   egoposevr bench --soak 3600 --sessions 2 --json soak.json       # an hour; CI runs --soak 120
 """
 
@@ -43,6 +47,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--naive", action="store_true", help="also measure the re-encode-everything baseline")
     parser.add_argument("--sweep", action="store_true", help="find the most sessions with p99 <= 11.1 ms")
     parser.add_argument("--max-sessions", type=int, default=12, help="upper bound of the sweep (default 12)")
+    parser.add_argument(
+        "--sweep-repeats", type=int, default=1, help="sweeps to take the median of (default 1)"
+    )
+    parser.add_argument("--batch-window-ms", type=float, default=None,
+                        help="the batching server's window (default: the server's own default)")  # fmt: skip
+    parser.add_argument("--pin", action=argparse.BooleanOptionalAction, default=True,
+                        help="pin servers and load generator apart when there are >= 4 cores (default on)")  # fmt: skip
     parser.add_argument("--flat-out", action="store_true", help="full-pipeline FPS, in-process")
     parser.add_argument("--soak", type=float, default=None, metavar="SECONDS", help="one long run, sampled")
     parser.add_argument("--soak-interval", type=float, default=60.0, metavar="S", help="sample period (60)")
@@ -82,19 +93,85 @@ def print_tables(results: dict[str, dict]) -> None:
         print(f"  {name}: " + "  ".join(parts))
     for name, r in results.items():
         if "sweep" in r:
-            steps = ", ".join(
-                f"{s['sessions']}: {_ms(s['p99_ms'])} ({_ms(s.get('server_p99_ms'))})"
-                for s in r["sweep"]["steps"]
-            )
-            held = r["sweep"]["max_sessions_p99_within_frame"]
-            print(
-                f"\n{name}: {held} sessions hold end-to-end p99 <= 11.1 ms (sessions: e2e p99 (server p99): {steps})"
-            )
+            print_sweep(name, r["sweep"])
         if "naive_visual_ratio" in r:
             ms = r["naive_visual_ms"]
             print(f"\n{name}: the incremental cache spends {r['naive_visual_ratio']:.1f}x less visual-encoder time "
                   f"per request than re-encoding the window ({ms['incremental']:.2f} against {ms['naive']:.2f} ms, "
                   "mean of the visual stage, in-process over the same recording)")  # fmt: skip
+
+
+def print_sweep(model: str, result: dict) -> None:
+    """Each sweep's steps per server, then the most sessions that held (median over the sweeps)."""
+    for i, one in enumerate(result["sweeps"]):
+        print(
+            f"\n{model}, sweep {i + 1}: sessions | "
+            + " | ".join(
+                f"{server}: e2e p99 (server p99) skipped, server CPU, bench CPU"
+                for server in result["servers"]
+            )
+        )
+        for step in one["steps"]:
+            cells = []
+            for server in result["servers"]:
+                r = step.get(server)
+                cells.append(
+                    "-"
+                    if r is None
+                    else f"{_ms(r['p99_ms'])} ({_ms(r['server_p99_ms'])}) "
+                    f"{r['skipped']}, {_pct(r['server_cpu_percent'])}, {_pct(r['bench_cpu_percent'])}"
+                )
+            print(f"  {step['sessions']} | " + " | ".join(cells))  # fmt: skip
+    for server, held in result["max_sessions"].items():
+        runs = ", ".join(str(one["max_sessions"][server]) for one in result["sweeps"])
+        print(f"{model}: {server}: {held} sessions hold e2e p99 <= 11.1 ms with no skipped sample "
+              f"(median of {len(result['sweeps'])} sweeps: {runs})")  # fmt: skip
+    print(f"pinned apart: {result['pinned'] or 'no (fewer than 4 cores, or --no-pin)'}")
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f} %"
+
+
+def run_sweeps(args: argparse.Namespace, load, model: str) -> dict:
+    """--sweep: a batching and a non-batching server side by side, --sweep-repeats times."""
+    import contextlib
+    import statistics
+
+    from ..clients.bench import pinning, serving, sweep
+
+    window = [] if args.batch_window_ms is None else ["--batch-window-ms", str(args.batch_window_ms)]
+    variants = {"batched": window, "unbatched": ["--batch-window-ms", "0"]}
+    server_cpus, bench_cpus = pinning() if args.pin and args.url is None else (None, None)
+    with contextlib.ExitStack() as stack:
+        servers = {name: stack.enter_context(serving(None, "--providers", args.providers, *flags,
+                                                     cpus=server_cpus))
+                   for name, flags in variants.items()}  # fmt: skip
+        with pinned_to(bench_cpus):
+            sweeps = [sweep(servers, load, model, args.max_sessions) for _ in range(args.sweep_repeats)]
+    best = {name: statistics.median(s["max_sessions"][name] for s in sweeps) for name in variants}
+    pinned = None if server_cpus is None else {"servers": sorted(server_cpus), "bench": sorted(bench_cpus)}
+    return {"servers": list(variants), "max_sessions": best, "sweeps": sweeps, "pinned": pinned}
+
+
+def pinned_to(cpus):
+    """This process on ``cpus`` for the block (None: unchanged)."""
+    import contextlib
+    import os
+
+    @contextlib.contextmanager
+    def block():
+        if cpus is None:
+            yield
+            return
+        before = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, cpus)
+        try:
+            yield
+        finally:
+            os.sched_setaffinity(0, before)
+
+    return block()
 
 
 def run_soak(args: argparse.Namespace) -> int:
@@ -138,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
             print("egoposevr bench: --soak and --soak-interval must be > 0", file=sys.stderr)
             return 2
         return run_soak(args)
-    from ..clients.bench import Load, flat_out_fps, measure, plot, serving, sweep, visual_ms
+    from ..clients.bench import Load, flat_out_fps, measure, plot, serving, visual_ms
     from ..clients.replay import Recording
     from ..model.runtime.loading import ProviderError, resolve_providers
     from ..model.weights import model_files
@@ -165,8 +242,14 @@ def run(args: argparse.Namespace) -> int:
         with serving(args.url, "--providers", args.providers) as (url, pid):
             for model in models:
                 results[model] = measure(url, pid, load, model, tag=f"bench-{model}")
-                if args.sweep:
-                    results[model]["sweep"] = sweep(url, pid, load, model, args.max_sessions)
+        if args.sweep:
+            if args.url is not None:
+                print(
+                    "egoposevr bench: --sweep starts its own servers; --url is ignored for it",
+                    file=sys.stderr,
+                )
+            for model in models:
+                results[model]["sweep"] = run_sweeps(args, load, model)
         if args.naive:  # in-process, side by side: the server has no naive mode
             recording = Recording.load(load.recordings[0])
             for model in models:

@@ -23,10 +23,15 @@ def test_bench_reports_latency_stages_fps_and_a_plot(tmp_path, capsys):
     )
     assert result["sessions"] == 2 and result["answered"] > 150 and result["fps"] > 0
     assert result["server_cpu_percent"] > 0
-    steps = result["sweep"]["steps"]
-    assert [s["sessions"] for s in steps][:1] == [1] and result["sweep"]["max_sessions_p99_within_frame"] <= 2
+    sweep = result["sweep"]
+    assert sweep["servers"] == ["batched", "unbatched"] and len(sweep["sweeps"]) == 1
+    [steps] = [s["steps"] for s in sweep["sweeps"]]
+    assert steps[0]["sessions"] == 1 and {"batched", "unbatched"} <= set(steps[0])
+    assert steps[0]["batched"]["bench_cpu_percent"] > 0 and steps[0]["unbatched"]["server_cpu_percent"] > 0
+    assert all(0 <= held <= 2 for held in sweep["max_sessions"].values())
     assert png.stat().st_size > 10_000
-    assert "| hmd | 2 |" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "| hmd | 2 |" in printed and "hmd: batched:" in printed and "hmd: unbatched:" in printed
 
 
 def test_bench_compares_against_the_naive_cache(tmp_path):
