@@ -205,6 +205,10 @@ class Scheduler:
                 result = self._internal_error(session, job, result)
             publish(session, result, self.metrics)
             self._mark_ready(session)
+        # The poses' senders were just woken: let them write before a frame or the next batch takes the GIL.
+        asyncio.get_running_loop().call_soon(self._after_publish)
+
+    def _after_publish(self) -> None:
         self._start_frames()
         self._wakeup.set()
 
@@ -219,10 +223,12 @@ class Scheduler:
 
     # ------------------------------------------------------------------------------ camera frames
     def _start_frames(self) -> None:
-        """Send every session's newest frame to the lane as one batch, unless the lane is busy."""
+        """Send the newest frames of the sessions whose headset work is done to the lane as one batch,
+        unless the lane is busy. A session's frame goes into the gap after its pose, not beside its run."""
         if self._lane_busy or self._closed:
             return
-        taken = [(s, *t) for s in list(self._sessions) if (t := s.take_frame()) is not None]
+        idle = [s for s in self._sessions if s not in self._running and s not in self._ready]
+        taken = [(s, *t) for s in idle if (t := s.take_frame()) is not None]
         if not taken:
             return
         self._lane_busy = True
