@@ -14,11 +14,11 @@ Nothing calls back up: the hub only routes messages into sessions and wakes the 
 delivers results straight to the clients' outboxes (:func:`~egoposevr.server.broadcast.publish`).
 
 Batching (``batch_window_s`` > 0): a headset job that is ready while a worker is free waits at most the
-window for the jobs of other sessions on the same model, then they all run as one fusion-net call; jobs that
-piled up while every worker was busy join the next batch without waiting. The per-session arithmetic (features,
-FK, filter, KPO, rotations) stays per session, in compiled kernels that release the GIL. ``0`` turns batching
-off: every job runs alone, as soon as a worker is free. Each session has at most one job in flight, and
-sessions are served oldest-ready first, so a busy session cannot starve another.
+window for the jobs of other sessions on the same model, then they all run as one fusion-net call; jobs
+that piled up while every worker was busy join the next batch without waiting. The per-session arithmetic
+(features, FK, filter, KPO, rotations) stays per session, in compiled kernels that release the GIL. ``0``
+turns batching off: every job runs alone, as soon as a worker is free. Each session has at most one job in
+flight, and sessions are served oldest-ready first, so a busy session cannot starve another.
 
 Errors: a client's bad input comes back inside the run's result (``invalid_field`` and friends, from the
 session). Anything else a run raises is ours: it is logged once per session with its traceback, the

@@ -10,13 +10,13 @@ Newest wins: headset samples that arrive while inference is busy wait in ``pendi
 only the newest of them and feeds the older ones to the pipeline as history (``observe_hmd``), counting them
 as skipped. Only the newest RGB-D frame is kept; a frame replaced before use is counted.
 
-Frame lane (``frame_lane=True``, what the server runs): camera frames never ride on a headset job. The loop
-takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frames` (image decode +
-visual encoder, stateless, several sessions' frames in one encoder call) on the scheduler's low-priority lane thread, beside the session's headset jobs; the
-result comes back through :meth:`Session.offer_encoded`, and the next headset job adds it to the pipeline's
-cache (:meth:`Pipeline.add_frame`, in capture order) before answering. One frame is in the lane per session
-at a time; frames arriving meanwhile replace each other (counted). Without the lane (``--no-frame-lane``), a
-job decodes and encodes its frames before its samples.
+Frame lane (``frame_lane=True``, what the server runs): camera frames never ride on a headset job. The
+scheduler takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frames`
+(image decode + visual encoder, stateless, several sessions' frames in one encoder call) on its low-priority
+lane thread; the result comes back through :meth:`Session.offer_encoded`, and the next headset job adds it to
+the pipeline's cache (:meth:`Pipeline.add_frame`, in capture order) before answering. One frame is in the
+lane per session at a time; frames arriving meanwhile replace each other (counted). Without the lane
+(``--no-frame-lane``), a job decodes and encodes its frames before its samples.
 """
 
 from __future__ import annotations
