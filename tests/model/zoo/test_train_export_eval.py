@@ -83,6 +83,27 @@ def test_a_graph_exported_for_batch_one_gets_a_batch_axis(tiny_runs, tmp_path, c
     np.testing.assert_allclose(session.run(None, batch)[0], want, atol=1e-4)
 
 
+def test_a_graph_whose_reshape_folds_the_batch_is_refused_a_batch_axis(tmp_path):
+    """A Reshape that mixes the batch into another axis cannot take -1 for it: refused, file untouched."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from egoposevr.model.training.export import add_batch_axis
+
+    shape = helper.make_tensor("shape", TensorProto.INT64, [2], [2, 2])
+    graph = helper.make_graph(
+        [helper.make_node("Reshape", ["hmd", "shape"], ["rot6d"])], "folds",
+        [helper.make_tensor_value_info("hmd", TensorProto.FLOAT, [1, 4])],
+        [helper.make_tensor_value_info("rot6d", TensorProto.FLOAT, [2, 2])], [shape],
+    )  # fmt: skip
+    path = tmp_path / "folds.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), str(path))
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="does not start with the batch"):
+        add_batch_axis(path)
+    assert path.read_bytes() == before
+
+
 @pytest.fixture(scope="module")
 def val(tiny_data):
     return load_split(tiny_data, "val")[0], split_camera(tiny_data, "val")
