@@ -368,6 +368,31 @@ def stand_interact(rng, t, body):
     return plan
 
 
+def _upper_body_only(plan: Plan, rng: np.random.Generator, t: np.ndarray) -> Plan:
+    """Legs and pelvis held still; the torso turns on the spine and the arms run their program."""
+    plan.upper["torso_turn"] = keyframes(rng, t, -40, 40, (1.0, 3.0))
+    return plan
+
+
+def still_stand(rng, t, body):
+    """Standing without moving the legs (the pelvis does not sway): arm exercises, reaching, punching,
+    gesturing, turning the torso: what a VR user mostly does, and where served legs must not wander."""
+    return _upper_body_only(
+        _standing(t, body, width=rng.uniform(0.0, 0.1), toe_out=rng.uniform(5, 15)), rng, t
+    )
+
+
+def still_sit(rng, t, body):
+    """Seated on a chair-height seat for the whole clip, the upper body as in :func:`still_stand`."""
+    plan = _standing(t, body, width=rng.uniform(0.0, 0.08))
+    seated = np.ones(len(t))
+    _bend_knees(
+        plan, seated * (body.stand_pelvis_y - rng.uniform(0.47, 0.55)), seated * rng.uniform(0.3, 0.4)
+    )
+    plan.pelvis_pitch += 5.0
+    return _upper_body_only(plan, rng, t)
+
+
 FAMILIES: Final[dict[str, Callable[[np.random.Generator, np.ndarray, Body], Plan]]] = {
     "walk": walk,
     "side_step": side_step,
@@ -381,6 +406,8 @@ FAMILIES: Final[dict[str, Callable[[np.random.Generator, np.ndarray, Body], Plan
     "bend_pick_up": bend_pick_up,
     "jump": jump,
     "stand_interact": stand_interact,
+    "still_stand": still_stand,
+    "still_sit": still_sit,
 }
 
 # Families whose arms follow the legs (swing, guard, balance); the others draw an independent arm program.
@@ -459,7 +486,9 @@ def _upper_body(rng: np.random.Generator, t: np.ndarray, plan: Plan) -> np.ndarr
     )
     head_yaw = keyframes(rng, t, -35, 35, (0.8, 2.5))
     local = np.broadcast_to(np.eye(3), (f, NUM_JOINTS, 3, 3)).copy()
-    spine = _rot("x", spine_flex / 3) @ _rot("z", wobble(rng, t, 0.2, 3)) @ _rot("y", wobble(rng, t, 0.2, 5))
+    lean = wobble(rng, t, 0.2, 3)  # drawn before the turn: the random stream of every family stays as it was
+    turn = wobble(rng, t, 0.2, 5) + u.get("torso_turn", zero) / 3  # shared by the three spine joints
+    spine = _rot("x", spine_flex / 3) @ _rot("z", lean) @ _rot("y", turn)
     for j in (3, 6, 9):
         local[:, j] = spine
     local[:, 12] = _rot("x", np.clip(head_pitch, -30, 60) * 0.4) @ _rot("y", np.clip(head_yaw, -70, 70) * 0.4)

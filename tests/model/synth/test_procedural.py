@@ -61,6 +61,22 @@ def test_the_head_stays_at_human_heights(clip):
     assert head_y.min() > 0.6 and head_y.max() < 2.3
 
 
+@pytest.mark.parametrize("family", ["still_stand", "still_sit"])
+def test_still_families_move_the_upper_body_only(family):
+    """Legs held still (pelvis, knees, ankles, feet: under a millimetre) while the wrists travel and the
+    torso turns; seated, the pelvis is at chair height."""
+    joints = generate(family, 8.0, FPS, np.random.default_rng(3)).joints()
+    legs = joints[:, [0, 1, 2, 4, 5, 7, 8, 10, 11]]
+    assert np.abs(legs - legs[0]).max() < 1e-3
+    wrists = joints[:, [20, 21]]
+    assert np.linalg.norm(wrists - wrists[0], axis=-1).max() > 0.2
+    shoulders = joints[:, 17] - joints[:, 16]
+    yaw = np.degrees(np.arctan2(shoulders[:, 2], shoulders[:, 0]))
+    assert np.ptp(yaw) > 15  # the torso turns on still legs
+    pelvis_y = joints[0, 0, 1]
+    assert (pelvis_y < 0.75) if family == "still_sit" else (pelvis_y > 0.8)
+
+
 def test_same_seed_same_motion_other_seed_other_motion():
     a = generate("lunge", 3.0, FPS, np.random.default_rng(5))
     b = generate("lunge", 3.0, FPS, np.random.default_rng(5))
