@@ -138,7 +138,7 @@ def run_sweeps(args: argparse.Namespace, load, model: str) -> dict:
     import contextlib
     import statistics
 
-    from ..clients.bench import pinning, serving, sweep
+    from ..clients.bench import pinned_to, pinning, serving, sweep
 
     window = [] if args.batch_window_ms is None else ["--batch-window-ms", str(args.batch_window_ms)]
     variants = {"batched": window, "unbatched": ["--batch-window-ms", "0"]}
@@ -152,26 +152,6 @@ def run_sweeps(args: argparse.Namespace, load, model: str) -> dict:
     best = {name: statistics.median(s["max_sessions"][name] for s in sweeps) for name in variants}
     pinned = None if server_cpus is None else {"servers": sorted(server_cpus), "bench": sorted(bench_cpus)}
     return {"servers": list(variants), "max_sessions": best, "sweeps": sweeps, "pinned": pinned}
-
-
-def pinned_to(cpus):
-    """This process on ``cpus`` for the block (None: unchanged)."""
-    import contextlib
-    import os
-
-    @contextlib.contextmanager
-    def block():
-        if cpus is None:
-            yield
-            return
-        before = os.sched_getaffinity(0)
-        os.sched_setaffinity(0, cpus)
-        try:
-            yield
-        finally:
-            os.sched_setaffinity(0, before)
-
-    return block()
 
 
 def run_soak(args: argparse.Namespace) -> int:

@@ -88,6 +88,20 @@ def pinning(min_cores: int = 4) -> tuple[set[int] | None, set[int] | None]:
     return set(cores[:split]), set(cores[split:])
 
 
+@contextlib.contextmanager
+def pinned_to(cpus: set[int] | None) -> Iterator[None]:
+    """This process on ``cpus`` for the block (None: unchanged)."""
+    if cpus is None:
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, cpus)
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+
+
 def _cpu_seconds(pid: int | None) -> float | None:
     if pid is None:
         return None

@@ -1,7 +1,7 @@
 """The server: WebSocket and HTTP on one port, glued to the socket-free :class:`~egoposevr.server.hub.Hub`.
 
 Reads as steps, like uvicorn: ``start`` (bind, load models, fail fast on a bad configuration, mark ready) →
-serve (one task per connection, one sender task per connection, one inference worker per session, a model
+serve (one task per connection, one sender task per connection, the scheduler's dispatch task, a model
 rescan task) → ``stop`` (refuse new hellos and connections, tell every client ``shutting_down`` and close with
 1001, wait a bounded time, abort what is left, flush recordings).
 

@@ -107,17 +107,17 @@ def encode_frame(
     """The visual encoder on one decoded frame (arguments as ``Pipeline.push_rgbd``). Stateless, so the
     server runs it beside the session's headset inference; the pipeline takes the result with ``add_frame``.
     Raises InputError for malformed frames, ValueError for a model that reads no camera."""
+    check_frame(rgb, depth_mm, intrinsics, cam_from_head)
     return encode_frames(model, [(t_us, rgb, depth_mm, intrinsics, cam_from_head)])[0]
 
 
 def encode_frames(model: LoadedModel, frames: list[tuple[Any, ...]]) -> list[EncodedFrame]:
     """:func:`encode_frame` on several frames (each its argument tuple after ``model``) in one encoder
     call: the server's frame lane batches the new frames of several sessions that share an encoder.
-    Each frame's ``encode_us`` is the whole call's time."""
+    The frames must have passed :func:`check_frame` (the caller checks each, so that one malformed frame
+    is refused alone). Each frame's ``encode_us`` is the whole call's time."""
     if model.visual is None:
         raise ValueError(f"model {model.info.name} reads no camera")
-    for _, rgb, depth_mm, intrinsics, cam_from_head in frames:
-        check_frame(rgb, depth_mm, intrinsics, cam_from_head)
     started = time.perf_counter()
     images = np.stack([encoder_input(model, rgb, depth_mm) for _, rgb, depth_mm, _, _ in frames])
     uv, depth_m, zeta = model.encode_frames(images)

@@ -65,8 +65,7 @@ class ProceduralModel:
     """The servable face of the procedural baseline: what the registry lists and sessions select."""
 
     visual = None
-    fusion = None
-    batchable = False
+    batchable = False  # no net: the scheduler never batches it
     provider = "none"  # runs no network
 
     def __init__(self) -> None:

@@ -4,8 +4,10 @@ sockets, no ONNX); and a batched answer against the unbatched one with the real 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -91,6 +93,15 @@ def offer(session: Session, seq: int, t_us: int) -> None:
     session.offer_hmd(Received(HMD.model_copy(update={"seq": seq, "t_us": t_us}), time.perf_counter_ns(), 0))
 
 
+@contextlib.contextmanager
+def running_scheduler(**kwargs) -> Iterator[Scheduler]:
+    scheduler = Scheduler(Metrics(), **kwargs)
+    try:
+        yield scheduler
+    finally:
+        scheduler.close()
+
+
 async def until(predicate, timeout_s: float = 5.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -103,15 +114,12 @@ async def test_ready_sessions_on_one_model_run_as_one_net_call_and_each_gets_its
     net = FakeNet()
     model = FakeModel(net)
     sessions = [fake_session(f"s{i}", model) for i in range(5)]
-    scheduler = Scheduler(Metrics(), workers=2, batch_window_s=0.05)
-    try:
+    with running_scheduler(workers=2, batch_window_s=0.05) as scheduler:
         for i, session in enumerate(sessions):
             offer(session, 1, 1_000_000 * (i + 1))
             scheduler.wake(session)
         received = {s.id: [] for s in sessions}
         await until(lambda: all(received[s.id] or received[s.id].extend(s.input.poses()) for s in sessions))
-    finally:
-        scheduler.close()
     assert net.batches == [5]
     for i, session in enumerate(sessions):
         [pose] = received[session.id]
@@ -123,14 +131,11 @@ async def test_window_zero_runs_every_job_alone():
     net = FakeNet()
     model = FakeModel(net)
     sessions = [fake_session(f"s{i}", model) for i in range(4)]
-    scheduler = Scheduler(Metrics(), workers=1, batch_window_s=0.0)
-    try:
+    with running_scheduler(workers=1, batch_window_s=0.0) as scheduler:
         for session in sessions:
             offer(session, 1, 1000)
             scheduler.wake(session)
         await until(lambda: len(net.batches) == 4)
-    finally:
-        scheduler.close()
     assert net.batches == [1, 1, 1, 1]
 
 
@@ -140,14 +145,11 @@ async def test_graphs_without_a_batch_axis_and_other_models_are_not_mixed():
     fixed, shared = FakeModel(fixed_net, batchable=False), FakeModel(shared_net)
     sessions = [fake_session("f0", fixed), fake_session("f1", fixed), fake_session("s0", shared)]
     sessions.append(fake_session("s1", shared))
-    scheduler = Scheduler(Metrics(), workers=2, batch_window_s=0.05)
-    try:
+    with running_scheduler(workers=2, batch_window_s=0.05) as scheduler:
         for session in sessions:
             offer(session, 1, 1000)
             scheduler.wake(session)
         await until(lambda: len(fixed_net.batches) == 2 and len(shared_net.batches) == 1)
-    finally:
-        scheduler.close()
     assert fixed_net.batches == [1, 1] and shared_net.batches == [2]
 
 
@@ -156,8 +158,7 @@ async def test_a_lone_ready_job_waits_at_most_the_window_for_idle_sessions():
     net = FakeNet()
     model = FakeModel(net)
     streaming = [fake_session(f"s{i}", model) for i in range(3)]
-    scheduler = Scheduler(Metrics(), workers=2, batch_window_s=0.03)
-    try:
+    with running_scheduler(workers=2, batch_window_s=0.03) as scheduler:
         for session in streaming[1:]:  # streaming but idle: they could join, so the first one waits
             scheduler.wake(session)
         offer(streaming[0], 1, 1000)
@@ -165,8 +166,6 @@ async def test_a_lone_ready_job_waits_at_most_the_window_for_idle_sessions():
         scheduler.wake(streaming[0])
         await until(lambda: bool(net.batches))
         waited_s = time.perf_counter() - started
-    finally:
-        scheduler.close()
     assert net.batches == [1]
     assert 0.02 <= waited_s < 0.03 + 0.05  # the window, and not much more (a noisy machine's loop)
 
@@ -178,9 +177,8 @@ async def test_a_session_that_sends_fast_does_not_starve_the_others():
     net = FakeNet(delay_s=0.002)
     model = FakeModel(net)
     flood, calm = fake_session("flood", model), fake_session("calm", model)
-    scheduler = Scheduler(Metrics(), workers=1, batch_window_s=0.0)
     calm_answers: list = []
-    try:
+    with running_scheduler(workers=1, batch_window_s=0.0) as scheduler:
         for round_ in range(20):
             for k in range(10):
                 offer(flood, round_ * 10 + k, (round_ * 10 + k + 1) * 1000)
@@ -191,8 +189,6 @@ async def test_a_session_that_sends_fast_does_not_starve_the_others():
             calm_answers += calm.input.poses()
         await until(lambda: not flood.has_work and not calm.has_work and not scheduler._running)
         calm_answers += calm.input.poses()
-    finally:
-        scheduler.close()
     assert len(calm_answers) >= 15  # at 5 ms a round against 2 ms a job: nearly every round answered
 
 
@@ -202,9 +198,8 @@ async def test_a_slow_or_gone_client_never_delays_another_session():
     model = FakeModel(net)
     stuck, gone, good = (fake_session(name, model) for name in ("stuck", "gone", "good"))
     stuck.input = FakeClient(capacity=1)  # never read: its queue is full after one pose
-    scheduler = Scheduler(Metrics(), workers=2, batch_window_s=0.002)
     answered = []
-    try:
+    with running_scheduler(workers=2, batch_window_s=0.002) as scheduler:
         for k in range(30):
             for session in (stuck, gone, good):
                 offer(session, k, (k + 1) * 11_111)
@@ -216,8 +211,6 @@ async def test_a_slow_or_gone_client_never_delays_another_session():
             answered += good.input.poses()
         await until(lambda: not scheduler._running)
         answered += good.input.poses()
-    finally:
-        scheduler.close()
     assert len(answered) >= 25
     assert stuck.input.outbox.dropped_poses >= 20  # the stuck client lost its oldest poses, nothing waited
 
@@ -232,16 +225,13 @@ async def test_a_failing_run_is_the_sessions_internal_error_and_the_others_go_on
         raise RuntimeError("injected fault")
 
     broken._pipeline.begin_hmd = explode
-    scheduler = Scheduler(Metrics(), workers=1, batch_window_s=0.05)
-    try:
+    with running_scheduler(workers=1, batch_window_s=0.05) as scheduler:
         for k in range(2):
             for session in (broken, fine):
                 offer(session, k, (k + 1) * 1000)
                 scheduler.wake(session)
             await until(lambda: not scheduler._running and not broken.has_work and not fine.has_work)
         await asyncio.sleep(0.01)
-    finally:
-        scheduler.close()
     errors = [decode(d) for d in broken.input.outbox.control]
     assert [e.code for e in errors] == ["internal", "internal"]
     assert len(fine.input.poses()) == 2
