@@ -7,6 +7,8 @@ Shape legend: ``B`` batch, ``C`` channels, ``h``×``w`` encoder input, ``J`` = 2
 from __future__ import annotations
 
 import dataclasses
+import functools
+import logging
 from pathlib import Path
 from typing import Any, Final
 
@@ -40,6 +42,10 @@ PROVIDER_NAMES: Final = {
     "coreml": "CoreMLExecutionProvider",
 }
 DEFAULT_PROVIDERS: Final = ("CPUExecutionProvider",)
+# Providers that load CUDA and cuDNN from the process: onnxruntime-gpu finds them in the nvidia-* wheels
+# (onnxruntime-gpu[cuda,cudnn]) only when asked to preload them; a system CUDA needs no help.
+_CUDA_PROVIDERS: Final = frozenset({"CUDAExecutionProvider", "TensorrtExecutionProvider"})
+_log = logging.getLogger(__name__)
 
 
 def resolve_providers(spec: str, available: list[str] | None = None) -> tuple[str, ...]:
@@ -122,9 +128,27 @@ def _properties(session: ort.InferenceSession) -> dict[str, str]:
     return {k.removeprefix("egoposevr."): v for k, v in meta.items() if k.startswith("egoposevr.")}
 
 
+@functools.cache
+def _preload_cuda_libraries() -> None:
+    """Load the CUDA / cuDNN libraries of the nvidia-* wheels, once, before a CUDA session is made.
+
+    Without this the CUDA provider finds them only on LD_LIBRARY_PATH and onnxruntime silently runs on the
+    CPU. A failure is logged, not raised: a system-wide CUDA may still serve, and session creation reports
+    what is really missing."""
+    preload = getattr(ort, "preload_dlls", None)  # onnxruntime-gpu >= 1.21
+    if preload is None:
+        return
+    try:
+        preload()
+    except Exception as exc:  # what is missing is the provider's to report
+        _log.warning("onnxruntime.preload_dlls failed (%s); relying on the system's CUDA libraries", exc)
+
+
 def _session(
     path: Path, threads: int, providers: tuple[str, ...] = DEFAULT_PROVIDERS
 ) -> ort.InferenceSession:
+    if _CUDA_PROVIDERS.intersection(providers):
+        _preload_cuda_libraries()
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1

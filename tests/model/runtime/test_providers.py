@@ -48,3 +48,25 @@ def test_commands_refuse_an_uninstalled_provider_before_doing_anything(command):
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert done.returncode == 2 and "TensorrtExecutionProvider is not available" in done.stderr
+
+
+def test_cuda_libraries_of_the_nvidia_wheels_are_preloaded_once_and_a_failure_only_warns(monkeypatch, caplog):
+    """onnxruntime-gpu finds the pip-installed CUDA / cuDNN only through preload_dlls; without it the CUDA
+    provider cannot load them unless they are on LD_LIBRARY_PATH."""
+    from egoposevr.model.runtime import loading
+
+    calls = []
+    monkeypatch.setattr(loading.ort, "preload_dlls", lambda: calls.append(1), raising=False)
+    loading._preload_cuda_libraries.cache_clear()
+    loading._preload_cuda_libraries()
+    loading._preload_cuda_libraries()
+    assert calls == [1]
+
+    def broken() -> None:
+        raise OSError("libcudnn.so.9: cannot open shared object file")
+
+    monkeypatch.setattr(loading.ort, "preload_dlls", broken, raising=False)
+    loading._preload_cuda_libraries.cache_clear()
+    loading._preload_cuda_libraries()  # does not raise
+    loading._preload_cuda_libraries.cache_clear()
+    assert "libcudnn.so.9" in caplog.text
