@@ -44,6 +44,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(rig-pool datasets)",
     )
     parser.add_argument(
+        "--no-foot-contacts",
+        action="store_true",
+        help="serve without planted feet and the floor (model/runtime/contact.py): the network's own feet",
+    )
+    parser.add_argument(
         "--providers",
         default="cpu",
         help="onnxruntime execution providers, most preferred first (as serve's)",
@@ -96,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
             by_category=args.by_category,
             providers=providers,
             calibrate=args.calibrate,
+            foot_contacts=not args.no_foot_contacts,
         )
         keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
     except (DatasetError, ModelError) as error:

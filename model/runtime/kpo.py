@@ -5,7 +5,9 @@ Energy over the 22 joint positions p (66 unknowns), given the network's joints p
     E_A = Σ_{k∈O} λa |p_k - q_k|² + Σ_{k∉O} λs |p_k - p~_k|²                    (align, stay)
     E_S = Σ_links λl (|p_c - p_par| - |p~_c - p~_par|)² + λd,link |(p_c - p_par) - (p~_c - p~_par)|²
 
-O is the set of tracked joints that are valid now (head, and each wrist whose controller is tracked). Every
+O is the set of joints with a target: the tracked joints that are valid now (head, and each wrist whose
+controller is tracked), a lost controller's wrist for a while (:mod:`.hands`), and the ankles and feet that
+:mod:`.contact` plants or keeps off the floor. Every
 term but the bone length is linear, so Gauss-Newton converges in a few steps: each is one 66×66 solve.
 
 The paper stops at positions; avatars animate with rotations. :func:`rederive_rotations` turns each joint's

@@ -27,6 +27,7 @@ from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
 from .calibration import Calibration, body_measurements, canonical_poses
+from .contact import FootContacts
 from .filters import OneEuroFilter
 from .frames import (
     CachedFrame,
@@ -47,6 +48,7 @@ POSITION_MIN_CUTOFF_HZ = 4.0
 POSITION_BETA = 2.0
 _PARENTS = PARENTS.astype(np.int64)
 _TRACKED = np.array(TRACKED_JOINTS)
+_LEG_BONES = np.array([4, 5, 7, 8])  # thighs and shins: the scale that a foot's step is measured in
 _ORIGIN = np.zeros(3)
 
 
@@ -80,8 +82,10 @@ class Pipeline:
         naive: bool = False,
         bone_scale: np.ndarray | None = None,
         kpo_weights: KpoWeights | None = None,
+        contacts: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
+        self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -114,6 +118,7 @@ class Pipeline:
         self.cache = KeypointCache(self.visual_window, self.naive)
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.hands = LostHandPolicy()
+        self.feet = FootContacts()
         self._pending_visual_us = 0
         if self.calibration is not None:
             self._apply_calibration()
@@ -259,6 +264,10 @@ class Pipeline:
             targets[_TRACKED] = tracked_pos
             observed[_TRACKED] = valid
             self.hands.targets(t_us, joints, valid, tracked_pos, targets, observed)
+            if self.contacts:
+                bones = self.bone_scale if self.fixed_body else self.body.bone_scale
+                leg_scale = float(bones[_LEG_BONES].mean())
+                self.feet.targets(t_us, joints, leg_scale, targets, observed)
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)

@@ -364,5 +364,6 @@ def pipeline_for(model, **kwargs):
     if isinstance(model, ProceduralModel):
         kwargs.pop("naive", None)
         kwargs.pop("kpo_weights", None)
+        kwargs.pop("contacts", None)  # it plants its own feet
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

@@ -209,12 +209,14 @@ def evaluate(
     by_category: bool = False,
     providers: tuple[str, ...] = DEFAULT_PROVIDERS,
     calibrate: bool = False,
+    foot_contacts: bool = True,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
     baseline); with ``by_category``,
     each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}.
     With ``calibrate`` every sequence is served after the T-pose calibration its rig and body would give
-    (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig)."""
+    (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig).
+    ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py)."""
     seqs = load_split(data_dir, split, limit)
     rigs = sequence_rigs(data_dir, split, seqs) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -224,7 +226,7 @@ def evaluate(
         model = (
             ProceduralModel() if path is None else LoadedModel.load(path, shared=shared, providers=providers)
         )
-        pipeline = pipeline_for(model)
+        pipeline = pipeline_for(model, contacts=foot_contacts)
         errors = []
         for i, seq in enumerate(seqs):
             if calibrate:

@@ -1,0 +1,132 @@
+"""Planted feet and a floor for the served body: which foot is on the ground, where it stays, and soles that
+never go through the floor. Its output is KPO targets (:mod:`.kpo`), so knees and hips bend to keep a planted
+foot where it is and the served rotations still agree with the joints.
+
+Per session and per foot, a state machine over the network's joints (filtered, anchored at the head):
+
+- **free -> planted** when the foot joint (the ball of the foot) is within ``PLANT_HEIGHT_M`` of where it
+  rests on the floor and it moved slower than ``PLANT_SPEED_M_S`` in the last ``SPEED_WINDOW_S``. The foot and ankle
+  are anchored where they are, lowered or raised together so that the sole is on the floor.
+- **planted**: the anchor is the foot's and ankle's KPO target. The network's own foot is only watched.
+- **planted -> free** when the network steps: it lifts the foot more than ``RELEASE_HEIGHT_M`` off the floor,
+  or moves it more than ``RELEASE_DISTANCE_M`` (scaled by the body) from the anchor over the floor, faster
+  than ``STEP_SPEED_M_S``; or it is ``SURE_RELEASE`` times that far at any speed (a slow knee raise). A
+  slow drift within that is the network's legs wandering while the user only moves the upper body, which is
+  what the plant is there to hide. For ``RELEASE_S`` the target then slides from the anchor to the
+  network's foot (no pop).
+- **the floor**: a free foot or ankle below the floor is a target on the floor straight above it.
+
+The thresholds are physical (the truth's own contact labels, :mod:`~egoposevr.model.training.plausibility`,
+call a foot in contact below 3 cm off its resting height and under 0.2 m/s), not fitted to a split.
+The floor is the session's ``floor_y_m``: y = 0 in the stage reference space PROTOCOL.md §3 asks for.
+
+Shape legend: ``J`` = 22 joints.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from typing import Final
+
+import numpy as np
+
+from ..skeleton import FOOT_JOINT_HEIGHT_M
+
+FEET: Final = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
+PLANT_HEIGHT_M: Final = 0.05  # above the foot's resting height
+PLANT_SPEED_M_S: Final = 0.25
+RELEASE_HEIGHT_M: Final = 0.08
+RELEASE_DISTANCE_M: Final = 0.10  # for a body of SMPL's size
+STEP_SPEED_M_S: Final = 0.3  # a foot that leaves that far this fast steps; slower, it is the net wandering
+SURE_RELEASE: Final = 1.5  # ... unless it is this many times as far: a slow knee raise or lunge
+RELEASE_S: Final = 0.15
+SPEED_WINDOW_S: Final = 0.2  # a foot's speed is its move over this long: the network's feet jitter by ~1 cm
+MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the feet
+
+
+@dataclasses.dataclass
+class _Foot:
+    planted: bool = False
+    anchor: np.ndarray | None = None  # (2, 3) ankle, foot joint, m
+    released_us: int | None = None  # when the last plant ended (the slide back to the network's foot)
+    # (t_us, (3,) position) of the network's foot joint over the last SPEED_WINDOW_S
+    history: collections.deque = dataclasses.field(default_factory=collections.deque)
+
+    def speed_m_s(self, t_us: int, position: np.ndarray) -> float:
+        """The foot's speed: its move since the oldest sample within SPEED_WINDOW_S."""
+        self.history.append((t_us, position))
+        while len(self.history) > 2 and (t_us - self.history[1][0]) * 1e-6 >= SPEED_WINDOW_S:
+            self.history.popleft()
+        t0_us, position0 = self.history[0]
+        if t_us <= t0_us:
+            return 0.0
+        return float(np.linalg.norm(position - position0)) / ((t_us - t0_us) * 1e-6)
+
+
+class FootContacts:
+    """Per-session foot contact state; :meth:`targets` adds the feet's KPO targets for one sample."""
+
+    def __init__(self, floor_y_m: float = 0.0) -> None:
+        self.floor_y_m = floor_y_m
+        self._feet = (_Foot(), _Foot())
+        self._last_us: int | None = None
+
+    @property
+    def planted(self) -> tuple[bool, bool]:
+        """(left, right): each foot planted now."""
+        return self._feet[0].planted, self._feet[1].planted
+
+    def targets(
+        self, t_us: int, joints: np.ndarray, body_scale: float, targets: np.ndarray, observed: np.ndarray
+    ) -> None:
+        """joints (J, 3) the network's joints for this sample; body_scale the body's size against SMPL's
+        (leg length); KPO's targets (J, 3) and observed (J,) are filled in for the ankles and feet, which
+        then pull with the devices' weight λa (a weaker pull, 0.4 λa, held the feet less well and moved no
+        MPJPE on the development subset)."""
+        dt_s = 0.0 if self._last_us is None else max(t_us - self._last_us, 0) * 1e-6
+        if dt_s > MAX_GAP_S:
+            self._feet = (_Foot(), _Foot())
+        self._last_us = t_us
+        for foot, (ankle_j, foot_j) in zip(self._feet, FEET, strict=True):
+            predicted = joints[[ankle_j, foot_j]]
+            target = self._step(foot, t_us, predicted, body_scale)
+            if target is not None:
+                targets[[ankle_j, foot_j]] = target
+                observed[[ankle_j, foot_j]] = True
+
+    def _step(self, foot: _Foot, t_us: int, predicted: np.ndarray, body_scale: float) -> np.ndarray | None:
+        """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
+        rest_y = self.floor_y_m + FOOT_JOINT_HEIGHT_M
+        lift_m = predicted[1, 1] - rest_y
+        xz = predicted[1, [0, 2]]
+        speed_m_s = foot.speed_m_s(t_us, predicted[1])
+        if foot.planted:
+            assert foot.anchor is not None
+            drift_m = float(np.linalg.norm(xz - foot.anchor[1, [0, 2]]))
+            away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
+            if away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S):
+                foot.planted, foot.released_us = False, t_us
+            else:
+                return foot.anchor
+        elif lift_m < PLANT_HEIGHT_M and speed_m_s < PLANT_SPEED_M_S:
+            foot.planted, foot.released_us = True, None
+            foot.anchor = predicted - np.array([0.0, lift_m, 0.0])  # sole on the floor, foot as predicted
+            return foot.anchor
+        return self._free_target(foot, t_us, predicted, rest_y)
+
+    def _free_target(self, foot: _Foot, t_us: int, predicted: np.ndarray, rest_y: float) -> np.ndarray | None:
+        """A free foot: sliding from its last anchor after a release, and never below the floor."""
+        target = predicted.copy()
+        if foot.released_us is not None and foot.anchor is not None:
+            share = (t_us - foot.released_us) * 1e-6 / RELEASE_S
+            if share < 1.0:
+                smooth = share * share * (3.0 - 2.0 * share)
+                target = foot.anchor + smooth * (predicted - foot.anchor)
+            else:
+                foot.released_us = None
+        below = target[:, 1] < rest_y
+        if foot.released_us is None and not below.any():
+            return None
+        target[below, 1] = rest_y
+        return target

@@ -1,0 +1,152 @@
+"""Planted feet and the floor (runtime/contact.py): synthetic streams with known answers, then the pipeline."""
+
+import numpy as np
+import pytest
+
+from egoposevr.model.runtime.contact import (
+    FEET,
+    MAX_GAP_S,
+    PLANT_SPEED_M_S,
+    RELEASE_DISTANCE_M,
+    RELEASE_HEIGHT_M,
+    RELEASE_S,
+    FootContacts,
+)
+from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
+
+STEP_US = 11_111  # 90 Hz
+LEFT_ANKLE, LEFT_FOOT = FEET[0]
+
+
+def standing_joints(rng: np.random.Generator, jitter_m: float = 0.005) -> np.ndarray:
+    """(J, 3) the rest skeleton standing on the floor (soles at y = 0), each joint jittered like a network's."""
+    joints = REST_JOINTS_M - np.array([0.0, REST_JOINTS_M[[10, 11], 1].min() - FOOT_JOINT_HEIGHT_M, 0.0])
+    return joints + rng.normal(0.0, jitter_m, joints.shape)
+
+
+def run(
+    contacts: FootContacts, frames: list[np.ndarray], t0_us: int = 0
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each frame's (targets, observed) for the feet."""
+    out = []
+    for i, joints in enumerate(frames):
+        targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
+        contacts.targets(t0_us + i * STEP_US, joints, 1.0, targets, observed)
+        out.append((targets, observed))
+    return out
+
+
+def test_a_still_foot_is_planted_and_held_while_the_network_jitters():
+    rng = np.random.default_rng(0)
+    contacts = FootContacts()
+    frames = [standing_joints(rng) for _ in range(90)]
+    out = run(contacts, frames)
+    assert contacts.planted == (True, True)
+    held = np.array([t[LEFT_FOOT] for t, o in out[30:] if o[LEFT_FOOT]])
+    assert len(held) == 60
+    assert np.ptp(held, axis=0).max() == 0.0  # one anchor: not a millimetre of skating
+    assert held[0, 1] == pytest.approx(FOOT_JOINT_HEIGHT_M)  # the sole on the floor
+
+
+def test_a_moving_foot_is_not_planted():
+    rng = np.random.default_rng(1)
+    frames = []
+    for i in range(60):
+        joints = standing_joints(rng, 0.0)
+        joints[[LEFT_ANKLE, LEFT_FOOT], 0] += (
+            2.0 * PLANT_SPEED_M_S * i * STEP_US * 1e-6
+        )  # sliding over the floor
+        frames.append(joints)
+    contacts = FootContacts()
+    run(contacts, frames)
+    assert contacts.planted == (False, True)
+
+
+@pytest.mark.parametrize("move", ["lift", "drift"])
+def test_a_plant_ends_when_the_network_steps_and_the_foot_slides_back_without_a_pop(move):
+    rng = np.random.default_rng(2)
+    frames = [standing_joints(rng, 0.0) for _ in range(30)]
+    for i in range(1, 60):
+        joints = standing_joints(rng, 0.0)
+        if move == "lift":
+            joints[[LEFT_ANKLE, LEFT_FOOT], 1] += min(i * 0.01, 0.2)
+        else:
+            joints[[LEFT_ANKLE, LEFT_FOOT], 2] += i * 0.01  # a slide that goes on: no new plant
+        frames.append(joints)
+    contacts = FootContacts()
+    out = run(contacts, frames)
+    assert contacts.planted[0] is False
+    served = np.array(
+        [t[LEFT_FOOT] if o[LEFT_FOOT] else f[LEFT_FOOT] for (t, o), f in zip(out, frames, strict=True)]
+    )
+    steps_m = np.linalg.norm(np.diff(served, axis=0), axis=1)
+    threshold = RELEASE_HEIGHT_M if move == "lift" else RELEASE_DISTANCE_M
+    # The release happens once the network is `threshold` away: a pop would move the foot that far (and more)
+    # in one sample; the slide spreads it over RELEASE_S.
+    assert steps_m.max() < 0.5 * threshold
+    assert (steps_m > 0.001).sum() * STEP_US * 1e-6 >= RELEASE_S - 2 * STEP_US * 1e-6
+    assert np.allclose(served[-1], frames[-1][LEFT_FOOT])  # and then it is the network's foot again
+
+
+def test_a_foot_below_the_floor_is_put_on_it_and_one_above_is_left_alone():
+    rng = np.random.default_rng(3)
+    joints = standing_joints(rng, 0.0)
+    joints[[LEFT_ANKLE, LEFT_FOOT], 1] -= 0.1  # through the floor
+    joints[[LEFT_ANKLE, LEFT_FOOT], 0] += 1.0  # and far from any plant: the first sample cannot plant yet
+    ((targets, observed),) = run(FootContacts(), [joints])
+    assert observed[LEFT_FOOT] and targets[LEFT_FOOT, 1] == pytest.approx(FOOT_JOINT_HEIGHT_M)
+    assert targets[LEFT_ANKLE, 1] >= FOOT_JOINT_HEIGHT_M - 1e-12
+    assert targets[LEFT_FOOT, 0] == pytest.approx(joints[LEFT_FOOT, 0])
+
+    high = standing_joints(rng, 0.0)
+    high[:, 1] += 0.5  # jumping: both feet in the air
+    ((targets, observed),) = run(FootContacts(), [high])
+    assert not observed.any()
+
+
+def test_a_floor_other_than_zero_is_where_the_soles_go():
+    rng = np.random.default_rng(4)
+    frames = [standing_joints(rng) + np.array([0.0, 0.3, 0.0]) for _ in range(40)]
+    out = run(FootContacts(floor_y_m=0.3), frames)
+    targets, observed = out[-1]
+    assert observed[LEFT_FOOT] and targets[LEFT_FOOT, 1] == pytest.approx(0.3 + FOOT_JOINT_HEIGHT_M)
+
+
+def test_a_long_pause_forgets_the_plant():
+    rng = np.random.default_rng(5)
+    contacts = FootContacts()
+    run(contacts, [standing_joints(rng) for _ in range(40)])
+    anchor = run(contacts, [standing_joints(rng)], t0_us=40 * STEP_US)[0][0][LEFT_FOOT]
+    moved = standing_joints(rng, 0.0) + np.array(
+        [0.5, 0.0, 0.0]
+    )  # the user walked away while the stream paused
+    later_us = 41 * STEP_US + int(2 * MAX_GAP_S * 1e6)
+    targets, observed = run(contacts, [moved], t0_us=later_us)[0]
+    assert not np.allclose(targets[LEFT_FOOT], anchor)
+    assert not observed[LEFT_FOOT] or targets[LEFT_FOOT, 0] == pytest.approx(moved[LEFT_FOOT, 0])
+
+
+def test_the_served_feet_of_a_user_who_only_moves_the_arms_stay_planted_on_the_floor():
+    """The whole pipeline (bundled egoposevr, KPO) on a procedural user who stands still and moves only the
+    upper body: planted feet hardly skate and stay on the floor (without contacts the same stream skates at
+    10-19 cm/s with soles 4-6 cm above the floor), and the served joints are still FK of the rotations."""
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.training.plausibility import plausibility, summarize_plausibility
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(0)
+    track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
+    pipeline = Pipeline(LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx"))
+    results = [pipeline.push_hmd(int(t), track.poses[i], track.valid[i]) for i, t in enumerate(track.t_us)]
+    joints = np.array([r.joints for r in results])
+    after = slice(90, None)  # once the height estimate has settled
+    measured = summarize_plausibility([plausibility(joints[after], track.joints_m[after], track.t_us[after])])
+    assert measured["foot_skate_cm_s"] < 3.0
+    assert measured["floor_float_cm"] < 1.5 and measured["floor_penetration_cm"] < 0.5
+    last = results[-1]
+    fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.body.bone_scale))
+    assert np.allclose(fk, last.joints, atol=1e-6)
