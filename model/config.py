@@ -39,6 +39,7 @@ class FusionConfig:
     dropout: float = 0.1
     joints: int = 22
     device_validity: bool = False  # x_t followed by each device's valid flag and time since tracked (hmd.py)
+    contact_head: bool = False  # a second output: each foot's contact probability (runtime/contact.py)
 
     def __post_init__(self) -> None:
         if self.fusion not in ("cross", "concat", "none"):

@@ -2,11 +2,14 @@
 never go through the floor. Its output is KPO targets (:mod:`.kpo`), so knees and hips bend to keep a planted
 foot where it is and the served rotations still agree with the joints.
 
-Per session and per foot, a state machine over the network's joints (filtered, anchored at the head):
+Per session and per foot, a state machine over the network's joints (filtered, anchored at the head). A net
+with a contact head (``FusionConfig.contact_head``, trained from the truth's contact labels) says when a foot
+is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of the floor) and steps under
+``RELEASE_P``. Without one, the runtime infers it from the network's feet:
 
 - **free -> planted** when the foot joint (the ball of the foot) is within ``PLANT_HEIGHT_M`` of where it
-  rests on the floor and it moved slower than ``PLANT_SPEED_M_S`` in the last ``SPEED_WINDOW_S``. The foot and ankle
-  are anchored where they are, lowered or raised together so that the sole is on the floor.
+  rests on the floor and it moved slower than ``PLANT_SPEED_M_S`` in the last ``SPEED_WINDOW_S``. The foot
+  and ankle are anchored where they are, lowered or raised together so that the sole is on the floor.
 - **planted**: the anchor is the foot's and ankle's KPO target. The network's own foot is only watched.
 - **planted -> free** when the network steps: it lifts the foot more than ``RELEASE_HEIGHT_M`` off the floor,
   or moves it more than ``RELEASE_DISTANCE_M`` (scaled by the body) from the anchor over the floor, faster
@@ -16,8 +19,9 @@ Per session and per foot, a state machine over the network's joints (filtered, a
   network's foot (no pop).
 - **the floor**: a free foot or ankle below the floor is a target on the floor straight above it.
 
-The thresholds are physical (the truth's own contact labels, :mod:`~egoposevr.model.training.plausibility`,
-call a foot in contact below 3 cm off its resting height and under 0.2 m/s), not fitted to a split.
+The plant thresholds are physical (the truth's own contact labels, :mod:`~egoposevr.model.training.plausibility`,
+call a foot in contact below 3 cm off its resting height and under 0.2 m/s); the release ones were chosen on
+training sequences and procedural still-standing streams, never on a validation split (MODEL_CARD.md).
 The floor is the session's ``floor_y_m``: y = 0 in the stage reference space PROTOCOL.md §3 asks for.
 
 Shape legend: ``J`` = 22 joints.
@@ -43,6 +47,8 @@ SURE_RELEASE: Final = 1.5  # ... unless it is this many times as far: a slow kne
 RELEASE_S: Final = 0.15
 SPEED_WINDOW_S: Final = 0.2  # a foot's speed is its move over this long: the network's feet jitter by ~1 cm
 MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the feet
+PLANT_P: Final = 0.5  # a net with a contact head: plant at this probability, release under RELEASE_P
+RELEASE_P: Final = 0.3
 
 
 @dataclasses.dataclass
@@ -78,24 +84,34 @@ class FootContacts:
         return self._feet[0].planted, self._feet[1].planted
 
     def targets(
-        self, t_us: int, joints: np.ndarray, body_scale: float, targets: np.ndarray, observed: np.ndarray
+        self,
+        t_us: int,
+        joints: np.ndarray,
+        body_scale: float,
+        targets: np.ndarray,
+        observed: np.ndarray,
+        contact_p: np.ndarray | None = None,
     ) -> None:
         """joints (J, 3) the network's joints for this sample; body_scale the body's size against SMPL's
-        (leg length); KPO's targets (J, 3) and observed (J,) are filled in for the ankles and feet, which
-        then pull with the devices' weight λa (a weaker pull, 0.4 λa, held the feet less well and moved no
-        MPJPE on the development subset)."""
+        (leg length); contact_p (2,) the network's probability that each foot is on the floor, if it has a
+        contact head (None: inferred from its feet). KPO's targets (J, 3) and observed (J,) are filled in
+        for the ankles and feet, which then pull with the devices' weight λa (a weaker pull, 0.4 λa, held
+        the feet less well and moved no MPJPE on the development subset)."""
         dt_s = 0.0 if self._last_us is None else max(t_us - self._last_us, 0) * 1e-6
         if dt_s > MAX_GAP_S:
             self._feet = (_Foot(), _Foot())
         self._last_us = t_us
-        for foot, (ankle_j, foot_j) in zip(self._feet, FEET, strict=True):
+        for side, (foot, (ankle_j, foot_j)) in enumerate(zip(self._feet, FEET, strict=True)):
             predicted = joints[[ankle_j, foot_j]]
-            target = self._step(foot, t_us, predicted, body_scale)
+            p = None if contact_p is None else float(contact_p[side])
+            target = self._step(foot, t_us, predicted, body_scale, p)
             if target is not None:
                 targets[[ankle_j, foot_j]] = target
                 observed[[ankle_j, foot_j]] = True
 
-    def _step(self, foot: _Foot, t_us: int, predicted: np.ndarray, body_scale: float) -> np.ndarray | None:
+    def _step(
+        self, foot: _Foot, t_us: int, predicted: np.ndarray, body_scale: float, contact_p: float | None
+    ) -> np.ndarray | None:
         """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
         rest_y = self.floor_y_m + FOOT_JOINT_HEIGHT_M
         lift_m = predicted[1, 1] - rest_y
@@ -105,15 +121,27 @@ class FootContacts:
             assert foot.anchor is not None
             drift_m = float(np.linalg.norm(xz - foot.anchor[1, [0, 2]]))
             away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
-            if away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S):
+            if contact_p is not None:
+                stepping = contact_p < RELEASE_P or away > SURE_RELEASE
+            else:
+                stepping = away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S)
+            if stepping:
                 foot.planted, foot.released_us = False, t_us
             else:
                 return foot.anchor
-        elif lift_m < PLANT_HEIGHT_M and speed_m_s < PLANT_SPEED_M_S:
+        elif self._plants(lift_m, speed_m_s, contact_p):
             foot.planted, foot.released_us = True, None
             foot.anchor = predicted - np.array([0.0, lift_m, 0.0])  # sole on the floor, foot as predicted
             return foot.anchor
         return self._free_target(foot, t_us, predicted, rest_y)
+
+    @staticmethod
+    def _plants(lift_m: float, speed_m_s: float, contact_p: float | None) -> bool:
+        """Whether a free foot goes down now: the network says so (and the foot is near the floor), or,
+        without a contact head, the foot is near the floor and still."""
+        if contact_p is not None:
+            return contact_p >= PLANT_P and lift_m < RELEASE_HEIGHT_M
+        return lift_m < PLANT_HEIGHT_M and speed_m_s < PLANT_SPEED_M_S
 
     def _free_target(self, foot: _Foot, t_us: int, predicted: np.ndarray, rest_y: float) -> np.ndarray | None:
         """A free foot: sliding from its last anchor after a release, and never below the floor."""

@@ -267,7 +267,7 @@ class Pipeline:
             if self.contacts:
                 bones = self.bone_scale if self.fixed_body else self.body.bone_scale
                 leg_scale = float(bones[_LEG_BONES].mean())
-                self.feet.targets(t_us, joints, leg_scale, targets, observed)
+                self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p)
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)
@@ -303,22 +303,25 @@ class PendingPose:
     model: Any  # LoadedModel
     inputs: dict[str, np.ndarray]  # hmd (1, T, D) [, visual (1, Tv, 90)] float32; {} runs no net
     done: PoseResult | None = None  # a pipeline without a net (procedural) answers in begin_hmd
+    contact_p: np.ndarray | None = None  # (2,) left / right foot on the floor, from a net with a contact head
 
 
 def run_fusion(pending: list[PendingPose]) -> list[np.ndarray | None]:
     """The fusion nets of several pending poses -> each one's sixd (J, 6), in order. Poses of one model
     whose graph has a batch axis (:attr:`LoadedModel.batchable`) run as one call; the call's time is every
-    one of its poses' ``fusion`` stage."""
+    one of its poses' ``fusion`` stage, and a graph's contact output each pose's ``contact_p``."""
     out: list[np.ndarray | None] = [None] * len(pending)  # None where no net runs
     for indices in _fusion_groups(pending):
         started = time.perf_counter()
         names = pending[indices[0]].inputs
         feed = {name: np.concatenate([pending[i].inputs[name] for i in indices]) for name in names}
-        sixd = pending[indices[0]].model.fusion.run(None, feed)[0]  # (B, J, 6)
+        outputs = pending[indices[0]].model.fusion.run(None, feed)  # rot6d (B, J, 6) [, contact (B, 2)]
         fusion_us = int((time.perf_counter() - started) * 1e6)
         for row, i in enumerate(indices):
-            out[i] = sixd[row]
+            out[i] = outputs[0][row]
             pending[i].timing_us["fusion"] = fusion_us
+            if len(outputs) > 1:
+                pending[i].contact_p = outputs[1][row]
     return out
 
 

@@ -26,6 +26,7 @@ from ..rig import DEFAULT_OFFSETS_M
 from ..runtime.body import regressor_path
 from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
+from .nets.fusion import ContactOutputs
 from .train import build_net, load_checkpoint
 
 PARITY_TOL = 1e-4
@@ -178,7 +179,10 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
     inputs = _fusion_inputs(cfg, batch=2)
     example = tuple(torch.from_numpy(v) for v in inputs.values())
     batch = torch.export.Dim("batch", min=1, max=64)  # the server batches sessions (server/scheduler.py)
-    _export(net, example, out_path, (list(inputs), ["rot6d"]), {name: {0: batch} for name in inputs})
+    module, outputs = (
+        (ContactOutputs(net).eval(), ["rot6d", "contact"]) if cfg.contact_head else (net, ["rot6d"])
+    )
+    _export(module, example, out_path, (list(inputs), outputs), {name: {0: batch} for name in inputs})
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
         inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
@@ -188,9 +192,10 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
         units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
               "config.device_validity]; visual: tokens (model/inputs.py); "
               "rot6d (B, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
-              "rows 1.. local rotations",
+              "rows 1.. local rotations; contact (B, 2), with config.contact_head: probability that the "
+              "left / right foot is on the floor",
     ))  # fmt: skip
-    return max(_parity(net, out_path, _fusion_inputs(cfg, batch)) for batch in (1, 8))
+    return max(_parity(module, out_path, _fusion_inputs(cfg, batch)) for batch in (1, 8))
 
 
 def export_zoo(names: list[str], runs_dir: Path, out_dir: Path) -> dict[str, float]:

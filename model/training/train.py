@@ -49,6 +49,7 @@ from .dataset import decode_frames, load_split, split_camera
 from .nets.fusion import FusionNet, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
+from .plausibility import contacts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +78,8 @@ class TrainConfig:
     rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
     device_validity: bool = True  # the nets read each device's tracking state after x_t (hmd.py)
     lost_hand_weight: float = 3.0  # position loss of a lost controller's wrist and elbow, against 1
+    contact_head: bool = True  # the nets also predict each foot's contact (labels: plausibility.contacts)
+    contact_weight: float = 1.0  # binary cross-entropy of the contact logits, against the losses above
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
@@ -113,7 +116,11 @@ def visual_config(kind: str, tc: TrainConfig) -> VisualConfig:
 
 def fusion_config(name: str, tc: TrainConfig) -> FusionConfig:
     base = {"window": tc.window, "visual_window": tc.visual_window, "d_model": tc.d_model}
-    base |= {"joint_dim": tc.joint_dim, "device_validity": tc.device_validity}
+    base |= {
+        "joint_dim": tc.joint_dim,
+        "device_validity": tc.device_validity,
+        "contact_head": tc.contact_head,
+    }
     return FusionConfig(**{**base, **ZOO[name].fusion})
 
 
@@ -345,6 +352,7 @@ class FusionSequence:
     arrival_us: np.ndarray  # (K,) capture + latency
     kp_world: np.ndarray  # (K, J, 3) stage-1 keypoints in the world
     confidence: np.ndarray  # (K, J) Alg. 1 confidence
+    contact: np.ndarray  # (N, 2) float32: each foot (left, right) on the floor in the truth
 
 
 @torch.no_grad()
@@ -445,6 +453,7 @@ def prepare_fusion_sequence(
         arrival_us=(seq["cam_t_us"] + latency_us).astype(np.int64),
         kp_world=kp_world,
         confidence=conf,
+        contact=contacts(seq["gt_joints_m"], t_us).astype(np.float32),
     )
 
 
@@ -487,6 +496,7 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         weight = np.ones((len(items), cfg.joints), dtype=np.float32)
         for side, arm in enumerate(LOST_HAND_JOINTS):
             weight[np.ix_(lost[:, side], arm)] = tc.lost_hand_weight
+        contact = torch.from_numpy(np.stack([fs.contact[i] for fs, i in items]))
         return (
             hmd,
             vis,
@@ -495,16 +505,25 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
             anchor,
             offsets,
             torch.from_numpy(weight / weight.mean(1, keepdims=True)),
+            contact,
         )
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        hmd, vis, target, joints, anchor, offsets, weight = batch(rng)
-        sixd = net(hmd, vis if cfg.uses_camera else None)
+        hmd, vis, target, joints, anchor, offsets, weight, contact = batch(rng)
+        visual = vis if cfg.uses_camera else None
+        if cfg.contact_head:
+            sixd, contact_logits = net.forward_with_contact(hmd, visual)
+        else:
+            sixd = net(hmd, visual)
         rot_loss = (sixd - target).abs().mean()
         pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3), offsets)
         pos = pos + (anchor - pos[:, HEAD])[:, None]
         pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
-        return {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
+        losses = {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
+        if cfg.contact_head:
+            bce = torch.nn.functional.binary_cross_entropy_with_logits(contact_logits, contact)
+            losses["contact"] = bce * tc.contact_weight
+        return losses
 
     return loss
 

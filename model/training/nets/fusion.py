@@ -4,6 +4,7 @@
     N_t = T_j'(F'([T_f'(E_l'(Z~))]_t) + e_j')     visual stream, Z~ (Tv, 90): keypoints + confidence per frame
     M~_t = CrossAttn(M_t, N_t)                   HMD queries, visual keys and values
     pelvis 6D = T_g(M~_t[pelvis]),  local 6D = T_l(M~_t[1:])
+    contact = σ(T_c(M~_t[feet]))                 with ``contact_head`` (not in the paper): each foot on the floor
 
 ``fusion = "none"`` is the HMD-only model, ``"concat"`` the ablation that concatenates per-joint features
 instead of attending. Inputs are normalised by statistics stored in the net (buffers set from the training
@@ -16,6 +17,7 @@ Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 jo
 from __future__ import annotations
 
 import math
+from typing import Final
 
 import torch
 from torch import nn
@@ -23,6 +25,11 @@ from torch import nn
 from ...config import FusionConfig
 from ...hmd import hmd_input_dim
 from ...inputs import VISUAL_TOKEN_DIM
+
+FOOT_JOINTS: Final = (
+    10,
+    11,
+)  # left, right foot joints (balls of the feet): the contact head reads their tokens
 
 
 class Attention(nn.Module):
@@ -116,6 +123,8 @@ class FusionNet(nn.Module):
             nn.LayerNorm(S), nn.Linear(S, 64), nn.GELU(), nn.Linear(64, 6)
         )  # T_g
         self.local_head = nn.Sequential(nn.LayerNorm(S), nn.Linear(S, 64), nn.GELU(), nn.Linear(64, 6))  # T_l
+        if cfg.contact_head:  # each foot joint's token -> its contact logit
+            self.contact_head = nn.Sequential(nn.LayerNorm(S), nn.Linear(S, 32), nn.GELU(), nn.Linear(32, 1))
         # Start at the identity rotation: 6D (1, 0, 0, 0, 1, 0).
         for head in (self.pelvis_head, self.local_head):
             nn.init.zeros_(head[-1].weight)
@@ -123,12 +132,41 @@ class FusionNet(nn.Module):
                 head[-1].bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
 
     def forward(self, hmd: torch.Tensor, visual: torch.Tensor | None = None) -> torch.Tensor:
+        return self._rotations(self._fused(hmd, visual))
+
+    def forward_with_contact(
+        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> 6D rotations (B, J, 6) and each foot's contact logit (B, 2), left then right (needs
+        ``cfg.contact_head``)."""
+        m = self._fused(hmd, visual)
+        return self._rotations(m), self.contact_head(m[:, list(FOOT_JOINTS)])[..., 0]
+
+    def _fused(self, hmd: torch.Tensor, visual: torch.Tensor | None) -> torch.Tensor:
         m = self.hmd_stream(hmd)  # (B, J, S)
         if self.cfg.fusion == "cross":
             m = self.cross(m, self.visual_stream(visual))
         elif self.cfg.fusion == "concat":
             m = m + self.concat(torch.cat([m, self.visual_stream(visual)], dim=-1))
+        return m
+
+    def _rotations(self, m: torch.Tensor) -> torch.Tensor:
         return torch.cat([self.pelvis_head(m[:, :1]), self.local_head(m[:, 1:])], dim=1)
+
+
+class ContactOutputs(nn.Module):
+    """The served outputs of a fusion net with a contact head: rot6d (B, J, 6) and each foot's contact
+    probability (B, 2)."""
+
+    def __init__(self, net: FusionNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(
+        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        sixd, logits = self.net.forward_with_contact(hmd, visual)
+        return sixd, torch.sigmoid(logits)
 
 
 def set_input_statistics(encoder: StreamEncoder, samples: torch.Tensor) -> None:

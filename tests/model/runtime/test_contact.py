@@ -150,3 +150,23 @@ def test_the_served_feet_of_a_user_who_only_moves_the_arms_stay_planted_on_the_f
     last = results[-1]
     fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.body.bone_scale))
     assert np.allclose(fk, last.joints, atol=1e-6)
+
+
+def test_a_contact_head_decides_when_a_foot_is_down_and_when_it_steps():
+    """With the network's contact probability the speed gate is not needed: a sliding foot that the net calls
+    down is planted, and a still foot that it calls up steps."""
+    rng = np.random.default_rng(6)
+    contacts = FootContacts()
+    sliding = []
+    for i in range(20):
+        joints = standing_joints(rng, 0.0)
+        joints[[LEFT_ANKLE, LEFT_FOOT], 0] += 0.01 * i
+        sliding.append(joints)
+    for i, joints in enumerate(sliding):
+        contacts.targets(i * STEP_US, joints, 1.0, np.zeros((22, 3)), np.zeros(22, dtype=bool), np.ones(2))
+    assert contacts.planted == (True, True)
+    still = standing_joints(rng, 0.0)
+    contacts.targets(
+        20 * STEP_US, still, 1.0, np.zeros((22, 3)), np.zeros(22, dtype=bool), np.array([0.1, 0.9])
+    )
+    assert contacts.planted == (False, True)

@@ -352,3 +352,22 @@ def test_a_mirrored_sequence_trains_on_the_mirror_of_its_keypoints_and_truth(tin
     np.testing.assert_allclose(mirrored.confidence, plain.confidence[:, MIRROR_JOINTS])
     np.testing.assert_allclose(mirrored.joints_h, plain.joints_h[:, MIRROR_JOINTS] * flip, atol=1e-5)
     np.testing.assert_array_equal(mirrored.valid, plain.valid[:, [0, 2, 1]])
+
+
+def test_fusion_nets_learn_foot_contact_and_the_runtime_reads_it(tiny_runs, tiny_weights, val):
+    """The contact head trains from the truth's labels, exports as a second output with a batch axis, and a
+    pose's pending state carries its probabilities to the feet (runtime/contact.py)."""
+    from egoposevr.model.runtime.pipeline import run_fusion
+
+    assert "contact" in load_checkpoint(tiny_runs / "fusion-hmd-rgbd.pt")["history"][-1]
+    model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+    assert model.info.config.contact_head
+    assert [o.name for o in model.fusion.get_outputs()] == ["rot6d", "contact"]
+    seq, _ = val
+    pipeline = Pipeline(model)
+    pending = [pipeline.begin_hmd(seq["hmd_t_us"][i], seq["hmd_poses"][i], seq["hmd_valid"][i]) for i in (0,)]
+    sixd = run_fusion(pending)[0]
+    assert sixd.shape == (22, 6)
+    contact_p = pending[0].contact_p
+    assert contact_p.shape == (2,) and ((contact_p >= 0.0) & (contact_p <= 1.0)).all()
+    pipeline.finish_hmd(pending[0], sixd)  # the feet read it
