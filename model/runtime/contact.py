@@ -22,7 +22,8 @@ is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of
 The plant thresholds are physical (the truth's own contact labels, :mod:`~egoposevr.model.training.plausibility`,
 call a foot in contact below 3 cm off its resting height and under 0.2 m/s); the release ones were chosen on
 training sequences and procedural still-standing streams, never on a validation split (MODEL_CARD.md).
-The floor is the session's ``floor_y_m``: y = 0 in the stage reference space PROTOCOL.md §3 asks for.
+The floor is the session's ``floor_y_m``: y = 0 in a floor-level reference space (PROTOCOL.md §3). A foot
+more than ``FLOOR_TRUST_M`` below it says the space has no floor there (``LOCAL``): that foot is left alone.
 
 Shape legend: ``J`` = 22 joints.
 """
@@ -47,6 +48,9 @@ SURE_RELEASE: Final = 1.5  # ... unless it is this many times as far: a slow kne
 RELEASE_S: Final = 0.15
 SPEED_WINDOW_S: Final = 0.2  # a foot's speed is its move over this long: the network's feet jitter by ~1 cm
 MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the feet
+# A foot this far below y = 0 means the floor is not there (a LOCAL reference space, PROTOCOL.md §3): no
+# planting and no floor for it, rather than pulling the body up to a floor that does not exist.
+FLOOR_TRUST_M: Final = 0.3
 PLANT_P: Final = 0.5  # a net with a contact head: plant at this probability, release under RELEASE_P
 RELEASE_P: Final = 0.3
 
@@ -115,6 +119,9 @@ class FootContacts:
         """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
         rest_y = self.floor_y_m + FOOT_JOINT_HEIGHT_M
         lift_m = predicted[1, 1] - rest_y
+        if lift_m < -FLOOR_TRUST_M:
+            foot.planted, foot.released_us = False, None
+            return None
         xz = predicted[1, [0, 2]]
         speed_m_s = foot.speed_m_s(t_us, predicted[1])
         if foot.planted:

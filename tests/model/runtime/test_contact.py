@@ -170,3 +170,13 @@ def test_a_contact_head_decides_when_a_foot_is_down_and_when_it_steps():
         20 * STEP_US, still, 1.0, np.zeros((22, 3)), np.zeros(22, dtype=bool), np.array([0.1, 0.9])
     )
     assert contacts.planted == (False, True)
+
+
+def test_without_a_floor_at_y_zero_the_feet_are_left_to_the_network():
+    """A LOCAL reference space puts y = 0 at the head: feet 1.5 m below it are not through a floor."""
+    rng = np.random.default_rng(7)
+    frames = [standing_joints(rng) - np.array([0.0, 1.6, 0.0]) for _ in range(40)]
+    contacts = FootContacts()
+    out = run(contacts, frames)
+    assert contacts.planted == (False, False)
+    assert not any(observed.any() for _, observed in out)
