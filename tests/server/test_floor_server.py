@@ -1,0 +1,47 @@
+"""Served feet and the floor over a real loopback server (PROTOCOL.md §3 `§floor`): a user who stands still and
+moves only the upper body, in a floor-level space and in a LOCAL one."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from loopback import Client
+
+from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
+from egoposevr.model.synth.headset import simulate_headset
+from egoposevr.model.synth.procedural import generate
+from egoposevr.protocol import Hmd
+
+FEET = [10, 11]
+
+
+def served_feet(server, session: str, drop_m: float) -> np.ndarray:
+    """Stream 6 s of a still-standing user (its whole stream lowered by drop_m) to egoposevr -> the served
+    foot joints (N, 2, 3) of the last two seconds."""
+    rng = np.random.default_rng(0)
+    track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
+    poses = track.poses.copy()
+    poses[..., 1] -= drop_m
+    with Client(server.url, session) as headset:
+        headset.hello("input", session, model="egoposevr")
+        headset.collect()
+        for k, (t_us, p, valid) in enumerate(zip(track.t_us, poses, track.valid, strict=True)):
+            headset.send(Hmd(seq=k, t_us=int(t_us), head=p[0].tolist(), left=p[1].tolist(),
+                             right=p[2].tolist(), valid=[bool(v) for v in valid]))  # fmt: skip
+            time.sleep(0.003)  # paced: a burst over the pending limit would drop samples (newest wins)
+        last = len(track.t_us) - 1
+        headset.wait_for(lambda: any(m.seq == last for m in headset.poses()), timeout=30)
+        late = [m for m in headset.poses() if m.seq >= last - 180]
+    return np.array([np.asarray(m.joints).reshape(22, 3)[FEET] for m in late])
+
+
+@pytest.mark.protocol("floor")
+def test_planted_feet_stay_on_the_floor_and_no_floor_is_invented_in_a_local_space(server):
+    feet = served_feet(server, "floor-stage", 0.0)
+    assert np.abs(feet[..., 1] - FOOT_JOINT_HEIGHT_M).max() < 0.02  # soles on y = 0
+    assert np.ptp(feet, axis=0).max() < 0.02  # planted: no skating while only the arms move
+
+    local = served_feet(server, "floor-local", 1.6)  # y = 0 at the head: the feet hang far below it
+    assert local[..., 1].max() < -0.5  # left where the network puts them, not pulled up to y = 0
