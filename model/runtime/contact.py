@@ -19,9 +19,10 @@ is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of
   network's foot (no pop).
 - **the floor**: a free foot or ankle below the floor is a target on the floor straight above it.
 
-The plant thresholds are physical (the truth's own contact labels, :mod:`~egoposevr.model.training.plausibility`,
-call a foot in contact below 3 cm off its resting height and under 0.2 m/s); the release ones were chosen on
-training sequences and procedural still-standing streams, never on a validation split (MODEL_CARD.md).
+The plant thresholds are physical (the truth's own contact labels,
+:mod:`~egoposevr.model.training.plausibility`, call a foot in contact below 3 cm off its resting height and
+under 0.2 m/s); the release ones were chosen on training sequences and procedural still-standing streams,
+never on a validation split (MODEL_CARD.md).
 The floor is the session's ``floor_y_m``: y = 0 in a floor-level reference space (PROTOCOL.md §3). A foot
 more than ``FLOOR_TRUST_M`` below it says the space has no floor there (``LOCAL``): that foot is left alone.
 
@@ -63,8 +64,9 @@ class _Foot:
     # (t_us, (3,) position) of the network's foot joint over the last SPEED_WINDOW_S
     history: collections.deque = dataclasses.field(default_factory=collections.deque)
 
-    def speed_m_s(self, t_us: int, position: np.ndarray) -> float:
-        """The foot's speed: its move since the oldest sample within SPEED_WINDOW_S."""
+    def push(self, t_us: int, position: np.ndarray) -> float:
+        """Record this sample of the network's foot -> its speed, m/s: the move since the oldest sample
+        within SPEED_WINDOW_S."""
         self.history.append((t_us, position))
         while len(self.history) > 2 and (t_us - self.history[1][0]) * 1e-6 >= SPEED_WINDOW_S:
             self.history.popleft()
@@ -99,8 +101,7 @@ class FootContacts:
         """joints (J, 3) the network's joints for this sample; body_scale the body's size against SMPL's
         (leg length); contact_p (2,) the network's probability that each foot is on the floor, if it has a
         contact head (None: inferred from its feet). KPO's targets (J, 3) and observed (J,) are filled in
-        for the ankles and feet, which then pull with the devices' weight λa (a weaker pull, 0.4 λa, held
-        the feet less well and moved no MPJPE on the development subset)."""
+        for the ankles and feet, which then pull with the devices' weight λa."""
         dt_s = 0.0 if self._last_us is None else max(t_us - self._last_us, 0) * 1e-6
         if dt_s > MAX_GAP_S:
             self._feet = (_Foot(), _Foot())
@@ -123,7 +124,7 @@ class FootContacts:
             foot.planted, foot.released_us = False, None
             return None
         xz = predicted[1, [0, 2]]
-        speed_m_s = foot.speed_m_s(t_us, predicted[1])
+        speed_m_s = foot.push(t_us, predicted[1])
         if foot.planted:
             assert foot.anchor is not None
             drift_m = float(np.linalg.norm(xz - foot.anchor[1, [0, 2]]))

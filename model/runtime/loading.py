@@ -132,9 +132,8 @@ def _properties(session: ort.InferenceSession) -> dict[str, str]:
 def _preload_cuda_libraries() -> None:
     """Load the CUDA / cuDNN libraries of the nvidia-* wheels, once, before a CUDA session is made.
 
-    Without this the CUDA provider finds them only on LD_LIBRARY_PATH and onnxruntime silently runs on the
-    CPU. A failure is logged, not raised: a system-wide CUDA may still serve, and session creation reports
-    what is really missing."""
+    Without this the CUDA provider finds them only on LD_LIBRARY_PATH. A failure is logged, not raised: a
+    system-wide CUDA may still serve, and session creation reports what is really missing."""
     preload = getattr(ort, "preload_dlls", None)  # onnxruntime-gpu >= 1.21
     if preload is None:
         return

@@ -17,7 +17,6 @@ Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 jo
 from __future__ import annotations
 
 import math
-from typing import Final
 
 import torch
 from torch import nn
@@ -25,11 +24,7 @@ from torch import nn
 from ...config import FusionConfig
 from ...hmd import hmd_input_dim
 from ...inputs import VISUAL_TOKEN_DIM
-
-FOOT_JOINTS: Final = (
-    10,
-    11,
-)  # left, right foot joints (balls of the feet): the contact head reads their tokens
+from ..plausibility import FEET  # left, right foot joints: the contact head reads their tokens
 
 
 class Attention(nn.Module):
@@ -140,7 +135,7 @@ class FusionNet(nn.Module):
         """-> 6D rotations (B, J, 6) and each foot's contact logit (B, 2), left then right (needs
         ``cfg.contact_head``)."""
         m = self._fused(hmd, visual)
-        return self._rotations(m), self.contact_head(m[:, list(FOOT_JOINTS)])[..., 0]
+        return self._rotations(m), self.contact_head(m[:, list(FEET)])[..., 0]
 
     def _fused(self, hmd: torch.Tensor, visual: torch.Tensor | None) -> torch.Tensor:
         m = self.hmd_stream(hmd)  # (B, J, S)
