@@ -24,7 +24,9 @@ The plant thresholds are physical (the truth's own contact labels,
 under 0.2 m/s); the release ones were chosen on training sequences and procedural still-standing streams,
 never on a validation split (MODEL_CARD.md).
 The floor is the session's ``floor_y_m``: y = 0 in a floor-level reference space (PROTOCOL.md §3). A foot
-more than ``FLOOR_TRUST_M`` below it says the space has no floor there (``LOCAL``): that foot is left alone.
+more than ``FLOOR_TRUST_M`` below it says the space has no floor there (``LOCAL``): that foot is left alone,
+and once the session's own estimate from the network's feet (:class:`FloorEstimate`: the lower sole, a low
+percentile over the last ``FLOOR_WINDOW_S``, after ``FLOOR_MIN_S``) is that far below y = 0, it is the floor.
 
 Shape legend: ``J`` = 22 joints.
 """
@@ -52,6 +54,10 @@ MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the feet
 # A foot this far below y = 0 means the floor is not there (a LOCAL reference space, PROTOCOL.md §3): no
 # planting and no floor for it, rather than pulling the body up to a floor that does not exist.
 FLOOR_TRUST_M: Final = 0.3
+FLOOR_WINDOW_S: Final = 5.0
+FLOOR_MIN_S: Final = 1.0
+FLOOR_EVERY_S: Final = 0.25  # the percentile is re-taken this often (it costs ~30 µs; the floor moves slowly)
+FLOOR_PERCENTILE: Final = 20.0  # one foot is on the floor most of the time, standing, walking or sitting
 PLANT_P: Final = 0.5  # a net with a contact head: plant at this probability, release under RELEASE_P
 RELEASE_P: Final = 0.3
 
@@ -76,11 +82,39 @@ class _Foot:
         return float(np.linalg.norm(position - position0)) / ((t_us - t0_us) * 1e-6)
 
 
+class FloorEstimate:
+    """The floor of a reference space that has none at y = 0: where the network puts the lower sole, the
+    ``FLOOR_PERCENTILE`` of the last ``FLOOR_WINDOW_S``, re-taken every ``FLOOR_EVERY_S``."""
+
+    def __init__(self) -> None:
+        self._t_us: collections.deque[int] = collections.deque()
+        self._sole_y_m: collections.deque[float] = collections.deque()
+        self._floor_y_m: float | None = None
+        self._taken_us = 0
+
+    def push(self, t_us: int, sole_y_m: float) -> float | None:
+        """The lower sole's height this sample -> the floor's height (m), or None while fewer than
+        FLOOR_MIN_S of samples are in."""
+        self._t_us.append(t_us)
+        self._sole_y_m.append(sole_y_m)
+        while (t_us - self._t_us[0]) * 1e-6 > FLOOR_WINDOW_S:
+            self._t_us.popleft()
+            self._sole_y_m.popleft()
+        if (t_us - self._t_us[0]) * 1e-6 < FLOOR_MIN_S:
+            return None
+        if self._floor_y_m is None or not 0 <= (t_us - self._taken_us) * 1e-6 < FLOOR_EVERY_S:
+            self._floor_y_m = float(np.percentile(np.fromiter(self._sole_y_m, float), FLOOR_PERCENTILE))
+            self._taken_us = t_us
+        return self._floor_y_m
+
+
 class FootContacts:
     """Per-session foot contact state; :meth:`targets` adds the feet's KPO targets for one sample."""
 
     def __init__(self, floor_y_m: float = 0.0) -> None:
-        self.floor_y_m = floor_y_m
+        self.floor_y_m = floor_y_m  # the reference space's floor
+        self.estimate = FloorEstimate()  # the session's own, from the network's feet
+        self._floor_now_m = floor_y_m
         self._feet = (_Foot(), _Foot())
         self._last_us: int | None = None
 
@@ -88,6 +122,11 @@ class FootContacts:
     def planted(self) -> tuple[bool, bool]:
         """(left, right): each foot planted now."""
         return self._feet[0].planted, self._feet[1].planted
+
+    @property
+    def floor_now_m(self) -> float:
+        """The floor's height that the feet are held to now, m."""
+        return self._floor_now_m
 
     def targets(
         self,
@@ -106,19 +145,37 @@ class FootContacts:
         if dt_s > MAX_GAP_S:
             self._feet = (_Foot(), _Foot())
         self._last_us = t_us
+        floor_y_m = self._floor(t_us, joints)
         for side, (foot, (ankle_j, foot_j)) in enumerate(zip(self._feet, FEET, strict=True)):
             predicted = joints[[ankle_j, foot_j]]
             p = None if contact_p is None else float(contact_p[side])
-            target = self._step(foot, t_us, predicted, body_scale, p)
+            target = self._step(foot, t_us, predicted, body_scale, p, floor_y_m)
             if target is not None:
                 targets[[ankle_j, foot_j]] = target
                 observed[[ankle_j, foot_j]] = True
 
+    def _floor(self, t_us: int, joints: np.ndarray) -> float:
+        """The floor for this sample: the space's, unless the session's estimate from the feet is more than
+        FLOOR_TRUST_M below it (a LOCAL space: y = 0 at the head)."""
+        sole_y_m = float(joints[[foot_j for _, foot_j in FEET], 1].min()) - FOOT_JOINT_HEIGHT_M
+        estimate = self.estimate.push(t_us, sole_y_m)
+        if estimate is not None and estimate < self.floor_y_m - FLOOR_TRUST_M:
+            self._floor_now_m = estimate
+        else:
+            self._floor_now_m = self.floor_y_m
+        return self._floor_now_m
+
     def _step(
-        self, foot: _Foot, t_us: int, predicted: np.ndarray, body_scale: float, contact_p: float | None
+        self,
+        foot: _Foot,
+        t_us: int,
+        predicted: np.ndarray,
+        body_scale: float,
+        contact_p: float | None,
+        floor_y_m: float,
     ) -> np.ndarray | None:
         """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
-        rest_y = self.floor_y_m + FOOT_JOINT_HEIGHT_M
+        rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
         lift_m = predicted[1, 1] - rest_y
         if lift_m < -FLOOR_TRUST_M:
             foot.planted, foot.released_us = False, None

@@ -172,11 +172,28 @@ def test_a_contact_head_decides_when_a_foot_is_down_and_when_it_steps():
     assert contacts.planted == (False, True)
 
 
-def test_without_a_floor_at_y_zero_the_feet_are_left_to_the_network():
-    """A LOCAL reference space puts y = 0 at the head: feet 1.5 m below it are not through a floor."""
+def test_without_a_floor_at_y_zero_the_feet_are_left_to_the_network_until_the_session_finds_one():
+    """A LOCAL reference space puts y = 0 at the head: feet 1.5 m below it are not through a floor. Once a
+    second of the network's feet is in, the session's own floor is under them and they are planted on it."""
     rng = np.random.default_rng(7)
     frames = [standing_joints(rng) - np.array([0.0, 1.6, 0.0]) for _ in range(40)]
     contacts = FootContacts()
     out = run(contacts, frames)
     assert contacts.planted == (False, False)
     assert not any(observed.any() for _, observed in out)
+
+    out = run(contacts, [standing_joints(rng) - np.array([0.0, 1.6, 0.0]) for _ in range(150)], 40 * STEP_US)
+    assert contacts.floor_now_m == pytest.approx(-1.6, abs=0.01)  # the lower sole, a low percentile
+    assert contacts.planted == (True, True)
+    targets, observed = out[-1]
+    assert observed[LEFT_FOOT]
+    assert targets[LEFT_FOOT, 1] == pytest.approx(contacts.floor_now_m + FOOT_JOINT_HEIGHT_M, abs=0.003)
+
+
+def test_the_floor_of_a_floor_level_space_stays_where_it_is():
+    """Feet the network puts a few centimetres above or below y = 0 do not move a floor-level space's floor."""
+    rng = np.random.default_rng(8)
+    contacts = FootContacts()
+    for lift_m in (0.04, -0.05):
+        run(contacts, [standing_joints(rng) + np.array([0.0, lift_m, 0.0]) for _ in range(200)])
+        assert contacts.floor_now_m == 0.0
