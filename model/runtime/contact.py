@@ -42,6 +42,7 @@ import numpy as np
 from ..skeleton import FOOT_JOINT_HEIGHT_M
 
 FEET: Final = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
+_FOOT_JOINTS: Final = [foot_j for _, foot_j in FEET]
 PLANT_HEIGHT_M: Final = 0.05  # above the foot's resting height
 PLANT_SPEED_M_S: Final = 0.25
 RELEASE_HEIGHT_M: Final = 0.08
@@ -113,7 +114,7 @@ class FootContacts:
 
     def __init__(self, floor_y_m: float = 0.0) -> None:
         self.floor_y_m = floor_y_m  # the reference space's floor
-        self.estimate = FloorEstimate()  # the session's own, from the network's feet
+        self._estimate = FloorEstimate()  # the session's own, from the network's feet
         self._floor_now_m = floor_y_m
         self._feet = (_Foot(), _Foot())
         self._last_us: int | None = None
@@ -157,8 +158,8 @@ class FootContacts:
     def _floor(self, t_us: int, joints: np.ndarray) -> float:
         """The floor for this sample: the space's, unless the session's estimate from the feet is more than
         FLOOR_TRUST_M below it (a LOCAL space: y = 0 at the head)."""
-        sole_y_m = float(joints[[foot_j for _, foot_j in FEET], 1].min()) - FOOT_JOINT_HEIGHT_M
-        estimate = self.estimate.push(t_us, sole_y_m)
+        sole_y_m = float(joints[_FOOT_JOINTS, 1].min()) - FOOT_JOINT_HEIGHT_M
+        estimate = self._estimate.push(t_us, sole_y_m)
         if estimate is not None and estimate < self.floor_y_m - FLOOR_TRUST_M:
             self._floor_now_m = estimate
         else:

@@ -12,9 +12,8 @@ from loopback import Client
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
 from egoposevr.model.synth.headset import simulate_headset
 from egoposevr.model.synth.procedural import generate
+from egoposevr.model.training.plausibility import FEET
 from egoposevr.protocol import Hmd
-
-FEET = [10, 11]
 
 
 def served_feet(server, session: str, drop_m: float) -> np.ndarray:
@@ -34,7 +33,7 @@ def served_feet(server, session: str, drop_m: float) -> np.ndarray:
         last = len(track.t_us) - 1
         headset.wait_for(lambda: any(m.seq == last for m in headset.poses()), timeout=30)
         late = [m for m in headset.poses() if m.seq >= last - 180]
-    return np.array([np.asarray(m.joints).reshape(22, 3)[FEET] for m in late])
+    return np.array([np.asarray(m.joints).reshape(22, 3)[list(FEET)] for m in late])
 
 
 @pytest.mark.protocol("floor")
