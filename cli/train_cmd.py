@@ -28,13 +28,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fusion-steps", type=int, default=None, metavar="N")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="use at most N train sequences")
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="torch threads")
+    parser.add_argument(
+        "--device",
+        choices=("cpu", "cuda"),
+        default=None,
+        help="where to train (default: the preset's; gpu: cuda)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..model.training.dataset import DatasetError
-    from ..model.training.train import PRESETS, train_zoo
+    from ..model.training.train import PRESETS, check_device, train_zoo
     from ..model.zoo import resolve
 
     try:
@@ -46,11 +52,16 @@ def run(args: argparse.Namespace) -> int:
         key: value
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
-            ("limit_sequences", args.limit), ("threads", args.threads),
+            ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
         )
         if value is not None
     }  # fmt: skip
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
+    try:
+        check_device(config.device)
+    except ValueError as error:
+        print(f"egoposevr train: {error}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
     try:
         paths = train_zoo(names, args.data, args.out, config, args.resume, not args.no_progress)

@@ -85,6 +85,7 @@ class TrainConfig:
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
+    device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
 
 
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
@@ -97,7 +98,7 @@ PRESETS: dict[str, TrainConfig] = {
     # For a GPU: wider nets, longer schedules.
     "gpu": TrainConfig(
         visual_steps=20000, fusion_steps=30000, d_model=128, joint_dim=64, visual_width=160, visual_height=128,
-        visual_stem=16,
+        visual_stem=16, device="cuda",
     ),
     # For tests: seconds.
     "tiny": TrainConfig(
@@ -277,9 +278,10 @@ def lift_torch(
 
 def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
     cfg = net.cfg
+    dev = torch.device(tc.device)
     hw, hh = cfg.heatmap_wh
-    gu = (torch.arange(hw) + 0.5) / hw
-    gv = (torch.arange(hh) + 0.5) / hh
+    gu = ((torch.arange(hw) + 0.5) / hw).to(dev)
+    gv = ((torch.arange(hh) + 0.5) / hh).to(dev)
     sigma_u, sigma_v = tc.heatmap_sigma_cells / hw, tc.heatmap_sigma_cells / hh
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
@@ -288,9 +290,9 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
             rng, data.rgb[idx], data.depth[idx], data.uv[idx], data.visible[idx], data.intrinsics[idx],
             data.size_wh[idx], data.joints_cam_m[idx], crop_p=tc.crop_p, flip_p=tc.mirror_p,
         )  # fmt: skip
-        image = torch.from_numpy(network_input(rgb, depth, cfg.channels))
-        uv_t = torch.from_numpy(uv_np)
-        vis = torch.from_numpy(visible).float()
+        image = torch.from_numpy(network_input(rgb, depth, cfg.channels)).to(dev)
+        uv_t = torch.from_numpy(uv_np).to(dev)
+        vis = torch.from_numpy(visible).float().to(dev)
         uv, depth_m, zeta, logits = net(image)
         # Gaussian target distribution on the heatmap grid, (B, J, hh, hw)
         du = (gu[None, None, None, :] - uv_t[..., 0, None, None]) / sigma_u
@@ -300,9 +302,9 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
         log_p = torch.log_softmax(logits.flatten(2), -1).view_as(logits)
         n_vis = vis.sum().clamp_min(1.0)
         heat = -((target * log_p).flatten(2).sum(-1) * vis).sum() / n_vis
-        intrinsics = torch.from_numpy(intrinsics_np).float()
-        xyz = lift_torch(uv, depth_m, intrinsics, torch.from_numpy(size_np).float())
-        joints = torch.from_numpy(joints_np)
+        intrinsics = torch.from_numpy(intrinsics_np).float().to(dev)
+        xyz = lift_torch(uv, depth_m, intrinsics, torch.from_numpy(size_np).float().to(dev))
+        joints = torch.from_numpy(joints_np).to(dev)
         pos = ((xyz - joints).abs().sum(-1) * vis).sum() / n_vis
         bce = F.binary_cross_entropy(zeta.clamp(1e-6, 1 - 1e-6), vis)
         return {"heat": heat * 0.1, "pos": pos * tc.position_weight, "vis": bce}
@@ -325,7 +327,7 @@ def train_visual(
         return path
     torch.manual_seed(tc.seed)
     cfg = visual_config(kind, tc)
-    net = KeypointNet(cfg)
+    net = KeypointNet(cfg).to(tc.device)
     camera = split_camera(data_dir, "train")
     seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
     data = load_visual_data(seqs, (cfg.width, cfg.height))
@@ -360,10 +362,10 @@ def predict_keypoints(
     net: KeypointNet, rgb: np.ndarray, depth: np.ndarray, batch: int = 256
 ) -> tuple[np.ndarray, ...]:
     """Stage-1 outputs for frames (K, h, w, 3) / (K, h, w) -> uv (K, J, 2), depth_m (K, J), zeta (K, J)."""
-    outs = []
+    outs, dev = [], next(net.parameters()).device
     for s in range(0, len(rgb), batch):
         image = torch.from_numpy(network_input(rgb[s : s + batch], depth[s : s + batch], net.cfg.channels))
-        outs.append([t.numpy() for t in net(image)[:3]])
+        outs.append([t.cpu().numpy() for t in net(image.to(dev))[:3]])
     return (
         tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
         if outs
@@ -479,6 +481,7 @@ def sample_window(
 
 def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
     cfg = net.cfg
+    dev = torch.device(tc.device)
     lengths = np.array([len(s.t_us) for s in seqs])
     weights = lengths / lengths.sum()
 
@@ -497,16 +500,9 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         for side, arm in enumerate(LOST_HAND_JOINTS):
             weight[np.ix_(lost[:, side], arm)] = tc.lost_hand_weight
         contact = torch.from_numpy(np.stack([fs.contact[i] for fs, i in items]))
-        return (
-            hmd,
-            vis,
-            target,
-            joints,
-            anchor,
-            offsets,
-            torch.from_numpy(weight / weight.mean(1, keepdims=True)),
-            contact,
-        )
+        weight_t = torch.from_numpy(weight / weight.mean(1, keepdims=True))
+        tensors = (hmd, vis, target, joints, anchor, offsets, weight_t, contact)
+        return tuple(t.to(dev, non_blocking=True) for t in tensors)
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
         hmd, vis, target, joints, anchor, offsets, weight, contact = batch(rng)
@@ -516,7 +512,7 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         else:
             sixd = net(hmd, visual)
         rot_loss = (sixd - target).abs().mean()
-        pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3), offsets)
+        pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3, device=dev), offsets)
         pos = pos + (anchor - pos[:, HEAD])[:, None]
         pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
         losses = {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
@@ -545,7 +541,7 @@ def train_fusion(
     entry = ZOO[name]
     visual = None
     if entry.visual:
-        visual = build_net(load_checkpoint(out_dir / f"visual-{entry.visual}.pt"))
+        visual = build_net(load_checkpoint(out_dir / f"visual-{entry.visual}.pt")).to(tc.device)
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
@@ -553,6 +549,7 @@ def train_fusion(
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
+    net.to(tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": str(data_dir), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
@@ -583,6 +580,18 @@ def _set_statistics(
         set_input_statistics(net.visual_stream, torch.from_numpy(np.concatenate([x[1] for x in inputs])))
 
 
+def check_device(device: str) -> None:
+    """Raise ValueError (a user's error) when ``device`` is not one torch can train on here."""
+    if device == "cpu":
+        return
+    if device != "cuda":
+        raise ValueError(f"unknown training device {device!r}: use cpu or cuda")
+    if not torch.cuda.is_available():
+        raise ValueError(
+            "--device cuda: this torch has no CUDA device (the CPU wheel, or no GPU); use --device cpu"
+        )
+
+
 def train_zoo(
     names: list[str],
     data_dir: Path,
@@ -592,6 +601,7 @@ def train_zoo(
     progress: bool = True,
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets."""
+    check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
         torch.set_num_threads(tc.threads)

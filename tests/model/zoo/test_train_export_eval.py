@@ -33,6 +33,16 @@ def test_resume_continues_a_finished_run_without_retraining(tiny_data, tiny_runs
     assert (tiny_runs / "fusion-hmd.pt").stat().st_mtime_ns == before
 
 
+def test_training_on_a_device_this_torch_lacks_is_a_clear_error(tiny_data, tmp_path, capsys):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this torch has CUDA")
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--out", str(tmp_path / "runs")]
+    assert main([*args, "--preset", "gpu", "--no-progress"]) == 2  # the gpu preset trains on cuda
+    assert "no CUDA device" in capsys.readouterr().err and not (tmp_path / "runs").exists()
+
+
 def test_export_writes_every_model_with_metadata(tiny_weights, capsys):
     assert set(model_files(tiny_weights)) == set(ZOO)
     model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
