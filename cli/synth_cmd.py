@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -259,6 +260,22 @@ def _set_context(args: argparse.Namespace, cfg) -> None:
     _JOB_CONTEXT.update(args=args, cfg=cfg)
 
 
+def worker_threads(workers: int, cpus: int | None = None) -> int:
+    """Threads each of ``workers`` render processes may use: the machine's CPUs shared out. Left at numba's
+    and OpenCV's default (every CPU each), 16 workers on 16 cores ran 256 threads and wrote nothing in 7
+    minutes (MODEL_CARD.md, the lent H100)."""
+    return max(1, (cpus or os.cpu_count() or 1) // max(1, workers))
+
+
+def _init_worker(args: argparse.Namespace, cfg, threads: int) -> None:
+    import cv2
+    import numba
+
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    cv2.setNumThreads(threads)
+    _set_context(args, cfg)
+
+
 def _run_jobs(jobs: list, args: argparse.Namespace, cfg):
     """Each job's (sequences, their manifest sources, failure or None), in job order; in --workers processes
     when asked."""
@@ -270,8 +287,9 @@ def _run_jobs(jobs: list, args: argparse.Namespace, cfg):
     from concurrent.futures import ProcessPoolExecutor
 
     context = multiprocessing.get_context("spawn")  # no fork of a process that holds numba's threads
+    threads = worker_threads(args.workers)
     with ProcessPoolExecutor(
-        args.workers, mp_context=context, initializer=_set_context, initargs=(args, cfg)
+        args.workers, mp_context=context, initializer=_init_worker, initargs=(args, cfg, threads)
     ) as pool:
         yield from pool.map(_job, jobs)
 

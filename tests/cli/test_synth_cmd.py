@@ -99,3 +99,11 @@ def test_workers_write_the_same_bytes_as_one_process(tmp_path):
     assert main([*args, "--out", str(tmp_path / "two"), "--workers", "2"]) == 0
     one, two = (tmp_path / x / "train" / "shard-00000.npz" for x in ("one", "two"))
     assert one.read_bytes() == two.read_bytes()
+
+
+def test_render_workers_share_the_cpus_out_instead_of_each_taking_all():
+    from egoposevr.cli.synth_cmd import worker_threads
+
+    assert worker_threads(16, cpus=16) == 1
+    assert worker_threads(2, cpus=16) == 8
+    assert worker_threads(4, cpus=2) == 1  # never zero
