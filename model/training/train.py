@@ -80,6 +80,10 @@ class TrainConfig:
     lost_hand_weight: float = 3.0  # position loss of a lost controller's wrist and elbow, against 1
     contact_head: bool = True  # the nets also predict each foot's contact (labels: plausibility.contacts)
     contact_weight: float = 1.0  # binary cross-entropy of the contact logits, against the losses above
+    # L1 (m, summed over x, y, z) of how much each joint's error changes from the sample before: the served
+    # body's jitter is mostly the network's own sample-to-sample noise (MODEL_CARD.md). 0: off, the batch is
+    # tc.batch windows; on, each window also runs with the one a sample before it (2 x batch).
+    temporal_weight: float = 0.0
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
@@ -488,7 +492,10 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
     def batch(rng: np.random.Generator):
         which = rng.choice(len(seqs), tc.batch, p=weights)
         items = [(seqs[s], int(rng.integers(0, lengths[s]))) for s in which]
-        inputs = [sample_window(fs, i, cfg, rng, tc) for fs, i in items]
+        if tc.temporal_weight > 0:
+            items, inputs = _with_previous_samples(items, rng, cfg, tc)
+        else:
+            inputs = [sample_window(fs, i, cfg, rng, tc) for fs, i in items]
         hmd = torch.from_numpy(np.stack([x[0] for x in inputs]))
         vis = torch.from_numpy(np.stack([x[1] for x in inputs]))
         target = torch.from_numpy(np.stack([fs.target_sixd[i] for fs, i in items]))
@@ -516,12 +523,31 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         pos = pos + (anchor - pos[:, HEAD])[:, None]
         pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
         losses = {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
+        if tc.temporal_weight > 0:
+            error = pos - joints  # (2B, J, 3): each window's, then the previous sample's
+            now, before = error.chunk(2)
+            losses["temporal"] = (now - before).abs().sum(-1).mean() * tc.temporal_weight
         if cfg.contact_head:
             bce = torch.nn.functional.binary_cross_entropy_with_logits(contact_logits, contact)
             losses["contact"] = bce * tc.contact_weight
         return losses
 
     return loss
+
+
+def _with_previous_samples(
+    items: list[tuple[FusionSequence, int]], rng: np.random.Generator, cfg: FusionConfig, tc: TrainConfig
+) -> tuple[list[tuple[FusionSequence, int]], list[tuple[np.ndarray, np.ndarray]]]:
+    """The B items' windows, then each one's window a headset sample earlier (2B of each), with the same
+    camera-drop draws for a pair, so that what differs between the two is only time."""
+    items = [(fs, max(i, 1)) for fs, i in items]
+    seeds = rng.integers(0, 2**63, len(items))
+    pairs = [*items, *[(fs, i - 1) for fs, i in items]]
+    inputs = [
+        sample_window(fs, i, cfg, np.random.default_rng(seed), tc)
+        for (fs, i), seed in zip(pairs, [*seeds, *seeds], strict=True)
+    ]
+    return pairs, inputs
 
 
 def train_fusion(

@@ -33,6 +33,24 @@ def test_resume_continues_a_finished_run_without_retraining(tiny_data, tiny_runs
     assert (tiny_runs / "fusion-hmd.pt").stat().st_mtime_ns == before
 
 
+def test_the_temporal_term_trains_on_pairs_of_consecutive_windows(tiny_data, tmp_path):
+    import dataclasses
+
+    from egoposevr.model.training.train import _with_previous_samples, fusion_config, train_fusion
+
+    tc = dataclasses.replace(PRESETS["tiny"], fusion_steps=3, temporal_weight=5.0, drop_camera_p=0.5)
+    path = train_fusion("hmd", tiny_data, tmp_path, tc, progress=False)
+    assert "temporal" in load_checkpoint(path)["history"][-1]  # the loss was part of every step
+
+    seqs = load_split(tiny_data, "train")
+    prepared = [prepare_fusion_sequence(s, np.random.default_rng(0), tc, None) for s in seqs]
+    items = [(prepared[0], 0)] + [(prepared[k % 2], 20 + k) for k in range(40)]
+    pairs, inputs = _with_previous_samples(items, np.random.default_rng(1), fusion_config("hmd-rgbd", tc), tc)
+    assert [i for _, i in pairs[:2]] == [1, 20] and [i for _, i in pairs[41:43]] == [0, 19]  # i, then i - 1
+    seen = [bool(np.any(tokens)) for _, tokens in inputs]  # the camera window dropped or not
+    assert seen[:41] == seen[41:] and 0 < sum(seen[:41]) < 41  # each pair drew the same drop
+
+
 def test_training_on_a_device_this_torch_lacks_is_a_clear_error(tiny_data, tmp_path, capsys):
     import torch
 
