@@ -29,6 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="use at most N train sequences")
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="torch threads")
     parser.add_argument(
+        "--temporal-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="weight of the fusion nets' temporal term (the error's change between consecutive samples); 0 off",
+    )
+    parser.add_argument(
         "--device",
         choices=("cpu", "cuda"),
         default=None,
@@ -53,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
+            ("temporal_weight", args.temporal_weight),
         )
         if value is not None
     }  # fmt: skip

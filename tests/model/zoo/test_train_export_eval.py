@@ -36,11 +36,14 @@ def test_resume_continues_a_finished_run_without_retraining(tiny_data, tiny_runs
 def test_the_temporal_term_trains_on_pairs_of_consecutive_windows(tiny_data, tmp_path):
     import dataclasses
 
-    from egoposevr.model.training.train import _with_previous_samples, fusion_config, train_fusion
+    from egoposevr.model.training.train import _with_previous_samples, fusion_config
 
-    tc = dataclasses.replace(PRESETS["tiny"], fusion_steps=3, temporal_weight=5.0, drop_camera_p=0.5)
-    path = train_fusion("hmd", tiny_data, tmp_path, tc, progress=False)
-    assert "temporal" in load_checkpoint(path)["history"][-1]  # the loss was part of every step
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
+    assert main([*args, "--fusion-steps", "3", "--temporal-weight", "5", "--no-progress"]) == 0
+    ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
+    assert ckpt["train_config"]["temporal_weight"] == 5.0 and "temporal" in ckpt["history"][-1]
+
+    tc = dataclasses.replace(PRESETS["tiny"], temporal_weight=5.0, drop_camera_p=0.5)
 
     seqs = load_split(tiny_data, "train")
     prepared = [prepare_fusion_sequence(s, np.random.default_rng(0), tc, None) for s in seqs]
