@@ -41,11 +41,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="where to train (default: the preset's; gpu: cuda)",
     )
+    parser.add_argument(
+        "--encoders",
+        type=Path,
+        metavar="DIR",
+        help="train only fusion nets, on the keypoints of DIR's exported visual-<kind>.onnx (e.g. the bundled)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..model.runtime.loading import ModelError
     from ..model.training.dataset import DatasetError
     from ..model.training.train import PRESETS, check_device, train_zoo
     from ..model.zoo import resolve
@@ -72,8 +79,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     started = time.perf_counter()
     try:
-        paths = train_zoo(names, args.data, args.out, config, args.resume, not args.no_progress)
-    except DatasetError as error:
+        paths = train_zoo(
+            names, args.data, args.out, config, args.resume, not args.no_progress, args.encoders
+        )
+    except (DatasetError, ModelError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)
         return 2
     for name, path in paths.items():

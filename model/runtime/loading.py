@@ -123,6 +123,15 @@ class ModelInfo:
         return np.asarray(self.metadata.rig_offsets_m, dtype=np.float64)
 
 
+def load_encoder(
+    path: str | Path, threads: int = 1, providers: tuple[str, ...] = DEFAULT_PROVIDERS
+) -> tuple[ort.InferenceSession, EncoderMetadata]:
+    """An exported visual encoder alone (``visual-<kind>.onnx``): its session and metadata; ModelError if
+    the file is not one."""
+    session = _session(Path(path), threads, providers)
+    return session, _metadata(Path(path), session, EncoderMetadata, "visual")
+
+
 def _properties(session: ort.InferenceSession) -> dict[str, str]:
     meta = session.get_modelmeta().custom_metadata_map
     return {k.removeprefix("egoposevr."): v for k, v in meta.items() if k.startswith("egoposevr.")}

@@ -42,6 +42,7 @@ from ..inputs import (
 )
 from ..rig import joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
+from ..runtime.loading import load_encoder
 from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
 from .augment import crop_and_flip, mirror_sequence, mirror_world_keypoints, retime_sequence
@@ -361,15 +362,35 @@ class FusionSequence:
     contact: np.ndarray  # (N, 2) float32: each foot (left, right) on the floor in the truth
 
 
+class ExportedEncoder:
+    """An exported visual encoder (``visual-<kind>.onnx``, e.g. the bundled one) standing in for its
+    checkpoint in stage 2: fusion nets then train on exactly the keypoints it serves."""
+
+    def __init__(self, path: Path, threads: int = 0) -> None:
+        self.session, metadata = load_encoder(path, threads)
+        self.cfg = metadata.config
+
+    def __call__(self, image: np.ndarray) -> list[np.ndarray]:
+        """image (B, C, h, w) float32 -> [uv (B, J, 2), depth_m (B, J), zeta (B, J)]."""
+        return self.session.run(["uv", "depth_m", "zeta"], {"image": image})
+
+    def to(self, device: str) -> ExportedEncoder:
+        return self  # onnxruntime on the CPU, whatever the fusion net trains on
+
+
 @torch.no_grad()
 def predict_keypoints(
-    net: KeypointNet, rgb: np.ndarray, depth: np.ndarray, batch: int = 256
+    net: KeypointNet | ExportedEncoder, rgb: np.ndarray, depth: np.ndarray, batch: int = 256
 ) -> tuple[np.ndarray, ...]:
     """Stage-1 outputs for frames (K, h, w, 3) / (K, h, w) -> uv (K, J, 2), depth_m (K, J), zeta (K, J)."""
-    outs, dev = [], next(net.parameters()).device
+    outs = []
     for s in range(0, len(rgb), batch):
-        image = torch.from_numpy(network_input(rgb[s : s + batch], depth[s : s + batch], net.cfg.channels))
-        outs.append([t.cpu().numpy() for t in net(image.to(dev))[:3]])
+        image = network_input(rgb[s : s + batch], depth[s : s + batch], net.cfg.channels)
+        if isinstance(net, ExportedEncoder):
+            outs.append(net(image))
+        else:
+            device = next(net.parameters()).device
+            outs.append([t.cpu().numpy() for t in net(torch.from_numpy(image).to(device))[:3]])
     return (
         tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
         if outs
@@ -559,15 +580,17 @@ def train_fusion(
     progress: bool = True,
     seqs: list[dict[str, Any]] | None = None,
     cache: dict[Any, Any] | None = None,
+    encoders_dir: Path | None = None,
 ) -> Path:
-    """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt`` (its visual encoder must be trained)."""
+    """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
+    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``."""
     path = out_dir / f"fusion-{name}.pt"
     if resume and _finished(path):
         return path
     entry = ZOO[name]
-    visual = None
+    visual: KeypointNet | ExportedEncoder | None = None
     if entry.visual:
-        visual = build_net(load_checkpoint(out_dir / f"visual-{entry.visual}.pt")).to(tc.device)
+        visual = _stage_one(entry.visual, out_dir, encoders_dir, tc)
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
@@ -581,6 +604,14 @@ def train_fusion(
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)
     return path
+
+
+def _stage_one(
+    kind: str, out_dir: Path, encoders_dir: Path | None, tc: TrainConfig
+) -> KeypointNet | ExportedEncoder:
+    if encoders_dir is not None:
+        return ExportedEncoder(encoders_dir / f"visual-{kind}.onnx", tc.threads)
+    return build_net(load_checkpoint(out_dir / f"visual-{kind}.pt")).to(tc.device)
 
 
 def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
@@ -625,8 +656,10 @@ def train_zoo(
     tc: TrainConfig,
     resume: bool = False,
     progress: bool = True,
+    encoders_dir: Path | None = None,
 ) -> dict[str, Path]:
-    """Everything the named models need, in dependency order: visual encoders, then fusion nets."""
+    """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
+    ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -634,8 +667,14 @@ def train_zoo(
     fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
     seqs = load_split(data_dir, "train", tc.limit_sequences)
-    paths = {f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals}
+    paths = {}
+    if encoders_dir is None:
+        paths = {
+            f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals
+        }
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
-        paths[f"fusion-{f}"] = train_fusion(f, data_dir, out_dir, tc, resume, progress, seqs, cache)
+        paths[f"fusion-{f}"] = train_fusion(
+            f, data_dir, out_dir, tc, resume, progress, seqs, cache, encoders_dir
+        )
     return paths

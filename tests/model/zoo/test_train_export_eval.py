@@ -54,6 +54,31 @@ def test_the_temporal_term_trains_on_pairs_of_consecutive_windows(tiny_data, tmp
     assert seen[:41] == seen[41:] and 0 < sum(seen[:41]) < 41  # each pair drew the same drop
 
 
+def test_fusion_nets_train_on_an_exported_encoders_keypoints(
+    tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
+):
+    from egoposevr.model.training.dataset import decode_frames
+    from egoposevr.model.training.train import ExportedEncoder, predict_keypoints
+
+    args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    assert (
+        main([*args, "--out", str(tmp_path / "a"), "--fusion-steps", "3", "--encoders", str(tiny_weights)])
+        == 0
+    )
+    assert {p.name for p in (tmp_path / "a").glob("*.pt")} == {"fusion-hmd-rgbd.pt"}  # no encoder trained
+
+    exported = ExportedEncoder(tiny_weights / "visual-rgbd.onnx")
+    checkpoint = build_net(load_checkpoint(tiny_runs / "visual-rgbd.pt"))
+    frames = decode_frames(load_split(tiny_data, "train")[0], (exported.cfg.width, exported.cfg.height))
+    for ours, theirs in zip(
+        predict_keypoints(exported, *frames), predict_keypoints(checkpoint, *frames), strict=True
+    ):
+        assert np.abs(ours - theirs).max() < 1e-4  # the keypoints the checkpoint would give
+
+    assert main([*args, "--out", str(tmp_path / "b"), "--encoders", str(tmp_path / "none")]) == 2
+    assert "visual-rgbd.onnx" in capsys.readouterr().err
+
+
 def test_training_on_a_device_this_torch_lacks_is_a_clear_error(tiny_data, tmp_path, capsys):
     import torch
 
