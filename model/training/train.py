@@ -2,9 +2,13 @@
 
 Stage 1 (per modality, ``visual-rgb`` / ``visual-rgbd``): heatmap cross-entropy against a Gaussian at the
 labelled 2D joint + L1 on the lifted 3D joints (camera frame) for joints in view, + BCE on visibility ζ.
-Stage 2 (per zoo fusion net): the frozen stage-1 encoder's keypoints go through exactly the runtime's
-preparation (:mod:`egoposevr.model.inputs`: heading frame, Alg. 1, visual tokens); losses are L1 on the 6D
-rotations + L1 on FK joint positions anchored at the headset's head joint, as the runtime anchors them.
+Stage 2 (per zoo fusion net): the frozen stage-1 encoder's keypoints (its checkpoint's, or an exported
+encoder's: :class:`ExportedEncoder`) go through exactly the runtime's preparation
+(:mod:`egoposevr.model.inputs`: heading frame, Alg. 1, visual tokens); losses are L1 on the 6D rotations +
+L1 on FK joint positions anchored at the headset's head joint, as the runtime anchors them, + BCE on each
+foot's contact, + optionally the temporal term (``TrainConfig.temporal_weight``).
+
+The nets train on the CPU or on CUDA (``TrainConfig.device``); batches are built in numpy either way.
 
 Everything is seeded; checkpoints store their net config, the training config, the step, optimiser state
 and loss history, so ``resume`` continues and export rebuilds the net from the file alone.
