@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError
     from ..model.training.dataset import DatasetError
-    from ..model.training.train import PRESETS, check_device, train_zoo
+    from ..model.training.train import PRESETS, DeviceError, train_zoo
     from ..model.zoo import resolve
 
     try:
@@ -72,17 +72,12 @@ def run(args: argparse.Namespace) -> int:
         if value is not None
     }  # fmt: skip
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
-    try:
-        check_device(config.device)
-    except ValueError as error:
-        print(f"egoposevr train: {error}", file=sys.stderr)
-        return 2
     started = time.perf_counter()
     try:
         paths = train_zoo(
             names, args.data, args.out, config, args.resume, not args.no_progress, args.encoders
         )
-    except (DatasetError, ModelError) as error:
+    except (DatasetError, ModelError, DeviceError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)
         return 2
     for name, path in paths.items():

@@ -378,9 +378,6 @@ class ExportedEncoder:
         """image (B, C, h, w) float32 -> [uv (B, J, 2), depth_m (B, J), zeta (B, J)]."""
         return self.session.run(["uv", "depth_m", "zeta"], {"image": image})
 
-    def to(self, device: str) -> ExportedEncoder:
-        return self  # onnxruntime on the CPU, whatever the fusion net trains on
-
 
 @torch.no_grad()
 def predict_keypoints(
@@ -388,12 +385,12 @@ def predict_keypoints(
 ) -> tuple[np.ndarray, ...]:
     """Stage-1 outputs for frames (K, h, w, 3) / (K, h, w) -> uv (K, J, 2), depth_m (K, J), zeta (K, J)."""
     outs = []
+    device = None if isinstance(net, ExportedEncoder) else next(net.parameters()).device
     for s in range(0, len(rgb), batch):
         image = network_input(rgb[s : s + batch], depth[s : s + batch], net.cfg.channels)
-        if isinstance(net, ExportedEncoder):
+        if device is None:
             outs.append(net(image))
         else:
-            device = next(net.parameters()).device
             outs.append([t.cpu().numpy() for t in net(torch.from_numpy(image).to(device))[:3]])
     return (
         tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
@@ -641,14 +638,18 @@ def _set_statistics(
         set_input_statistics(net.visual_stream, torch.from_numpy(np.concatenate([x[1] for x in inputs])))
 
 
+class DeviceError(ValueError):
+    """The training device is not one torch can train on here (a user's error)."""
+
+
 def check_device(device: str) -> None:
-    """Raise ValueError (a user's error) when ``device`` is not one torch can train on here."""
+    """Raise DeviceError when ``device`` is not one torch can train on here."""
     if device == "cpu":
         return
     if device != "cuda":
-        raise ValueError(f"unknown training device {device!r}: use cpu or cuda")
+        raise DeviceError(f"unknown training device {device!r}: use cpu or cuda")
     if not torch.cuda.is_available():
-        raise ValueError(
+        raise DeviceError(
             "--device cuda: this torch has no CUDA device (the CPU wheel, or no GPU); use --device cpu"
         )
 
