@@ -1,6 +1,7 @@
 """Train the model zoo: stage 1 the visual keypoint nets, stage 2 the fusion nets.
 
-Reads a dataset written by `egoposevr synth` (its `train` split) and writes checkpoints to --out:
+Reads a dataset written by `egoposevr synth` (its `train` split; several datasets' train splits together
+when --data names more than one) and writes checkpoints to --out:
 visual-rgb.pt, visual-rgbd.pt and fusion-<model>.pt. Models that share parts share checkpoints
 (`egoposevr` is `hmd-rgbd` + KPO). Checkpoints store their config; --resume continues where a run stopped.
 Then `egoposevr export` turns them into the ONNX models the runtime serves.
@@ -19,7 +20,14 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset root (with train/)")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        nargs="+",
+        required=True,
+        metavar="DIR",
+        help="dataset root (with train/); several: their train splits together",
+    )
     parser.add_argument("--model", default="all", help="zoo names, comma-separated, or all (default)")
     parser.add_argument("--out", type=Path, default=Path("runs/default"), metavar="DIR", help="checkpoints")
     parser.add_argument("--preset", default="cpu", choices=("cpu", "gpu", "tiny"), help="default cpu")

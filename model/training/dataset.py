@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -89,6 +89,22 @@ def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> li
         camera = split_camera(data_dir, split)
         for seq in seqs:
             seq.setdefault("camera", camera)
+    return seqs
+
+
+def load_splits(
+    data_dirs: Sequence[str | Path], split: str, limit: int | None = None
+) -> list[dict[str, Any]]:
+    """:func:`load_split` of several datasets, one after the other, at most ``limit`` in all. Keys stay
+    unique: the second and later datasets' are prefixed with their folder."""
+    seqs: list[dict[str, Any]] = []
+    for k, data_dir in enumerate(data_dirs):
+        more = load_split(data_dir, split, None if limit is None else limit - len(seqs))
+        for seq in more if k else []:
+            seq["key"] = f"{data_dir}:{seq['key']}"
+        seqs += more
+        if limit is not None and len(seqs) >= limit:
+            break
     return seqs
 
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Final
 
@@ -50,7 +50,7 @@ from ..runtime.loading import load_encoder
 from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
 from .augment import crop_and_flip, mirror_sequence, mirror_world_keypoints, retime_sequence
-from .dataset import decode_frames, load_split, split_camera
+from .dataset import decode_frames, load_splits, split_camera
 from .nets.fusion import FusionNet, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
@@ -323,7 +323,7 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
 
 def train_visual(
     kind: str,
-    data_dir: Path,
+    data: Path | Sequence[Path],
     out_dir: Path,
     tc: TrainConfig,
     resume: bool = False,
@@ -337,12 +337,13 @@ def train_visual(
     torch.manual_seed(tc.seed)
     cfg = visual_config(kind, tc)
     net = KeypointNet(cfg).to(tc.device)
-    camera = split_camera(data_dir, "train")
-    seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
-    data = load_visual_data(seqs, (cfg.width, cfg.height))
+    data_dirs = dataset_dirs(data)
+    camera = split_camera(data_dirs[0], "train")  # the encoder's default camera: the first dataset's
+    seqs = seqs if seqs is not None else load_splits(data_dirs, "train", tc.limit_sequences)
+    frames = load_visual_data(seqs, (cfg.width, cfg.height))
     meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
-            "data": {"dir": str(data_dir), "frames": len(data.rgb), "sequences": len(seqs)}}  # fmt: skip
-    _run_steps(net, visual_loss_fn(net, data, tc), path, tc.visual_steps, tc, meta, resume, progress)
+            "data": {"dir": _dirs_field(data_dirs), "frames": len(frames.rgb), "sequences": len(seqs)}}  # fmt: skip
+    _run_steps(net, visual_loss_fn(net, frames, tc), path, tc.visual_steps, tc, meta, resume, progress)
     return path
 
 
@@ -574,7 +575,7 @@ def _with_previous_samples(
 
 def train_fusion(
     name: str,
-    data_dir: Path,
+    data: Path | Sequence[Path],
     out_dir: Path,
     tc: TrainConfig,
     resume: bool = False,
@@ -595,13 +596,13 @@ def train_fusion(
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
-    seqs = seqs if seqs is not None else load_split(data_dir, "train", tc.limit_sequences)
+    seqs = seqs if seqs is not None else load_splits(dataset_dirs(data), "train", tc.limit_sequences)
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     net.to(tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
-            "data": {"dir": str(data_dir), "sequences": len(seqs),
+            "data": {"dir": _dirs_field(dataset_dirs(data)), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)
     return path
@@ -638,6 +639,16 @@ def _set_statistics(
         set_input_statistics(net.visual_stream, torch.from_numpy(np.concatenate([x[1] for x in inputs])))
 
 
+def dataset_dirs(data: Path | Sequence[Path]) -> tuple[Path, ...]:
+    """One dataset root or several (their train splits are used together) -> the roots."""
+    return (Path(data),) if isinstance(data, str | Path) else tuple(Path(d) for d in data)
+
+
+def _dirs_field(data_dirs: tuple[Path, ...]) -> str | list[str]:
+    """The checkpoint's record of its data: one folder as before, several as a list."""
+    return str(data_dirs[0]) if len(data_dirs) == 1 else [str(d) for d in data_dirs]
+
+
 class DeviceError(ValueError):
     """The training device is not one torch can train on here (a user's error)."""
 
@@ -656,7 +667,7 @@ def check_device(device: str) -> None:
 
 def train_zoo(
     names: list[str],
-    data_dir: Path,
+    data: Path | Sequence[Path],
     out_dir: Path,
     tc: TrainConfig,
     resume: bool = False,
@@ -671,15 +682,16 @@ def train_zoo(
         torch.set_num_threads(tc.threads)
     fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
-    seqs = load_split(data_dir, "train", tc.limit_sequences)
+    data_dirs = dataset_dirs(data)
+    seqs = load_splits(data_dirs, "train", tc.limit_sequences)
     paths = {}
     if encoders_dir is None:
         paths = {
-            f"visual-{k}": train_visual(k, data_dir, out_dir, tc, resume, progress, seqs) for k in visuals
+            f"visual-{k}": train_visual(k, data_dirs, out_dir, tc, resume, progress, seqs) for k in visuals
         }
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
-            f, data_dir, out_dir, tc, resume, progress, seqs, cache, encoders_dir
+            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir
         )
     return paths

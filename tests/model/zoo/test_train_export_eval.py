@@ -11,7 +11,7 @@ from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.skeleton import rest_offsets
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
-from egoposevr.model.training.dataset import load_split, split_camera
+from egoposevr.model.training.dataset import load_split, load_splits, split_camera
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
 from egoposevr.model.training.train import PRESETS, build_net, load_checkpoint, prepare_fusion_sequence
 from egoposevr.model.weights import model_files
@@ -77,6 +77,23 @@ def test_fusion_nets_train_on_an_exported_encoders_keypoints(
 
     assert main([*args, "--out", str(tmp_path / "b"), "--encoders", str(tmp_path / "none")]) == 2
     assert "visual-rgbd.onnx" in capsys.readouterr().err
+
+
+def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
+    more = tmp_path / "more"
+    synth = ["synth", "--procedural", "1", "--families", "still_stand", "--seed", "6", "--out", str(more)]
+    small = ["--resolution", "80x64", "--hmd-rate", "60", "--seconds", "2", "--no-progress"]
+    assert main([*synth, *small]) == 0
+    both = load_splits([tiny_data, more], "train")
+    assert len(both) == len(load_split(tiny_data, "train")) + 1
+    assert len({s["key"] for s in both}) == len(both)  # the HMD and keypoint caches key on them
+    assert len(load_splits([tiny_data, more], "train", limit=1)) == 1
+
+    args = ["train", "--data", str(tiny_data), str(more), "--model", "hmd-rgbd", "--preset", "tiny"]
+    out = tmp_path / "runs"
+    assert main([*args, "--out", str(out), "--fusion-steps", "2", "--encoders", str(tiny_weights)]) == 0
+    data = load_checkpoint(out / "fusion-hmd-rgbd.pt")["data"]
+    assert data["dir"] == [str(tiny_data), str(more)] and data["sequences"] == len(both)
 
 
 def test_training_on_a_device_this_torch_lacks_is_a_clear_error(tiny_data, tmp_path, capsys):
