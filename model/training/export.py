@@ -10,6 +10,7 @@ is self-describing. Every export is checked against torch on random inputs: the 
 
 from __future__ import annotations
 
+import shutil
 import warnings
 from pathlib import Path
 from typing import Any
@@ -170,6 +171,17 @@ def export_visual(ckpt_path: Path, out_path: Path) -> float:
     return _parity(module, out_path, {"image": image})
 
 
+def copy_encoder(source: Path, out_path: Path) -> None:
+    """An exported encoder (and its body regressor, which is bound to its bytes) -> out_path, unchanged."""
+    if source.resolve() == out_path.resolve():
+        return
+    shutil.copyfile(source, out_path)  # FileNotFoundError names a missing encoder
+    if regressor_path(source).exists():
+        shutil.copyfile(regressor_path(source), regressor_path(out_path))
+    else:
+        regressor_path(out_path).unlink(missing_ok=True)  # a stale one would not match these bytes
+
+
 def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net); returns the parity error."""
     entry = ZOO[name]
@@ -198,14 +210,21 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
     return max(_parity(module, out_path, _fusion_inputs(cfg, batch)) for batch in (1, 8))
 
 
-def export_zoo(names: list[str], runs_dir: Path, out_dir: Path) -> dict[str, float]:
-    """Every named model and the visual encoders they use -> out_dir; {file name: parity error}."""
+def export_zoo(
+    names: list[str], runs_dir: Path, out_dir: Path, encoders_dir: Path | None = None
+) -> dict[str, float | None]:
+    """Every named model and the visual encoders they use -> out_dir; {file name: parity error}. With
+    ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
+    regressors are that folder's, copied as they are (None: nothing exported, nothing to check)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    errors: dict[str, float] = {}
+    errors: dict[str, float | None] = {}
     for kind in sorted({ZOO[n].visual for n in names if ZOO[n].visual}):
-        errors[f"visual-{kind}.onnx"] = export_visual(
-            runs_dir / f"visual-{kind}.pt", out_dir / f"visual-{kind}.onnx"
-        )
+        name = f"visual-{kind}.onnx"
+        if encoders_dir is not None:
+            copy_encoder(encoders_dir / name, out_dir / name)
+            errors[name] = None
+        else:
+            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name)
     for name in names:
         errors[f"{name}.onnx"] = export_model(name, runs_dir, out_dir / f"{name}.onnx")
     return errors

@@ -66,6 +66,14 @@ def test_fusion_nets_train_on_an_exported_encoders_keypoints(
         == 0
     )
     assert {p.name for p in (tmp_path / "a").glob("*.pt")} == {"fusion-hmd-rgbd.pt"}  # no encoder trained
+    out = tmp_path / "a-weights"
+    export = ["export", "--runs", str(tmp_path / "a"), "--out", str(out), "--model", "egoposevr"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    assert "copied from" in capsys.readouterr().out
+    assert (out / "visual-rgbd.onnx").read_bytes() == (tiny_weights / "visual-rgbd.onnx").read_bytes()
+    assert LoadedModel.load(out / "egoposevr.onnx").visual is not None  # served with the copied encoder
+    assert main(export) == 2  # without --encoders it needs the encoder's checkpoint, and says so
+    assert "visual-rgbd.pt" in capsys.readouterr().err
 
     exported = ExportedEncoder(tiny_weights / "visual-rgbd.onnx")
     checkpoint = build_net(load_checkpoint(tiny_runs / "visual-rgbd.pt"))
