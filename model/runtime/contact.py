@@ -17,6 +17,10 @@ is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of
   slow drift within that is the network's legs wandering while the user only moves the upper body, which is
   what the plant is there to hide. For ``RELEASE_S`` the target then slides from the anchor to the
   network's foot (no pop).
+- **a steady stance** (:mod:`.stance`: both feet planted, the headset still): a planted foot steps only when
+  the network lifts it, however far its guess wanders over the floor, and the anchor moves towards the mean
+  of the network's placements since the plant at most ``ANCHOR_SPEED_M_S`` (one early guess is a worse
+  estimate of a still foot than their mean).
 - **the floor**: a free foot or ankle below the floor is a target on the floor straight above it.
 
 The plant thresholds are physical (the truth's own contact labels,
@@ -50,6 +54,10 @@ RELEASE_DISTANCE_M: Final = 0.10  # for a body of SMPL's size
 STEP_SPEED_M_S: Final = 0.3  # a foot that leaves that far this fast steps; slower, it is the net wandering
 SURE_RELEASE: Final = 1.5  # ... unless it is this many times as far: a slow knee raise or lunge
 RELEASE_S: Final = 0.15
+# In a steady stance (stance.py) a planted foot's anchor moves to the mean of the network's placements of it
+# since the plant, never faster than this: the foot is still, so the mean is its best estimate, but a foot
+# seen to move faster than this would be skating.
+ANCHOR_SPEED_M_S: Final = 0.01
 SPEED_WINDOW_S: Final = 0.2  # a foot's speed is its move over this long: the network's feet jitter by ~1 cm
 MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the feet
 # A foot this far below y = 0 means the floor is not there (a LOCAL reference space, PROTOCOL.md §3): no
@@ -67,6 +75,10 @@ RELEASE_P: Final = 0.3
 class _Foot:
     planted: bool = False
     anchor: np.ndarray | None = None  # (2, 3) ankle, foot joint, m
+    placed_sum: np.ndarray | None = (
+        None  # (2, 3) the network's placements on the floor since the plant, summed
+    )
+    placed: int = 0  # ... and how many
     released_us: int | None = None  # when the last plant ended (the slide back to the network's foot)
     # (t_us, (3,) position) of the network's foot joint over the last SPEED_WINDOW_S
     history: collections.deque = dataclasses.field(default_factory=collections.deque)
@@ -137,11 +149,14 @@ class FootContacts:
         targets: np.ndarray,
         observed: np.ndarray,
         contact_p: np.ndarray | None = None,
+        steady: bool = False,
     ) -> None:
         """joints (J, 3) the network's joints for this sample; body_scale the body's size against SMPL's
         (leg length); contact_p (2,) the network's probability that each foot is on the floor, if it has a
-        contact head (None: inferred from its feet). KPO's targets (J, 3) and observed (J,) are filled in
-        for the ankles and feet, which then pull with the devices' weight λa."""
+        contact head (None: inferred from its feet); steady: the stance is held (:mod:`.stance`: both feet
+        down and the headset still), so a planted foot steps only when the network lifts it. KPO's targets
+        (J, 3) and observed (J,) are filled in for the ankles and feet, which then pull with the devices'
+        weight λa."""
         dt_s = 0.0 if self._last_us is None else max(t_us - self._last_us, 0) * 1e-6
         if dt_s > MAX_GAP_S:
             self._feet = (_Foot(), _Foot())
@@ -150,7 +165,7 @@ class FootContacts:
         for side, (foot, (ankle_j, foot_j)) in enumerate(zip(self._feet, FEET, strict=True)):
             predicted = joints[[ankle_j, foot_j]]
             p = None if contact_p is None else float(contact_p[side])
-            target = self._step(foot, t_us, predicted, body_scale, p, floor_y_m)
+            target = self._step(foot, t_us, predicted, body_scale, p, floor_y_m, steady)
             if target is not None:
                 targets[[ankle_j, foot_j]] = target
                 observed[[ankle_j, foot_j]] = True
@@ -174,6 +189,7 @@ class FootContacts:
         body_scale: float,
         contact_p: float | None,
         floor_y_m: float,
+        steady: bool = False,
     ) -> np.ndarray | None:
         """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
         rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
@@ -187,19 +203,39 @@ class FootContacts:
             assert foot.anchor is not None
             drift_m = float(np.linalg.norm(xz - foot.anchor[1, [0, 2]]))
             away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
-            if contact_p is not None:
+            if steady:  # the network's foot wandering over the floor is not a step while the head is still
+                sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
+                stepping = lift_m > RELEASE_HEIGHT_M and sure
+            elif contact_p is not None:
                 stepping = contact_p < RELEASE_P or away > SURE_RELEASE
             else:
                 stepping = away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S)
             if stepping:
                 foot.planted, foot.released_us = False, t_us
             else:
+                if steady:
+                    self._settle(foot, predicted - np.array([0.0, lift_m, 0.0]))
                 return foot.anchor
         elif self._plants(lift_m, speed_m_s, contact_p):
             foot.planted, foot.released_us = True, None
             foot.anchor = predicted - np.array([0.0, lift_m, 0.0])  # sole on the floor, foot as predicted
+            foot.placed_sum, foot.placed = foot.anchor.copy(), 1
             return foot.anchor
         return self._free_target(foot, t_us, predicted, rest_y)
+
+    @staticmethod
+    def _settle(foot: _Foot, on_floor: np.ndarray) -> None:
+        """A planted foot in a steady stance: its anchor (2, 3) moves towards the mean of the network's
+        placements on the floor since the plant (``on_floor`` this sample's), at most ANCHOR_SPEED_M_S."""
+        assert foot.anchor is not None and foot.placed_sum is not None
+        foot.placed_sum += on_floor
+        foot.placed += 1
+        step_m = foot.placed_sum / foot.placed - foot.anchor
+        dt_s = (foot.history[-1][0] - foot.history[-2][0]) * 1e-6 if len(foot.history) > 1 else 0.0
+        longest_m = float(np.linalg.norm(step_m, axis=1).max())
+        if longest_m > ANCHOR_SPEED_M_S * dt_s:
+            step_m *= ANCHOR_SPEED_M_S * dt_s / longest_m
+        foot.anchor = foot.anchor + step_m
 
     @staticmethod
     def _plants(lift_m: float, speed_m_s: float, contact_p: float | None) -> bool:

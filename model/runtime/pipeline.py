@@ -41,6 +41,7 @@ from .frames import (
 from .hands import LostHandPolicy
 from .kpo import KpoWeights, rederive_rotations, solve_kpo
 from .loading import LoadedModel
+from .stance import SteadyStance
 
 # One Euro on joint positions (paper Eq. 8). Chosen on 4 val clips: (4 Hz, 2) costs 0.2-0.3 cm MPJPE against no
 # filter and cuts jitter 4.5x; (2 Hz, 1) halves jitter again but lags by 0.6 cm upper body.
@@ -83,9 +84,11 @@ class Pipeline:
         bone_scale: np.ndarray | None = None,
         kpo_weights: KpoWeights | None = None,
         contacts: bool = True,
+        steady_stance: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
+        self.steady_stance = steady_stance  # with contacts: feet stay down while the head is still
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -119,6 +122,7 @@ class Pipeline:
         self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.hands = LostHandPolicy()
         self.feet = FootContacts()
+        self.stance = SteadyStance()
         self._pending_visual_us = 0
         if self.calibration is not None:
             self._apply_calibration()
@@ -267,7 +271,9 @@ class Pipeline:
             if self.contacts:
                 bones = self.bone_scale if self.fixed_body else self.body.bone_scale
                 leg_scale = float(bones[_LEG_BONES].mean())
-                self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p)
+                steady = self.steady_stance and self.stance.observe_head(t_us, tracked_pos[0], bool(valid[0]))
+                self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
+                self.stance.observe_feet(self.feet.planted)
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)
