@@ -49,6 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="serve without planted feet and the floor (model/runtime/contact.py): the network's own feet",
     )
     parser.add_argument(
+        "--no-steady-stance",
+        action="store_true",
+        help="planted feet step on the network's drift even while the headset is still "
+        "(model/runtime/stance.py): the runtime before the steady stance",
+    )
+    parser.add_argument(
         "--providers",
         default="cpu",
         help="onnxruntime execution providers, most preferred first (as serve's)",
@@ -102,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
             providers=providers,
             calibrate=args.calibrate,
             foot_contacts=not args.no_foot_contacts,
+            steady_stance=not args.no_steady_stance,
         )
         keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
     except (DatasetError, ModelError) as error:

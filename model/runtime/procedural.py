@@ -365,5 +365,6 @@ def pipeline_for(model, **kwargs):
         kwargs.pop("naive", None)
         kwargs.pop("kpo_weights", None)
         kwargs.pop("contacts", None)  # it plants its own feet
+        kwargs.pop("steady_stance", None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

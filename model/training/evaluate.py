@@ -210,13 +210,16 @@ def evaluate(
     providers: tuple[str, ...] = DEFAULT_PROVIDERS,
     calibrate: bool = False,
     foot_contacts: bool = True,
+    steady_stance: bool = True,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
     baseline); with ``by_category``,
     each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}.
     With ``calibrate`` every sequence is served after the T-pose calibration its rig and body would give
     (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig).
-    ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py)."""
+    ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
+    ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
+    (runtime/stance.py)."""
     seqs = load_split(data_dir, split, limit)
     rigs = sequence_rigs(data_dir, split, seqs) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -226,7 +229,7 @@ def evaluate(
         model = (
             ProceduralModel() if path is None else LoadedModel.load(path, shared=shared, providers=providers)
         )
-        pipeline = pipeline_for(model, contacts=foot_contacts)
+        pipeline = pipeline_for(model, contacts=foot_contacts, steady_stance=steady_stance)
         errors = []
         for i, seq in enumerate(seqs):
             if calibrate:

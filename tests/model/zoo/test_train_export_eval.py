@@ -268,6 +268,16 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     assert all(np.isfinite(m[k]) for m in results.values() for k in ("mpjpe_u_cm", "foot_skate_cm_s", "jerk"))
 
 
+def test_eval_serves_the_runtime_before_the_steady_stance_on_request(tiny_data, tiny_weights, tmp_path):
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    runs = {}
+    for flag in ([], ["--no-steady-stance"]):
+        out = tmp_path / f"eval{len(flag)}.json"
+        assert main([*args, "--models", "procedural,egoposevr", *flag, "--json", str(out)]) == 0
+        runs[len(flag)] = json.loads(out.read_text())["models"]
+    assert runs[0]["procedural"]["mpjpe_l_cm"] == runs[1]["procedural"]["mpjpe_l_cm"]  # it plants its own
+
+
 def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "nope"]
     assert main(args) == 2
