@@ -44,6 +44,7 @@ from typing import Final
 import numpy as np
 
 from ..skeleton import FOOT_JOINT_HEIGHT_M
+from .filters import WindowSpeed
 
 FEET: Final = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
 _FOOT_JOINTS: Final = [foot_j for _, foot_j in FEET]
@@ -75,24 +76,13 @@ RELEASE_P: Final = 0.3
 class _Foot:
     planted: bool = False
     anchor: np.ndarray | None = None  # (2, 3) ankle, foot joint, m
-    placed_sum: np.ndarray | None = (
-        None  # (2, 3) the network's placements on the floor since the plant, summed
-    )
-    placed: int = 0  # ... and how many
+    # (2, 3) the network's placements on the floor since the plant, summed, and how many
+    placed_sum: np.ndarray | None = None
+    placed: int = 0
     released_us: int | None = None  # when the last plant ended (the slide back to the network's foot)
-    # (t_us, (3,) position) of the network's foot joint over the last SPEED_WINDOW_S
-    history: collections.deque = dataclasses.field(default_factory=collections.deque)
-
-    def push(self, t_us: int, position: np.ndarray) -> float:
-        """Record this sample of the network's foot -> its speed, m/s: the move since the oldest sample
-        within SPEED_WINDOW_S."""
-        self.history.append((t_us, position))
-        while len(self.history) > 2 and (t_us - self.history[1][0]) * 1e-6 >= SPEED_WINDOW_S:
-            self.history.popleft()
-        t0_us, position0 = self.history[0]
-        if t_us <= t0_us:
-            return 0.0
-        return float(np.linalg.norm(position - position0)) / ((t_us - t0_us) * 1e-6)
+    speed: WindowSpeed = dataclasses.field(
+        default_factory=lambda: WindowSpeed(SPEED_WINDOW_S)
+    )  # foot joint's
 
 
 class FloorEstimate:
@@ -198,7 +188,7 @@ class FootContacts:
             foot.planted, foot.released_us = False, None
             return None
         xz = predicted[1, [0, 2]]
-        speed_m_s = foot.push(t_us, predicted[1])
+        speed_m_s = foot.speed.push(t_us, predicted[1])
         if foot.planted:
             assert foot.anchor is not None
             drift_m = float(np.linalg.norm(xz - foot.anchor[1, [0, 2]]))
@@ -231,10 +221,10 @@ class FootContacts:
         foot.placed_sum += on_floor
         foot.placed += 1
         step_m = foot.placed_sum / foot.placed - foot.anchor
-        dt_s = (foot.history[-1][0] - foot.history[-2][0]) * 1e-6 if len(foot.history) > 1 else 0.0
+        most_m = ANCHOR_SPEED_M_S * foot.speed.step_s
         longest_m = float(np.linalg.norm(step_m, axis=1).max())
-        if longest_m > ANCHOR_SPEED_M_S * dt_s:
-            step_m *= ANCHOR_SPEED_M_S * dt_s / longest_m
+        if longest_m > most_m:
+            step_m *= most_m / longest_m
         foot.anchor = foot.anchor + step_m
 
     @staticmethod

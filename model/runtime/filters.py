@@ -1,4 +1,5 @@
-"""One Euro filter (Casiez, Roussel and Vogel, CHI 2012), vectorised and driven by timestamps.
+"""One Euro filter (Casiez, Roussel and Vogel, CHI 2012), vectorised and driven by timestamps; and a point's
+speed over a sliding time window (:class:`WindowSpeed`), which the planted feet and the steady stance gate on.
 
 A first-order low-pass whose cutoff rises with speed: ``fc = min_cutoff_hz + beta * |dx/dt|``. Slow motion
 is smoothed hard (less jitter), fast motion passes with little lag. Each element of the signal (every joint
@@ -9,6 +10,7 @@ Shape legend: ``...`` = the signal's shape, fixed for a filter's lifetime (e.g. 
 
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
@@ -71,3 +73,33 @@ class OneEuroFilter:
     def _start(self, t_us: int, x: np.ndarray) -> np.ndarray:
         self._x_hat, self._dx_hat, self._t_us = x.copy(), np.zeros_like(x), int(t_us)
         return x.copy()
+
+
+class WindowSpeed:
+    """A point's speed over the last ``window_s``: its move since the oldest sample within that window (the
+    move over a window, not per sample, so that a network's per-sample jitter does not read as motion)."""
+
+    def __init__(self, window_s: float) -> None:
+        self.window_s = window_s
+        self._history: collections.deque[tuple[int, np.ndarray]] = collections.deque()
+
+    def push(self, t_us: int, position: np.ndarray) -> float:
+        """Record this sample's position (3,) m -> the speed, m/s (0 until time has passed)."""
+        history = self._history
+        history.append((t_us, np.array(position, dtype=np.float64)))
+        while len(history) > 2 and (t_us - history[1][0]) * 1e-6 >= self.window_s:
+            history.popleft()
+        t0_us, position0 = history[0]
+        if t_us <= t0_us:
+            return 0.0
+        return float(np.linalg.norm(history[-1][1] - position0)) / ((t_us - t0_us) * 1e-6)
+
+    @property
+    def span_s(self) -> float:
+        """How long the speed was measured over: up to a little more than ``window_s``."""
+        return (self._history[-1][0] - self._history[0][0]) * 1e-6 if self._history else 0.0
+
+    @property
+    def step_s(self) -> float:
+        """The time between the last two samples (0 before the second)."""
+        return (self._history[-1][0] - self._history[-2][0]) * 1e-6 if len(self._history) > 1 else 0.0

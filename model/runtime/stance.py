@@ -9,16 +9,18 @@ slide with the network's wandering guess of the legs.
 
 The head is the gate because it is the one body part the devices track: arms that move while the head
 stays say nothing about the legs, and a step needs a weight shift that moves the head. A stance whose head
-leaves slowly stays steady: the feet of a slow squat or bend stay where they are too. The constants were chosen on the training split's sequences and procedural still-standing
-streams, never on a validation split (MODEL_CARD.md).
+leaves slowly stays steady: the feet of a slow squat or bend stay where they are too. The constants were
+chosen on the training split's sequences and procedural still-standing streams, never on a validation split
+(MODEL_CARD.md).
 """
 
 from __future__ import annotations
 
-import collections
 from typing import Final
 
 import numpy as np
+
+from .filters import WindowSpeed
 
 QUIET_SPEED_M_S: Final = 0.10
 QUIET_WINDOW_S: Final = 0.3
@@ -30,7 +32,10 @@ class SteadyStance:
     is theirs to use), :meth:`observe_feet` after them."""
 
     def __init__(self) -> None:
-        self._head_history: collections.deque[tuple[int, np.ndarray]] = collections.deque()
+        self._forget()
+
+    def _forget(self) -> None:
+        self._head_speed = WindowSpeed(QUIET_WINDOW_S)
         self._last_us: int | None = None
         self._quiet = False
         self._both_planted = False
@@ -42,7 +47,7 @@ class SteadyStance:
     def observe_head(self, t_us: int, head_m: np.ndarray, head_valid: bool) -> bool:
         """The headset's head joint (3,) m this sample -> whether the stance is steady now."""
         if self._last_us is not None and not 0 <= t_us - self._last_us <= MAX_GAP_S * 1e6:
-            self.__init__()  # type: ignore[misc]  # a long pause, or time going back: start afresh
+            self._forget()  # a long pause, or time going back: start afresh
         self._last_us = t_us
         self._quiet = head_valid and self._head_quiet(t_us, head_m)
         return self.steady
@@ -54,12 +59,5 @@ class SteadyStance:
 
     def _head_quiet(self, t_us: int, head_m: np.ndarray) -> bool:
         """Record the head; whether it moved slower than QUIET_SPEED_M_S over the last QUIET_WINDOW_S."""
-        history = self._head_history
-        history.append((t_us, head_m.copy()))
-        while len(history) > 2 and (t_us - history[1][0]) * 1e-6 >= QUIET_WINDOW_S:
-            history.popleft()
-        t0_us, head0_m = history[0]
-        span_s = (t_us - t0_us) * 1e-6
-        if span_s < 0.9 * QUIET_WINDOW_S:
-            return False
-        return float(np.linalg.norm(head_m - head0_m)) / span_s < QUIET_SPEED_M_S
+        speed_m_s = self._head_speed.push(t_us, head_m)
+        return self._head_speed.span_s >= 0.9 * QUIET_WINDOW_S and speed_m_s < QUIET_SPEED_M_S

@@ -596,13 +596,14 @@ def train_fusion(
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
-    seqs = seqs if seqs is not None else load_splits(dataset_dirs(data), "train", tc.limit_sequences)
+    data_dirs = dataset_dirs(data)
+    seqs = seqs if seqs is not None else load_splits(data_dirs, "train", tc.limit_sequences)
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     net.to(tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
-            "data": {"dir": _dirs_field(dataset_dirs(data)), "sequences": len(seqs),
+            "data": {"dir": _dirs_field(data_dirs), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)
     return path

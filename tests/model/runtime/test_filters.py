@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from egoposevr.model.runtime.filters import OneEuroFilter, smoothing_factor
+from egoposevr.model.runtime.filters import OneEuroFilter, WindowSpeed, smoothing_factor
 
 DT_US = 10_000  # 100 Hz
 
@@ -83,3 +83,13 @@ def test_reset_and_bad_input():
     np.testing.assert_array_equal(filt(20_000, np.ones(4)), np.ones(4))
     with pytest.raises(ValueError, match="min_cutoff_hz"):
         OneEuroFilter(min_cutoff_hz=0.0)
+
+
+def test_a_window_speed_is_the_move_over_the_window_not_the_per_sample_jitter():
+    rng = np.random.default_rng(0)
+    speed = WindowSpeed(0.2)
+    for i in range(90):  # 1 s at 90 Hz: 0.5 m/s along x, with 5 mm of jitter per sample
+        t_us = i * 11_111
+        measured = speed.push(t_us, np.array([0.5 * t_us * 1e-6, 0.0, 0.0]) + rng.normal(0.0, 0.005, 3))
+    assert measured == pytest.approx(0.5, abs=0.06)  # per-sample differences alone would read ~1 m/s
+    assert 0.2 <= speed.span_s < 0.2 + 0.012 and speed.step_s == pytest.approx(0.011111)
