@@ -1,7 +1,8 @@
 """What ``egoposevr motion inspect`` says about a motion file: the rig read from it, and how well it retargets.
 
 A report per file (family, joint mapping, units, axes, frame rate, duration, frames dropped, retargeting
-error) and a PNG of a few frames with the source skeleton (grey, every joint of the file) beside the
+error, whether the feet grip: how much they slide while the body travels and how high a standing
+foot is) and a PNG of a few frames with the source skeleton (grey, every joint of the file) beside the
 retargeted SMPL-22 skeleton (colour), both seen from the front in our axes.
 
 Shape legend: ``F`` frames, ``S`` source joints, ``J`` = 22 SMPL joints.
@@ -18,7 +19,8 @@ import numpy as np
 
 from ..skeleton import JOINT_NAMES, PARENTS
 from .amass import load_amass_motion
-from .bvh import BvhClip, Retargeted, bvh_fk, load_bvh, retarget_bvh
+from .bvh import BvhClip, Retargeted, bvh_fk, load_bvh, mapped_positions, retarget_bvh
+from .motion import Motion, foot_slide, stance_foot_height_m
 from .rigs import DetectedRig
 
 
@@ -74,6 +76,7 @@ def amass_report(path: Path) -> dict[str, Any]:
         "roles": {},
         "mapping": {},
         "notes": ["AMASS: SMPL-H parameters, the body at SMPL's mean shape (bone scale 1)"],
+        "feet": feet_report(motion, None),
     }
 
 
@@ -107,6 +110,31 @@ def report(item: Inspection) -> dict[str, Any]:
             for joint, source in rig.mapping.joints.items()
         },
         "notes": list(rig.notes),
+        "feet": feet_report(motion, _source_smpl(item)),
+    }
+
+
+def _source_smpl(item: Inspection) -> np.ndarray:
+    """(F, J, 3) the source's joints where the mapping reads SMPL's, the pelvis between the mapped hips (a hub
+    may have no position of its own)."""
+    mapped = mapped_positions(item.source_m, item.clip.names, item.rig.mapping).copy()
+    mapped[:, 0] = mapped[:, [1, 2]].mean(axis=1)
+    return mapped
+
+
+def feet_report(motion: Motion, source_m: np.ndarray | None) -> dict[str, float | None]:
+    """Do the feet grip: :func:`~.motion.foot_slide` of the result and of the file's own skeleton (does the
+    file slide, or the retargeting?), and where a standing foot is (:func:`~.motion.stance_foot_height_m`,
+    3.5 cm when it stands flat on the floor)."""
+    joints = motion.joints()
+
+    def rounded(value: float | None, scale: float = 1.0) -> float | None:
+        return None if value is None else round(value * scale, 3)
+
+    return {
+        "slide": rounded(foot_slide(joints, motion.fps)),
+        "source_slide": None if source_m is None else rounded(foot_slide(source_m, motion.fps)),
+        "stance_foot_height_cm": rounded(stance_foot_height_m(joints, motion.fps), 100.0),
     }
 
 
@@ -123,7 +151,19 @@ def summary_line(item: dict[str, Any]) -> str:
         f"{item['file']}: {item['family']} ({item['anchors_from']}), {item['units']}, up {item['up_axis']}, "
         f"forward {item['forward_axis']}, {item['frame_rate_hz']:g} Hz, {item['duration_s']:.1f} s, "
         f"dropped {item['frames_dropped']}, error median {error['median']:.2f} / p95 {error['p95']:.2f} cm"
+        + _feet_words(item.get("feet", {}))
     )
+
+
+def _feet_words(feet: dict[str, float | None]) -> str:
+    """', feet slide 0.41 (file 0.40), stand at 6.5 cm' -- whatever of it was measured."""
+    words = []
+    if feet.get("slide") is not None:
+        source = feet.get("source_slide")
+        words.append(f"feet slide {feet['slide']:.2f}" + ("" if source is None else f" (file {source:.2f})"))
+    if feet.get("stance_foot_height_cm") is not None:
+        words.append(f"stand at {feet['stance_foot_height_cm']:.1f} cm")
+    return "".join(f", {w}" for w in words)
 
 
 # ------------------------------------------------------------------------------------------- picture

@@ -114,3 +114,49 @@ def ground(motion: Motion, percentile: float = 1.0) -> Motion:
     floor_y = np.percentile(sole_y, percentile)
     shift = np.array([-motion.root_pos_m[0, 0], -floor_y, -motion.root_pos_m[0, 2]])
     return motion.replace(root_pos_m=motion.root_pos_m + shift)
+
+
+# A body moves when its pelvis crosses the floor faster than this; below it, standing feet may shuffle.
+MOVING_M_S = 0.3
+STANCE_M_S = 0.1  # a foot slower than this over the floor stands (or is about to)
+ANKLES = (7, 8)
+
+
+def _floor_speeds(points_m: np.ndarray, fps: float) -> np.ndarray:
+    """(F, ...) speed over the floor (x, z) of points (F, ..., 3), m/s, by central differences."""
+    return np.linalg.norm(np.gradient(points_m[..., [0, 2]], 1.0 / fps, axis=0), axis=-1)
+
+
+def foot_slide(joints_m: np.ndarray, fps: float) -> float | None:
+    """How much the feet slide while the body travels: over the frames where the pelvis crosses the floor
+    faster than MOVING_M_S, the median of the slower ankle's speed over the floor as a share of the pelvis's.
+
+    Walking or running with feet that grip, one foot stands while the body passes over it: about 0.1 (the
+    share of the stride spent switching feet). Feet that slide under a moving body (a root path that does not
+    match the legs' strides, as a conversion onto another skeleton can leave) give 0.3 or more, and a body
+    gliding with its feet still in the pose gives 1. None when the pelvis never moves that fast.
+    joints_m: (F, J, 3) SMPL-22 joints (or any skeleton whose 0 is the pelvis and ANKLES its ankles)."""
+    if len(joints_m) < 3:
+        return None
+    pelvis = _floor_speeds(joints_m[:, 0], fps)
+    moving = pelvis > MOVING_M_S
+    if not moving.any():
+        return None
+    slower = _floor_speeds(joints_m[:, list(ANKLES)], fps).min(axis=1)
+    return float(np.median(slower[moving] / pelvis[moving]))
+
+
+def stance_foot_height_m(joints_m: np.ndarray, fps: float) -> float | None:
+    """The median height of the lower foot joint (the ball of the foot) over the frames where it stands
+    (slower than STANCE_M_S over the floor): FOOT_JOINT_HEIGHT_M on a grounded motion whose feet stand flat;
+    higher where a conversion tilts the foot or the floor was put too low. None when no foot stands.
+    joints_m: (F, J, 3) grounded SMPL-22 joints."""
+    if len(joints_m) < 3:
+        return None
+    feet = joints_m[:, [10, 11]]
+    lower = np.argmin(feet[..., 1], axis=1)
+    rows = np.arange(len(feet))
+    standing = _floor_speeds(feet, fps)[rows, lower] < STANCE_M_S
+    if not standing.any():
+        return None
+    return float(np.median(feet[rows, lower, 1][standing]))

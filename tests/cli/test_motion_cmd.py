@@ -44,6 +44,14 @@ def test_inspect_reports_rigs_errors_splits_and_pictures(tmp_path, capsys):
     assert by_family["unrecognised"]["units"] == "inch"
     assert all(f["retarget_error_cm"]["p95"] < 3.0 for f in report["files"])
     assert by_family["amass"]["duration_s"] == 2.0
+    # one motion through four rigs: its feet move alike whichever rig carried it, and as in the files
+    slides = [f["feet"]["slide"] for f in report["files"] if f["family"] != "amass"]
+    assert len(slides) == 4 and max(slides) - min(slides) < 0.02
+    assert all(
+        abs(f["feet"]["source_slide"] - f["feet"]["slide"]) < 0.2
+        for f in report["files"]
+        if f["family"] != "amass"
+    )
     splits = report["summary"]["splits"]
     assert sorted(splits["train"]["subjects"] + splits["val"]["subjects"]) == [
         "alice",

@@ -1,0 +1,65 @@
+"""Do a motion's feet grip: foot_slide and stance_foot_height_m on walkers with known answers."""
+
+import numpy as np
+import pytest
+
+from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
+from egoposevr.model.synth.motion import foot_slide, stance_foot_height_m
+
+FPS = 60.0
+STEP_S = 0.5  # each foot stands this long, then swings while the other stands
+SPEED_M_S = 1.0  # the pelvis's
+
+
+def walker(frames: int = 300, slide: float = 0.0, ball_lift_m: float = 0.0) -> np.ndarray:
+    """(F, 22, 3) a body walking along +z at SPEED_M_S: the pelvis moves steadily, each foot stands for
+    STEP_S (moving at ``slide`` times the pelvis's speed) and then catches up at the pace that keeps it beside
+    the body. The balls of the feet stand ``ball_lift_m`` above where a flat foot has them."""
+    t_s = np.arange(frames) / FPS
+    joints = np.zeros((frames, 22, 3))
+    joints[:, 0] = np.stack([np.zeros(frames), np.full(frames, 0.9), SPEED_M_S * t_s], axis=1)
+    for side, (ankle, ball) in enumerate(((7, 10), (8, 11))):
+        phase = (t_s / STEP_S + side) % 2.0  # < 1: standing
+        z = np.zeros(frames)
+        for i in range(1, frames):
+            pace = slide if phase[i] < 1.0 else 2.0 - slide  # the two phases average to the pelvis's pace
+            z[i] = z[i - 1] + pace * SPEED_M_S / FPS
+        lift = np.where(phase < 1.0, 0.0, 0.1 * np.sin(np.pi * (phase - 1.0)))
+        x = 0.1 if side else -0.1
+        joints[:, ankle] = np.stack([np.full(frames, x), 0.08 + lift, z], axis=1)
+        joints[:, ball] = joints[:, ankle] + [0.0, FOOT_JOINT_HEIGHT_M - 0.08 + ball_lift_m, 0.12]
+    return joints
+
+
+def test_feet_that_grip_hardly_slide():
+    assert foot_slide(walker(), FPS) == pytest.approx(0.0, abs=0.02)
+
+
+@pytest.mark.parametrize("slide", [0.3, 0.5])
+def test_standing_feet_that_slide_measure_their_share_of_the_pelvis_speed(slide):
+    assert foot_slide(walker(slide=slide), FPS) == pytest.approx(slide, abs=0.03)
+
+
+def test_a_body_that_glides_slides_wholly():
+    joints = walker()
+    joints[:, [7, 8, 10, 11]] = joints[:, [0]] + [0.0, -0.8, 0.0]  # feet carried along with the pelvis
+    assert foot_slide(joints, FPS) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_body_that_does_not_travel_has_no_slide():
+    joints = walker()
+    joints[:, :, 2] = joints[:1, :, 2]
+    assert foot_slide(joints, FPS) is None
+    assert foot_slide(walker()[:2], FPS) is None
+
+
+@pytest.mark.parametrize("lift_m", [0.0, 0.03])
+def test_a_standing_foot_is_where_its_ball_stands(lift_m):
+    height_m = stance_foot_height_m(walker(ball_lift_m=lift_m), FPS)
+    assert height_m == pytest.approx(FOOT_JOINT_HEIGHT_M + lift_m, abs=1e-9)
+
+
+def test_no_standing_foot_has_no_height():
+    joints = walker()
+    joints[:, [7, 8, 10, 11]] = joints[:, [0]] + [0.0, -0.8, 0.0]
+    assert stance_foot_height_m(joints, FPS) is None
