@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, REST_JOINTS_M, global_to_local, rest_offsets
-from .motion import Motion, ground, resample
+from .motion import Motion, ground, level_feet, resample
 
 if TYPE_CHECKING:
     from .rigs import DetectedRig
@@ -649,9 +649,12 @@ def bvh_to_motion(
 ) -> Motion:
     """Retarget a parsed BVH clip to an SMPL-22 :class:`Motion`, grounded, optionally resampled to ``fps``.
 
-    ``mapping`` None detects the rig from the file (any humanoid); a :class:`RigMapping` pins it.
+    ``mapping`` None detects the rig from the file (any humanoid); a :class:`RigMapping` pins it. The feet
+    are levelled (:func:`~.motion.level_feet`: a rig whose rest foot is not a flat-standing one tilts every
+    foot alike) and the floor put under them again: the motion is what training sees, where
+    :func:`retarget_bvh` is faithful to the file.
     """
-    motion = retarget_bvh(clip, mapping, name).motion
+    motion = ground(level_feet(retarget_bvh(clip, mapping, name).motion))
     return motion if fps is None else resample(motion, fps)
 
 

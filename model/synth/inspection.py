@@ -20,7 +20,7 @@ import numpy as np
 from ..skeleton import JOINT_NAMES, PARENTS
 from .amass import load_amass_motion
 from .bvh import BvhClip, Retargeted, bvh_fk, load_bvh, mapped_positions, retarget_bvh
-from .motion import Motion, foot_slide, stance_foot_height_m
+from .motion import Motion, foot_slide, ground, level_feet, stance_foot_height_m, standing_foot_tilt_deg
 from .rigs import DetectedRig
 
 
@@ -123,18 +123,22 @@ def _source_smpl(item: Inspection) -> np.ndarray:
 
 
 def feet_report(motion: Motion, source_m: np.ndarray | None) -> dict[str, float | None]:
-    """Do the feet grip: :func:`~.motion.foot_slide` of the result and of the file's own skeleton (does the
-    file slide, or the retargeting?), and where a standing foot is (:func:`~.motion.stance_foot_height_m`,
-    3.5 cm when it stands flat on the floor)."""
+    """Do the feet stand flat and grip: how far a standing foot's toes point up (the mean of
+    :func:`~.motion.standing_foot_tilt_deg`; synth turns it back), :func:`~.motion.foot_slide` of the result
+    and of the file's own skeleton (does the file slide, or the retargeting?), both before levelling, and
+    where a standing foot is once synth has levelled the feet and grounded the motion
+    (:func:`~.motion.stance_foot_height_m`, 3.5 cm when it stands flat on the floor)."""
     joints = motion.joints()
+    imported = ground(level_feet(motion))  # what synth trains on (bvh.bvh_to_motion)
 
     def rounded(value: float | None, scale: float = 1.0) -> float | None:
         return None if value is None else round(value * scale, 3)
 
     return {
+        "tilt_deg": rounded(float(np.mean(standing_foot_tilt_deg(motion)))),
         "slide": rounded(foot_slide(joints, motion.fps)),
         "source_slide": None if source_m is None else rounded(foot_slide(source_m, motion.fps)),
-        "stance_foot_height_cm": rounded(stance_foot_height_m(joints, motion.fps), 100.0),
+        "stance_foot_height_cm": rounded(stance_foot_height_m(imported.joints(), motion.fps), 100.0),
     }
 
 
@@ -156,8 +160,10 @@ def summary_line(item: dict[str, Any]) -> str:
 
 
 def _feet_words(feet: dict[str, float | None]) -> str:
-    """', feet slide 0.41 (file 0.40), stand at 6.5 cm' -- whatever of it was measured."""
+    """', toes up 13°, feet slide 0.41 (file 0.40), stand at 6.5 cm' -- whatever of it was measured."""
     words = []
+    if feet.get("tilt_deg") is not None:
+        words.append(f"toes up {feet['tilt_deg']:.0f}°")
     if feet.get("slide") is not None:
         source = feet.get("source_slide")
         words.append(f"feet slide {feet['slide']:.2f}" + ("" if source is None else f" (file {source:.2f})"))

@@ -16,10 +16,13 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ..skeleton import FOOT_JOINT_HEIGHT_M, NUM_JOINTS, forward_kinematics, rest_offsets
 
-# Height of the SMPL foot (toe-base) and ankle joints above the sole when standing flat, metres. Used to put
-# the floor under a motion; the renderer's shoe capsules are sized to match.
+# Height of the SMPL ankle joint above the sole, metres: the leg's length to the floor (bodies.py); the
+# renderer's shoe capsules are sized to match. The floor itself is put under the foot joint (FOOT_JOINT_HEIGHT_M).
 ANKLE_JOINT_HEIGHT_M = 0.08
-FEET = (7, 8, 10, 11)  # left/right ankle, left/right foot
+FEET_BONES = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
+# A foot is down while its ankle is within this of its lowest (5th percentile) height in the clip.
+FOOT_DOWN_M = 0.02
+MAX_FOOT_TURN_DEG = 30.0  # a larger measured tilt is a clip whose feet are never flat (tiptoes), not a rig's
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,18 +103,21 @@ def resample(motion: Motion, fps: float) -> Motion:
     return motion.replace(fps=float(fps), local_rot=local_rot, root_pos_m=root)
 
 
-def ground(motion: Motion, percentile: float = 1.0) -> Motion:
-    """Put the floor at y = 0 under the feet and the first frame's pelvis above the origin.
+def ground(motion: Motion) -> Motion:
+    """Put the floor at y = 0 under the standing feet and the first frame's pelvis above the origin.
 
-    The floor is a low percentile over all frames of the lowest foot point (foot and ankle joints minus their
-    height above the sole), so a jump or a noisy frame does not lift it.
+    The floor is where the feet stand: over the frames where a foot is down (its ankle within FOOT_DOWN_M of
+    its lowest, the 5th percentile of the clip), the median height of its sole (the foot joint minus
+    FOOT_JOINT_HEIGHT_M, a flat foot's). A jump, a noisy frame or a foot that points its toes down in a swing
+    moves it little; a foot tilted at every frame (:func:`level_feet` first) would stand on its ball.
     """
     joints = motion.joints()
-    sole_y = np.minimum(
-        joints[:, [10, 11], 1].min(axis=1) - FOOT_JOINT_HEIGHT_M,
-        joints[:, [7, 8], 1].min(axis=1) - ANKLE_JOINT_HEIGHT_M,
-    )
-    floor_y = np.percentile(sole_y, percentile)
+    soles = []
+    for ankle, ball in FEET_BONES:
+        ankle_y = joints[:, ankle, 1]
+        down = ankle_y < np.percentile(ankle_y, 5) + FOOT_DOWN_M
+        soles.append(joints[down, ball, 1] - FOOT_JOINT_HEIGHT_M)
+    floor_y = float(np.median(np.concatenate(soles)))
     shift = np.array([-motion.root_pos_m[0, 0], -floor_y, -motion.root_pos_m[0, 2]])
     return motion.replace(root_pos_m=motion.root_pos_m + shift)
 
@@ -160,3 +166,52 @@ def stance_foot_height_m(joints_m: np.ndarray, fps: float) -> float | None:
     if not standing.any():
         return None
     return float(np.median(feet[rows, lower, 1][standing]))
+
+
+def level_feet(motion: Motion) -> Motion:
+    """Each foot turned at the ankle by one constant pitch so that it stands flat while it is down.
+
+    A conversion onto another skeleton can leave every foot tilted by the same angle: the source rig's foot
+    bone at rest is not a flat-standing foot, and the retargeting maps rest onto SMPL's flat rest foot (CMU's
+    conversions stand with the ball of the foot ~3 cm high, toes up by ~13°; ``egoposevr motion inspect``
+    reports it). Over the frames where a foot is down (its ankle within FOOT_DOWN_M of its lowest), the median
+    pitch of the ankle->ball bone against SMPL's rest is that tilt; the ankle's local rotation is turned back
+    by it about the foot's own lateral axis, so the rest of the pose is unchanged. At most
+    MAX_FOOT_TURN_DEG. The motion is not re-grounded."""
+    local = motion.local_rot.copy()
+    offsets = motion.offsets_m()
+    limit = np.radians(MAX_FOOT_TURN_DEG)
+    for ankle, ball in FEET_BONES:
+        foot_m = offsets[ball]
+        axis = np.cross([0.0, 1.0, 0.0], foot_m)
+        if np.linalg.norm(axis) < 1e-9:
+            continue
+        axis /= np.linalg.norm(axis)
+        turned_rad = 0.0
+        for _ in range(2):  # measured in the world, turned in the ankle's frame: a second pass settles it
+            tilt_rad = _standing_tilt_rad(motion.replace(local_rot=local), ankle, foot_m)
+            step_rad = float(np.clip(tilt_rad, -limit - turned_rad, limit - turned_rad))
+            if abs(step_rad) < 1e-4:
+                break
+            turned_rad += step_rad
+            local[:, ankle] = local[:, ankle] @ Rotation.from_rotvec(axis * step_rad).as_matrix()
+    return motion.replace(local_rot=local)
+
+
+def standing_foot_tilt_deg(motion: Motion) -> tuple[float, float]:
+    """(left, right): how far each standing foot points its toes up against SMPL's flat rest foot, degrees
+    (what :func:`level_feet` turns back)."""
+    offsets = motion.offsets_m()
+    left, right = (np.degrees(_standing_tilt_rad(motion, ankle, offsets[ball])) for ankle, ball in FEET_BONES)
+    return float(left), float(right)
+
+
+def _standing_tilt_rad(motion: Motion, ankle: int, foot_m: np.ndarray) -> float:
+    """How far the ankle->ball bone points above SMPL's flat rest foot (radians, positive: toes up), the
+    median over the frames where the foot is down."""
+    joints, global_rot = motion.fk()
+    ankle_y = joints[:, ankle, 1]
+    down = ankle_y < np.percentile(ankle_y, 5) + FOOT_DOWN_M
+    bone = global_rot[down, ankle] @ foot_m  # (frames down, 3)
+    pitch = np.arcsin(np.clip(bone[:, 1] / np.linalg.norm(bone, axis=1), -1.0, 1.0))
+    return float(np.median(pitch) - np.arcsin(foot_m[1] / np.linalg.norm(foot_m)))

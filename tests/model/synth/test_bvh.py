@@ -158,7 +158,10 @@ def test_retargeted_fk_reproduces_mapped_source_joints_within_2cm(bvh_file):
     joints = motion.joints()
     assert joints.shape == (239, 22, 3)
     hubs = [J["pelvis"], J["spine3"]]  # placed by the retarget itself
-    others = np.setdiff1d(np.arange(22), hubs)
+    # The feet are levelled after the retargeting (level_feet): a foot joint is where this rig's foot would be
+    # standing flat, not where its toe base is; retarget_bvh's error_m measures the retargeting before that.
+    feet = [J["left_foot"], J["right_foot"]]
+    others = np.setdiff1d(np.arange(22), hubs + feet)
     shift = np.median(joints[:, others] - source[:, others], axis=(0, 1))  # grounding moved the whole clip
     error_m = np.linalg.norm(joints - (source + shift), axis=-1)
     # Within 2 cm at the 99th percentile. The peaks come from the rig's LowerBack and Neck pivots, which bend
@@ -183,7 +186,8 @@ def test_motion_is_grounded_and_resampled(bvh_file):
     assert motion.fps == 60 and motion.num_frames == 119
     joints = motion.joints()
     assert np.percentile(joints[:, [10, 11], 1].min(axis=1), 1) >= FOOT_JOINT_HEIGHT_M - 0.05
-    assert joints[:, :, 1].min() > -0.01
+    # The floor is where the feet stand (motion.ground); a foot swinging with its toes down may dip below it.
+    assert joints[:, :, 1].min() > -0.02
     assert np.allclose(motion.root_pos_m[0, [0, 2]], 0.0)
 
 
@@ -256,7 +260,7 @@ def test_the_cmu_rig_is_detected_and_its_tpose_frame_dropped(bvh_file):
     result = retarget_bvh(parse_bvh(bvh_file.read_text()))
     assert result.rig.family == "cmu" and result.rig.units == "cmu" and result.rig.up_axis == "+Y"
     assert result.dropped == 1 and result.motion.num_frames == 239
-    pinned = load_bvh_motion(bvh_file, CMU_MAPPING)
+    pinned = retarget_bvh(parse_bvh(bvh_file.read_text()), CMU_MAPPING).motion
     apart_m = np.linalg.norm(result.motion.joints() - pinned.joints(), axis=-1).max(axis=0)
     # Only spine2 is placed otherwise: 66 % of the way Spine -> Spine1 (SMPL's arc length), not half-way.
     assert apart_m[J["spine2"]] < 0.03

@@ -1,10 +1,12 @@
-"""Do a motion's feet grip: foot_slide and stance_foot_height_m on walkers with known answers."""
+"""Do a motion's feet grip and stand flat: foot_slide, stance_foot_height_m and level_feet on bodies with known
+answers."""
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
-from egoposevr.model.synth.motion import foot_slide, stance_foot_height_m
+from egoposevr.model.synth.motion import Motion, foot_slide, level_feet, stance_foot_height_m
 
 FPS = 60.0
 STEP_S = 0.5  # each foot stands this long, then swings while the other stands
@@ -63,3 +65,45 @@ def test_no_standing_foot_has_no_height():
     joints = walker()
     joints[:, [7, 8, 10, 11]] = joints[:, [0]] + [0.0, -0.8, 0.0]
     assert stance_foot_height_m(joints, FPS) is None
+
+
+def _standing(frames: int = 120) -> Motion:
+    """A body standing in SMPL's rest pose, its pelvis swaying a little."""
+    local = np.broadcast_to(np.eye(3), (frames, 22, 3, 3)).copy()
+    root = np.zeros((frames, 3))
+    root[:, 1] = 1.0
+    root[:, 0] = 0.02 * np.sin(np.arange(frames) / 10)
+    return Motion("stand", FPS, local, root, np.ones(22), "test:stand", "test")
+
+
+def _tilted(motion: Motion, toes_up_deg: float) -> Motion:
+    """Every frame's ankles turned toes-up by the same angle, as a conversion's rest-pose mismatch does."""
+    local = motion.local_rot.copy()
+    offsets = motion.offsets_m()
+    for ankle, ball in ((7, 10), (8, 11)):
+        axis = np.cross([0.0, 1.0, 0.0], offsets[ball])
+        axis /= np.linalg.norm(axis)
+        local[:, ankle] = local[:, ankle] @ Rotation.from_rotvec(-np.radians(toes_up_deg) * axis).as_matrix()
+    return motion.replace(local_rot=local)
+
+
+@pytest.mark.parametrize("toes_up_deg", [13.0, -8.0])
+def test_feet_tilted_by_a_conversion_stand_flat_again(toes_up_deg):
+    flat = _standing()
+    tilted = _tilted(flat, toes_up_deg)
+    raised_m = tilted.joints()[0, 10, 1] - flat.joints()[0, 10, 1]
+    assert abs(raised_m) > 0.015  # the ball moved: the test's tilt is real
+    levelled = level_feet(tilted)
+    np.testing.assert_allclose(levelled.joints(), flat.joints(), atol=1e-6)
+    np.testing.assert_allclose(levelled.local_rot[:, [7, 8]], flat.local_rot[:, [7, 8]], atol=1e-6)
+
+
+def test_flat_feet_are_left_alone():
+    flat = _standing()
+    np.testing.assert_allclose(level_feet(flat).local_rot, flat.local_rot, atol=1e-12)
+
+
+def test_a_tilt_beyond_any_rigs_is_turned_back_only_so_far():
+    levelled = level_feet(_tilted(_standing(), 60.0))
+    residual = levelled.joints()[0, 10, 1] - _standing().joints()[0, 10, 1]
+    assert residual > 0.03  # 60° toes up, turned back by MAX_FOOT_TURN_DEG: the toes stay up
