@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, REST_JOINTS_M, global_to_local, rest_offsets
-from .motion import Motion, ground, level_feet, resample
+from .motion import Motion, ground, level_feet, lock_support_feet, resample
 
 if TYPE_CHECKING:
     from .rigs import DetectedRig
@@ -651,10 +651,11 @@ def bvh_to_motion(
 
     ``mapping`` None detects the rig from the file (any humanoid); a :class:`RigMapping` pins it. The feet
     are levelled (:func:`~.motion.level_feet`: a rig whose rest foot is not a flat-standing one tilts every
-    foot alike) and the floor put under them again: the motion is what training sees, where
-    :func:`retarget_bvh` is faithful to the file.
+    foot alike), a motion whose feet slide gets its path rebuilt from its strides
+    (:func:`~.motion.lock_support_feet`), and the floor is put under the feet again: the motion is what
+    training sees, where :func:`retarget_bvh` is faithful to the file.
     """
-    motion = ground(level_feet(retarget_bvh(clip, mapping, name).motion))
+    motion = ground(lock_support_feet(level_feet(retarget_bvh(clip, mapping, name).motion)))
     return motion if fps is None else resample(motion, fps)
 
 

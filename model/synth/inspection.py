@@ -20,7 +20,15 @@ import numpy as np
 from ..skeleton import JOINT_NAMES, PARENTS
 from .amass import load_amass_motion
 from .bvh import BvhClip, Retargeted, bvh_fk, load_bvh, mapped_positions, retarget_bvh
-from .motion import Motion, foot_slide, ground, level_feet, stance_foot_height_m, standing_foot_tilt_deg
+from .motion import (
+    Motion,
+    foot_slide,
+    ground,
+    level_feet,
+    lock_support_feet,
+    stance_foot_height_m,
+    standing_foot_tilt_deg,
+)
 from .rigs import DetectedRig
 
 
@@ -126,10 +134,11 @@ def feet_report(motion: Motion, source_m: np.ndarray | None) -> dict[str, float 
     """Do the feet stand flat and grip: how far a standing foot's toes point up (the mean of
     :func:`~.motion.standing_foot_tilt_deg`; synth turns it back), :func:`~.motion.foot_slide` of the result
     and of the file's own skeleton (does the file slide, or the retargeting?), both before levelling, and
-    where a standing foot is once synth has levelled the feet and grounded the motion
-    (:func:`~.motion.stance_foot_height_m`, 3.5 cm when it stands flat on the floor)."""
+    once synth has imported it (levelled, a sliding motion's path rebuilt from its strides, grounded): its
+    slide and where a standing foot is (:func:`~.motion.stance_foot_height_m`, 3.5 cm when it stands flat on
+    the floor)."""
     joints = motion.joints()
-    imported = ground(level_feet(motion))  # what synth trains on (bvh.bvh_to_motion)
+    imported = ground(lock_support_feet(level_feet(motion)))  # what synth trains on (bvh.bvh_to_motion)
 
     def rounded(value: float | None, scale: float = 1.0) -> float | None:
         return None if value is None else round(value * scale, 3)
@@ -138,6 +147,7 @@ def feet_report(motion: Motion, source_m: np.ndarray | None) -> dict[str, float 
         "tilt_deg": rounded(float(np.mean(standing_foot_tilt_deg(motion)))),
         "slide": rounded(foot_slide(joints, motion.fps)),
         "source_slide": None if source_m is None else rounded(foot_slide(source_m, motion.fps)),
+        "imported_slide": None if source_m is None else rounded(foot_slide(imported.joints(), motion.fps)),
         "stance_foot_height_cm": rounded(stance_foot_height_m(imported.joints(), motion.fps), 100.0),
     }
 
@@ -167,6 +177,8 @@ def _feet_words(feet: dict[str, float | None]) -> str:
     if feet.get("slide") is not None:
         source = feet.get("source_slide")
         words.append(f"feet slide {feet['slide']:.2f}" + ("" if source is None else f" (file {source:.2f})"))
+    if feet.get("imported_slide") is not None:
+        words.append(f"{feet['imported_slide']:.2f} imported")
     if feet.get("stance_foot_height_cm") is not None:
         words.append(f"stand at {feet['stance_foot_height_cm']:.1f} cm")
     return "".join(f", {w}" for w in words)

@@ -215,3 +215,59 @@ def _standing_tilt_rad(motion: Motion, ankle: int, foot_m: np.ndarray) -> float:
     bone = global_rot[down, ankle] @ foot_m  # (frames down, 3)
     pitch = np.arcsin(np.clip(bone[:, 1] / np.linalg.norm(bone, axis=1), -1.0, 1.0))
     return float(np.median(pitch) - np.arcsin(foot_m[1] / np.linalg.norm(foot_m)))
+
+
+SLIDE_TO_LOCK = 0.2  # feet that slide more than this (foot_slide) are locked; captures whose feet grip: ~0.1
+SUPPORT_SWITCH_M_S = 0.1  # the other foot must be this much slower to take the weight (no flicker)
+SUPPORT_DOWN_M = 0.04  # a foot whose ankle is higher than this over its lowest is in the air (jumps, runs)
+
+
+def lock_support_feet(motion: Motion) -> Motion:
+    """The pelvis path re-derived so that the foot bearing the weight stays where it stands, for a motion
+    whose feet slide (:func:`foot_slide` over SLIDE_TO_LOCK; others are returned as they are).
+
+    A conversion onto a skeleton other than the actor's can keep the recorded pelvis path while the legs take
+    shorter or longer strides: the feet then slide under the body (CMU's Daz-rig conversions, ``egoposevr
+    motion inspect``). The pose is kept and the path is rebuilt from the legs (:func:`support_lock_offsets_m`):
+    the body travels as far as its strides carry it. Not re-grounded (the path moves over the floor only)."""
+    joints = motion.joints()
+    slide = foot_slide(joints, motion.fps)
+    if slide is None or slide < SLIDE_TO_LOCK:
+        return motion
+    root = motion.root_pos_m.copy()
+    root[:, [0, 2]] += support_lock_offsets_m(joints, motion.fps)
+    return motion.replace(root_pos_m=root)
+
+
+def support_lock_offsets_m(joints_m: np.ndarray, fps: float) -> np.ndarray:
+    """(F, 2) x, z shifts that hold the supporting mid-foot (between ankle and ball) still over the floor.
+
+    The support is the slower of the feet that are down (ankle within SUPPORT_DOWN_M of its lowest); the
+    other takes over once it is SUPPORT_SWITCH_M_S slower. While one foot stays the support, each frame's
+    shift cancels its move since the frame before; with no foot down (a jump, a run's flight), or when the
+    support changes, the shift carries on unchanged.
+    joints_m: (F, J, 3) SMPL-22 joints."""
+    frames = len(joints_m)
+    ankle_y = joints_m[:, list(ANKLES), 1]
+    mid_foot = 0.5 * (joints_m[:, list(ANKLES)] + joints_m[:, [10, 11]])  # (F, 2 feet, 3)
+    speed = _floor_speeds(mid_foot, fps)
+    down = ankle_y < np.percentile(ankle_y, 5, axis=0) + SUPPORT_DOWN_M
+    offsets = np.zeros((frames, 2))
+    support: int | None = None
+    for i in range(1, frames):
+        offsets[i] = offsets[i - 1]
+        support = _support(support, down[i], speed[i])
+        if support is not None and down[i - 1, support]:
+            offsets[i] -= (mid_foot[i, support] - mid_foot[i - 1, support])[[0, 2]]
+    return offsets
+
+
+def _support(was: int | None, down: np.ndarray, speed: np.ndarray) -> int | None:
+    """Which foot bears the weight now: None with no foot down; the one that did while it stays down unless
+    the other is down and SUPPORT_SWITCH_M_S slower; else the slower foot that is down."""
+    if not down.any():
+        return None
+    if was is not None and down[was]:
+        other = 1 - was
+        return other if down[other] and speed[other] < speed[was] - SUPPORT_SWITCH_M_S else was
+    return int(np.argmin(np.where(down, speed, np.inf)))

@@ -6,7 +6,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
-from egoposevr.model.synth.motion import Motion, foot_slide, level_feet, stance_foot_height_m
+from egoposevr.model.synth.motion import (
+    Motion,
+    foot_slide,
+    level_feet,
+    lock_support_feet,
+    stance_foot_height_m,
+    support_lock_offsets_m,
+)
 
 FPS = 60.0
 STEP_S = 0.5  # each foot stands this long, then swings while the other stands
@@ -107,3 +114,20 @@ def test_a_tilt_beyond_any_rigs_is_turned_back_only_so_far():
     levelled = level_feet(_tilted(_standing(), 60.0))
     residual = levelled.joints()[0, 10, 1] - _standing().joints()[0, 10, 1]
     assert residual > 0.03  # 60° toes up, turned back by MAX_FOOT_TURN_DEG: the toes stay up
+
+
+def test_feet_that_slide_are_held_by_rebuilding_the_path_from_the_strides():
+    sliding = walker(slide=0.4)
+    shifted = sliding.copy()
+    shifted[..., [0, 2]] += support_lock_offsets_m(sliding, FPS)[:, None]
+    assert foot_slide(shifted, FPS) == pytest.approx(0.0, abs=0.02)
+    # the body now travels as far as its strides carry it: 1.6 of the pelvis pace in swing, half the time
+    travelled = shifted[-1, 0, 2] - shifted[0, 0, 2]
+    assert travelled == pytest.approx(0.6 * (sliding[-1, 0, 2] - sliding[0, 0, 2]), rel=0.05)
+
+
+def test_feet_that_grip_keep_their_path():
+    gripping = walker()
+    assert np.abs(support_lock_offsets_m(gripping, FPS)).max() < 0.01
+    motion = _standing()
+    assert lock_support_feet(motion) is motion  # nothing travels: nothing to lock
