@@ -2,7 +2,9 @@
 
 The model learns rotations, so a motion carries local rotations (not only positions) plus the body's per-bone
 length scales; ``joints()`` runs forward kinematics to get positions. World frame: y up, metres, floor at
-y = 0 after :func:`ground`.
+y = 0 after :func:`ground`. Also here: feet that stand and grip, for motion retargeted from another skeleton
+(:func:`level_feet`, :func:`lock_support_feet`) and the measures that say whether they do
+(:func:`foot_slide`, :func:`stance_foot_height_m`, :func:`standing_foot_tilt_deg`).
 
 Shape legend: ``F`` frames, ``J`` = 22 joints.
 """
@@ -243,9 +245,9 @@ def support_lock_offsets_m(joints_m: np.ndarray, fps: float) -> np.ndarray:
     """(F, 2) x, z shifts that hold the supporting mid-foot (between ankle and ball) still over the floor.
 
     The support is the slower of the feet that are down (ankle within SUPPORT_DOWN_M of its lowest); the
-    other takes over once it is SUPPORT_SWITCH_M_S slower. While one foot stays the support, each frame's
-    shift cancels its move since the frame before; with no foot down (a jump, a run's flight), or when the
-    support changes, the shift carries on unchanged.
+    other takes over once it is SUPPORT_SWITCH_M_S slower. Each frame's shift cancels the support's move since
+    the frame before (a foot that has just come down is held from the frame after); with no foot down (a
+    jump, a run's flight) the shift carries on unchanged, so the body flies as recorded.
     joints_m: (F, J, 3) SMPL-22 joints."""
     frames = len(joints_m)
     ankle_y = joints_m[:, list(ANKLES), 1]
