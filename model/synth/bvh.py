@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, REST_JOINTS_M, global_to_local, rest_offsets
-from .motion import Motion, ground, level_feet, lock_support_feet, resample
+from .motion import Motion, fix_feet, ground, resample
 
 if TYPE_CHECKING:
     from .rigs import DetectedRig
@@ -650,12 +650,11 @@ def bvh_to_motion(
     """Retarget a parsed BVH clip to an SMPL-22 :class:`Motion`, grounded, optionally resampled to ``fps``.
 
     ``mapping`` None detects the rig from the file (any humanoid); a :class:`RigMapping` pins it. The feet
-    are levelled (:func:`~.motion.level_feet`: a rig whose rest foot is not a flat-standing one tilts every
-    foot alike), a motion whose feet slide gets its path rebuilt from its strides
-    (:func:`~.motion.lock_support_feet`), and the floor is put under the feet again: the motion is what
-    training sees, where :func:`retarget_bvh` is faithful to the file.
+    are then fixed (:func:`~.motion.fix_feet`: levelled, since a rig whose rest foot is not a flat-standing
+    one tilts every foot alike; held, where the feet slide; grounded again): the motion is what training
+    sees, where :func:`retarget_bvh` is faithful to the file.
     """
-    motion = ground(lock_support_feet(level_feet(retarget_bvh(clip, mapping, name).motion)))
+    motion = fix_feet(retarget_bvh(clip, mapping, name).motion)
     return motion if fps is None else resample(motion, fps)
 
 

@@ -1,8 +1,8 @@
 """What ``egoposevr motion inspect`` says about a motion file: the rig read from it, and how well it retargets.
 
 A report per file (family, joint mapping, units, axes, frame rate, duration, frames dropped, retargeting
-error, whether the feet grip: how much they slide while the body travels and how high a standing
-foot is) and a PNG of a few frames with the source skeleton (grey, every joint of the file) beside the
+error, whether the feet stand flat and grip: their tilt, how much they slide while the body travels, before
+and after synth's import fixes them, and how high a standing foot is) and a PNG of a few frames with the source skeleton (grey, every joint of the file) beside the
 retargeted SMPL-22 skeleton (colour), both seen from the front in our axes.
 
 Shape legend: ``F`` frames, ``S`` source joints, ``J`` = 22 SMPL joints.
@@ -20,15 +20,7 @@ import numpy as np
 from ..skeleton import JOINT_NAMES, PARENTS
 from .amass import load_amass_motion
 from .bvh import BvhClip, Retargeted, bvh_fk, load_bvh, mapped_positions, retarget_bvh
-from .motion import (
-    Motion,
-    foot_slide,
-    ground,
-    level_feet,
-    lock_support_feet,
-    stance_foot_height_m,
-    standing_foot_tilt_deg,
-)
+from .motion import Motion, fix_feet, foot_slide, stance_foot_height_m, standing_foot_tilt_deg
 from .rigs import DetectedRig
 
 
@@ -84,7 +76,7 @@ def amass_report(path: Path) -> dict[str, Any]:
         "roles": {},
         "mapping": {},
         "notes": ["AMASS: SMPL-H parameters, the body at SMPL's mean shape (bone scale 1)"],
-        "feet": feet_report(motion, None),
+        "feet": feet_report(motion, None, motion),  # AMASS is SMPL already: imported as it is
     }
 
 
@@ -118,7 +110,7 @@ def report(item: Inspection) -> dict[str, Any]:
             for joint, source in rig.mapping.joints.items()
         },
         "notes": list(rig.notes),
-        "feet": feet_report(motion, _source_smpl(item)),
+        "feet": feet_report(motion, _source_smpl(item), fix_feet(motion)),
     }
 
 
@@ -130,15 +122,13 @@ def _source_smpl(item: Inspection) -> np.ndarray:
     return mapped
 
 
-def feet_report(motion: Motion, source_m: np.ndarray | None) -> dict[str, float | None]:
+def feet_report(motion: Motion, source_m: np.ndarray | None, imported: Motion) -> dict[str, float | None]:
     """Do the feet stand flat and grip: how far a standing foot's toes point up (the mean of
     :func:`~.motion.standing_foot_tilt_deg`; synth turns it back), :func:`~.motion.foot_slide` of the result
-    and of the file's own skeleton (does the file slide, or the retargeting?), both before levelling, and
-    once synth has imported it (levelled, a sliding motion's path rebuilt from its strides, grounded): its
-    slide and where a standing foot is (:func:`~.motion.stance_foot_height_m`, 3.5 cm when it stands flat on
-    the floor)."""
+    and of the file's own skeleton ``source_m`` (F, J, 3) (does the file slide, or the retargeting?), and of
+    ``imported``, the motion as synth trains on it (for BVH :func:`~.motion.fix_feet`): its slide and where a
+    standing foot is (:func:`~.motion.stance_foot_height_m`, 3.5 cm when it stands flat on the floor)."""
     joints = motion.joints()
-    imported = ground(lock_support_feet(level_feet(motion)))  # what synth trains on (bvh.bvh_to_motion)
 
     def rounded(value: float | None, scale: float = 1.0) -> float | None:
         return None if value is None else round(value * scale, 3)
@@ -147,8 +137,8 @@ def feet_report(motion: Motion, source_m: np.ndarray | None) -> dict[str, float 
         "tilt_deg": rounded(float(np.mean(standing_foot_tilt_deg(motion)))),
         "slide": rounded(foot_slide(joints, motion.fps)),
         "source_slide": None if source_m is None else rounded(foot_slide(source_m, motion.fps)),
-        "imported_slide": None if source_m is None else rounded(foot_slide(imported.joints(), motion.fps)),
-        "stance_foot_height_cm": rounded(stance_foot_height_m(imported.joints(), motion.fps), 100.0),
+        "imported_slide": rounded(foot_slide(imported.joints(), imported.fps)),
+        "stance_foot_height_cm": rounded(stance_foot_height_m(imported.joints(), imported.fps), 100.0),
     }
 
 

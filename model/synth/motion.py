@@ -3,7 +3,7 @@
 The model learns rotations, so a motion carries local rotations (not only positions) plus the body's per-bone
 length scales; ``joints()`` runs forward kinematics to get positions. World frame: y up, metres, floor at
 y = 0 after :func:`ground`. Also here: feet that stand and grip, for motion retargeted from another skeleton
-(:func:`level_feet`, :func:`lock_support_feet`) and the measures that say whether they do
+(:func:`fix_feet`: :func:`level_feet`, :func:`lock_support_feet`) and the measures that say whether they do
 (:func:`foot_slide`, :func:`stance_foot_height_m`, :func:`standing_foot_tilt_deg`).
 
 Shape legend: ``F`` frames, ``J`` = 22 joints.
@@ -217,6 +217,13 @@ def _standing_tilt_rad(motion: Motion, ankle: int, foot_m: np.ndarray) -> float:
     bone = global_rot[down, ankle] @ foot_m  # (frames down, 3)
     pitch = np.arcsin(np.clip(bone[:, 1] / np.linalg.norm(bone, axis=1), -1.0, 1.0))
     return float(np.median(pitch) - np.arcsin(foot_m[1] / np.linalg.norm(foot_m)))
+
+
+def fix_feet(motion: Motion) -> Motion:
+    """What synth's import does to a motion retargeted from another skeleton: its feet levelled
+    (:func:`level_feet`), its path rebuilt from its strides if its feet slide (:func:`lock_support_feet`), and
+    the floor put under the standing feet again (:func:`ground`)."""
+    return ground(lock_support_feet(level_feet(motion)))
 
 
 SLIDE_TO_LOCK = 0.2  # feet that slide more than this (foot_slide) are locked; captures whose feet grip: ~0.1
