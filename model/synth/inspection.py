@@ -128,7 +128,7 @@ def feet_report(motion: Motion, source_m: np.ndarray | None, imported: Motion) -
     and of the file's own skeleton ``source_m`` (F, J, 3) (does the file slide, or the retargeting?), and of
     ``imported``, the motion as synth trains on it (for BVH :func:`~.motion.fix_feet`): its slide and where a
     standing foot is (:func:`~.motion.stance_foot_height_m`, 3.5 cm when it stands flat on the floor)."""
-    joints = motion.joints()
+    joints, imported_joints = motion.joints(), imported.joints()
 
     def rounded(value: float | None, scale: float = 1.0) -> float | None:
         return None if value is None else round(value * scale, 3)
@@ -137,8 +137,8 @@ def feet_report(motion: Motion, source_m: np.ndarray | None, imported: Motion) -
         "tilt_deg": rounded(float(np.mean(standing_foot_tilt_deg(motion)))),
         "slide": rounded(foot_slide(joints, motion.fps)),
         "source_slide": None if source_m is None else rounded(foot_slide(source_m, motion.fps)),
-        "imported_slide": rounded(foot_slide(imported.joints(), imported.fps)),
-        "stance_foot_height_cm": rounded(stance_foot_height_m(imported.joints(), imported.fps), 100.0),
+        "imported_slide": rounded(foot_slide(imported_joints, imported.fps)),
+        "stance_foot_height_cm": rounded(stance_foot_height_m(imported_joints, imported.fps), 100.0),
     }
 
 

@@ -22,6 +22,7 @@ from ..skeleton import FOOT_JOINT_HEIGHT_M, NUM_JOINTS, forward_kinematics, rest
 # renderer's shoe capsules are sized to match. The floor itself is put under the foot joint (FOOT_JOINT_HEIGHT_M).
 ANKLE_JOINT_HEIGHT_M = 0.08
 FEET_BONES = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
+ANKLES = tuple(ankle for ankle, _ in FEET_BONES)
 # A foot is down while its ankle is within this of its lowest (5th percentile) height in the clip.
 FOOT_DOWN_M = 0.02
 MAX_FOOT_TURN_DEG = 30.0  # a larger measured tilt is a clip whose feet are never flat (tiptoes), not a rig's
@@ -105,6 +106,13 @@ def resample(motion: Motion, fps: float) -> Motion:
     return motion.replace(fps=float(fps), local_rot=local_rot, root_pos_m=root)
 
 
+def feet_down(joints_m: np.ndarray, margin_m: float) -> np.ndarray:
+    """(F, 2) bool: each foot (left, right) down, its ankle within ``margin_m`` of its lowest height in the clip
+    (the 5th percentile, so that a noisy frame does not set it). joints_m: (F, J, 3)."""
+    ankle_y = joints_m[:, list(ANKLES), 1]
+    return ankle_y < np.percentile(ankle_y, 5, axis=0) + margin_m
+
+
 def ground(motion: Motion) -> Motion:
     """Put the floor at y = 0 under the standing feet and the first frame's pelvis above the origin.
 
@@ -114,11 +122,10 @@ def ground(motion: Motion) -> Motion:
     moves it little; a foot tilted at every frame (:func:`level_feet` first) would stand on its ball.
     """
     joints = motion.joints()
-    soles = []
-    for ankle, ball in FEET_BONES:
-        ankle_y = joints[:, ankle, 1]
-        down = ankle_y < np.percentile(ankle_y, 5) + FOOT_DOWN_M
-        soles.append(joints[down, ball, 1] - FOOT_JOINT_HEIGHT_M)
+    down = feet_down(joints, FOOT_DOWN_M)
+    soles = [
+        joints[down[:, side], ball, 1] - FOOT_JOINT_HEIGHT_M for side, (_, ball) in enumerate(FEET_BONES)
+    ]
     floor_y = float(np.median(np.concatenate(soles)))
     shift = np.array([-motion.root_pos_m[0, 0], -floor_y, -motion.root_pos_m[0, 2]])
     return motion.replace(root_pos_m=motion.root_pos_m + shift)
@@ -127,7 +134,6 @@ def ground(motion: Motion) -> Motion:
 # A body moves when its pelvis crosses the floor faster than this; below it, standing feet may shuffle.
 MOVING_M_S = 0.3
 STANCE_M_S = 0.1  # a foot slower than this over the floor stands (or is about to)
-ANKLES = (7, 8)
 
 
 def _floor_speeds(points_m: np.ndarray, fps: float) -> np.ndarray:
@@ -183,40 +189,43 @@ def level_feet(motion: Motion) -> Motion:
     local = motion.local_rot.copy()
     offsets = motion.offsets_m()
     limit = np.radians(MAX_FOOT_TURN_DEG)
-    for ankle, ball in FEET_BONES:
-        foot_m = offsets[ball]
-        axis = np.cross([0.0, 1.0, 0.0], foot_m)
-        if np.linalg.norm(axis) < 1e-9:
-            continue
-        axis /= np.linalg.norm(axis)
-        turned_rad = 0.0
-        for _ in range(2):  # measured in the world, turned in the ankle's frame: a second pass settles it
-            tilt_rad = _standing_tilt_rad(motion.replace(local_rot=local), ankle, foot_m)
-            step_rad = float(np.clip(tilt_rad, -limit - turned_rad, limit - turned_rad))
-            if abs(step_rad) < 1e-4:
-                break
-            turned_rad += step_rad
-            local[:, ankle] = local[:, ankle] @ Rotation.from_rotvec(axis * step_rad).as_matrix()
+    axes = np.cross([0.0, 1.0, 0.0], offsets[[ball for _, ball in FEET_BONES]])  # (2, 3) each foot's lateral
+    lengths = np.linalg.norm(axes, axis=1)
+    turned_rad = np.zeros(2)
+    for _ in range(2):  # measured in the world, turned in the ankle's frame: a second pass settles it
+        steps_rad = np.clip(
+            _standing_tilts_rad(motion.replace(local_rot=local)), -limit - turned_rad, limit - turned_rad
+        )
+        steps_rad[(np.abs(steps_rad) < 1e-4) | (lengths < 1e-9)] = 0.0
+        if not steps_rad.any():
+            break
+        turned_rad += steps_rad
+        for side, (ankle, _) in enumerate(FEET_BONES):
+            turn = Rotation.from_rotvec(axes[side] / max(lengths[side], 1e-9) * steps_rad[side]).as_matrix()
+            local[:, ankle] = local[:, ankle] @ turn
     return motion.replace(local_rot=local)
 
 
 def standing_foot_tilt_deg(motion: Motion) -> tuple[float, float]:
     """(left, right): how far each standing foot points its toes up against SMPL's flat rest foot, degrees
     (what :func:`level_feet` turns back)."""
-    offsets = motion.offsets_m()
-    left, right = (np.degrees(_standing_tilt_rad(motion, ankle, offsets[ball])) for ankle, ball in FEET_BONES)
+    left, right = np.degrees(_standing_tilts_rad(motion))
     return float(left), float(right)
 
 
-def _standing_tilt_rad(motion: Motion, ankle: int, foot_m: np.ndarray) -> float:
-    """How far the ankle->ball bone points above SMPL's flat rest foot (radians, positive: toes up), the
-    median over the frames where the foot is down."""
+def _standing_tilts_rad(motion: Motion) -> np.ndarray:
+    """(2,) left, right: how far each ankle->ball bone points above SMPL's flat rest foot (radians, positive:
+    toes up), the median over the frames where that foot is down."""
     joints, global_rot = motion.fk()
-    ankle_y = joints[:, ankle, 1]
-    down = ankle_y < np.percentile(ankle_y, 5) + FOOT_DOWN_M
-    bone = global_rot[down, ankle] @ foot_m  # (frames down, 3)
-    pitch = np.arcsin(np.clip(bone[:, 1] / np.linalg.norm(bone, axis=1), -1.0, 1.0))
-    return float(np.median(pitch) - np.arcsin(foot_m[1] / np.linalg.norm(foot_m)))
+    down = feet_down(joints, FOOT_DOWN_M)
+    offsets = motion.offsets_m()
+    tilts = np.zeros(2)
+    for side, (ankle, ball) in enumerate(FEET_BONES):
+        foot_m = offsets[ball]
+        bone = global_rot[down[:, side], ankle] @ foot_m  # (frames down, 3)
+        pitch = np.arcsin(np.clip(bone[:, 1] / np.linalg.norm(bone, axis=1), -1.0, 1.0))
+        tilts[side] = np.median(pitch) - np.arcsin(foot_m[1] / np.linalg.norm(foot_m))
+    return tilts
 
 
 def fix_feet(motion: Motion) -> Motion:
@@ -257,10 +266,9 @@ def support_lock_offsets_m(joints_m: np.ndarray, fps: float) -> np.ndarray:
     jump, a run's flight) the shift carries on unchanged, so the body flies as recorded.
     joints_m: (F, J, 3) SMPL-22 joints."""
     frames = len(joints_m)
-    ankle_y = joints_m[:, list(ANKLES), 1]
     mid_foot = 0.5 * (joints_m[:, list(ANKLES)] + joints_m[:, [10, 11]])  # (F, 2 feet, 3)
     speed = _floor_speeds(mid_foot, fps)
-    down = ankle_y < np.percentile(ankle_y, 5, axis=0) + SUPPORT_DOWN_M
+    down = feet_down(joints_m, SUPPORT_DOWN_M)
     offsets = np.zeros((frames, 2))
     support: int | None = None
     for i in range(1, frames):
