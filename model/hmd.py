@@ -78,12 +78,7 @@ class HmdFeatureExtractor:
         valid (3,) bool. Returns x_t (72,) float64."""
         poses = np.ascontiguousarray(poses, dtype=np.float64)
         valid = np.ascontiguousarray(valid, dtype=np.bool_)
-        if poses.shape != (3, 7) or valid.shape != (3,):
-            raise InputError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
-        if not np.isfinite(poses[valid]).all():
-            raise InputError("tracked poses must be finite")
-        if ((poses[:, 3:] ** 2).sum(-1)[valid] < 1e-12).any():
-            raise InputError("quaternion of zero length")
+        check_poses(poses, valid)
         return kernels.hmd_feature_step(
             int(t_us), poses, valid, self._history_t_us, self._history_pose, self._history_len,
             self._velocity, self._last_t_us, self._held, _TIMING,
@@ -92,6 +87,18 @@ class HmdFeatureExtractor:
 
 _TIMING: Final = np.array([MIN_DT_S, MAX_GAP_S, DT_REF_S])
 PLACEHOLDER_POSE: Final = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # origin, identity rotation
+
+
+def check_poses(poses: np.ndarray, valid: np.ndarray) -> None:
+    """Raise InputError unless poses is (3, 7), valid (3,), and every tracked pose finite with a quaternion
+    of non-zero length (an untracked device's numbers are not read)."""
+    poses, valid = np.asarray(poses), np.asarray(valid, dtype=bool)
+    if poses.shape != (3, 7) or valid.shape != (3,):
+        raise InputError(f"poses must be (3, 7) and valid (3,), got {poses.shape} and {valid.shape}")
+    if not np.isfinite(poses[valid]).all():
+        raise InputError("tracked poses must be finite")
+    if ((poses[:, 3:] ** 2).sum(-1)[valid] < 1e-12).any():
+        raise InputError("quaternion of zero length")
 
 
 def ignore_untracked(poses: np.ndarray, valid: np.ndarray) -> np.ndarray:

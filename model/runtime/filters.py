@@ -1,9 +1,16 @@
-"""One Euro filter (Casiez, Roussel and Vogel, CHI 2012), vectorised and driven by timestamps; and a point's
-speed over a sliding time window (:class:`WindowSpeed`), which the planted feet and the steady stance gate on.
+"""One Euro filter (Casiez, Roussel and Vogel, CHI 2012), vectorised and driven by timestamps; cascades of
+them (:class:`OneEuroCascade`); the tracked devices' poses smoothed (:class:`DevicePoseFilter`); and a
+point's speed over a sliding time window (:class:`WindowSpeed`), which the planted feet and the steady stance
+gate on.
 
-A first-order low-pass whose cutoff rises with speed: ``fc = min_cutoff_hz + beta * |dx/dt|``. Slow motion
-is smoothed hard (less jitter), fast motion passes with little lag. Each element of the signal (every joint
-coordinate, every visibility score) has its own adaptive cutoff.
+A One Euro filter is a first-order low-pass whose cutoff rises with speed: ``fc = min_cutoff_hz + beta *
+|dx/dt|``. Slow motion is smoothed hard (less jitter), fast motion passes with little lag. Each element of
+the signal (every joint coordinate, every visibility score) has its own adaptive cutoff.
+
+A first-order low-pass lets white noise through at -6 dB per octave above its cutoff, while jerk (the third
+derivative, which is what a viewer sees as jitter) amplifies it at +18 dB per octave: the noise near the
+sample rate dominates. Two stages at twice the cutoff lag as much as one at low frequencies and pass that
+noise at the square of one stage's gain, so the cascade is what smooths jitter for a given lag.
 
 Shape legend: ``...`` = the signal's shape, fixed for a filter's lifetime (e.g. (22, 3) joints, (22,) ζ).
 """
@@ -46,10 +53,12 @@ class OneEuroFilter:
         self._dx_hat: np.ndarray | None = None
         self._t_us: int | None = None
 
-    def __call__(self, t_us: int, x: np.ndarray) -> np.ndarray:
+    def __call__(self, t_us: int, x: np.ndarray, fresh: np.ndarray | None = None) -> np.ndarray:
         """Filter sample ``x`` (...) taken at ``t_us``; returns the filtered value (a new array).
 
-        A sample whose time does not advance returns the current estimate unchanged (no division by zero).
+        fresh: optional bool mask over x's leading axis; those rows start afresh (pass through, as after a
+        reset) while the others are filtered. A sample whose time does not advance returns the current
+        estimate unchanged (no division by zero), but for its fresh rows.
         """
         x = np.asarray(x, dtype=np.float64)
         if not np.isfinite(x).all():
@@ -61,18 +70,110 @@ class OneEuroFilter:
                 f"signal shape changed from {self._x_hat.shape} to {x.shape}; call reset() first"
             )
         dt_s = (int(t_us) - self._t_us) * 1e-6
-        if dt_s <= 0:
-            return self._x_hat.copy()
-        dx = (x - self._x_hat) / dt_s
-        self._dx_hat = self._dx_hat + smoothing_factor(dt_s, self.d_cutoff_hz) * (dx - self._dx_hat)
-        cutoff_hz = self.min_cutoff_hz + self.beta * np.abs(self._dx_hat)
-        self._x_hat = self._x_hat + smoothing_factor(dt_s, cutoff_hz) * (x - self._x_hat)
-        self._t_us = int(t_us)
+        if dt_s > 0:
+            dx = (x - self._x_hat) / dt_s
+            self._dx_hat = self._dx_hat + smoothing_factor(dt_s, self.d_cutoff_hz) * (dx - self._dx_hat)
+            cutoff_hz = self.min_cutoff_hz + self.beta * np.abs(self._dx_hat)
+            self._x_hat = self._x_hat + smoothing_factor(dt_s, cutoff_hz) * (x - self._x_hat)
+            self._t_us = int(t_us)
+        if fresh is not None:
+            self._x_hat[fresh] = x[fresh]
+            self._dx_hat[fresh] = 0.0
         return self._x_hat.copy()
+
+    @property
+    def value(self) -> np.ndarray | None:
+        """The last output, or None before the first sample (or after a reset)."""
+        return None if self._x_hat is None else self._x_hat.copy()
 
     def _start(self, t_us: int, x: np.ndarray) -> np.ndarray:
         self._x_hat, self._dx_hat, self._t_us = x.copy(), np.zeros_like(x), int(t_us)
         return x.copy()
+
+
+class OneEuroCascade:
+    """``stages`` One Euro filters in a row, each with the same parameters; called and reset like one."""
+
+    def __init__(self, min_cutoff_hz: float, beta: float, stages: int = 2, d_cutoff_hz: float = 1.0) -> None:
+        if stages < 1:
+            raise ValueError(f"need at least one stage, got {stages}")
+        self.stages = [OneEuroFilter(min_cutoff_hz, beta, d_cutoff_hz) for _ in range(stages)]
+
+    def reset(self) -> None:
+        for stage in self.stages:
+            stage.reset()
+
+    def __call__(self, t_us: int, x: np.ndarray, fresh: np.ndarray | None = None) -> np.ndarray:
+        for stage in self.stages:
+            x = stage(t_us, x, fresh)
+        return x
+
+    @property
+    def value(self) -> np.ndarray | None:
+        """The last output, or None before the first sample (or after a reset)."""
+        return self.stages[-1].value
+
+
+class DevicePoseFilter:
+    """The tracked devices' poses, smoothed: positions and rotations each through a
+    :class:`OneEuroCascade`, every device its own rows. Trackers jitter by a fraction of a millimetre and a
+    fraction of a degree per sample, which everything downstream (the network's inputs, the head anchor, the
+    wrists' KPO targets) would pass on to the served body as jitter.
+
+    A device that is not tracked is forgotten, so that it comes back where it is, not gliding from where it
+    was lost; a pause longer than ``max_gap_s`` or time going back forgets all of them. Rotations are
+    filtered as quaternions on the hemisphere of the last output, then normalised (steps between samples
+    are a few degrees at most, where that is as good as filtering on the sphere).
+
+    Shape legend: ``D`` = 3 devices (head, left, right); a pose is [p xyz m, q xyzw].
+    """
+
+    def __init__(
+        self,
+        position: tuple[float, float],
+        rotation: tuple[float, float],
+        stages: int = 2,
+        max_gap_s: float = 0.5,
+    ) -> None:
+        """position, rotation: (min_cutoff_hz, beta) of each, beta in Hz per m/s and Hz per (quaternion
+        units)/s."""
+        self._position = OneEuroCascade(*position, stages=stages)
+        self._rotation = OneEuroCascade(*rotation, stages=stages)
+        self.max_gap_s = max_gap_s
+        self.reset()
+
+    def reset(self) -> None:
+        self._position.reset()
+        self._rotation.reset()
+        self._last_us: int | None = None
+        self._tracked = np.zeros(3, dtype=bool)  # each device tracked at the last sample
+
+    def __call__(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """poses (D, 7) with finite tracked rows, valid (D,) bool -> (D, 7) smoothed (a copy; untracked rows
+        as given)."""
+        if self._last_us is not None and not 0 <= t_us - self._last_us <= self.max_gap_s * 1e6:
+            self.reset()
+        self._last_us = int(t_us)
+        valid = np.asarray(valid, dtype=bool)
+        fresh = ~(valid & self._tracked)  # lost now, or back since the last sample: start where it is
+        self._tracked = valid.copy()
+        poses = np.asarray(poses, dtype=np.float64)
+        out = poses.copy()
+        out[:, :3] = self._position(t_us, out[:, :3], fresh)
+        quats = out[:, 3:] / _norms(out[:, 3:])
+        last = self._rotation.value
+        if last is not None:  # each rotation on the side of its last output: q and -q are the same turn
+            quats[(quats * last).sum(axis=1) < 0.0] *= -1.0
+        quats = self._rotation(t_us, quats, fresh)
+        out[:, 3:] = quats / _norms(quats)
+        out[~valid] = poses[~valid]
+        return out
+
+
+def _norms(rows: np.ndarray) -> np.ndarray:
+    """(D, 1) each row's length, 1 where it is 0 (an untracked device's numbers may be anything)."""
+    norms = np.linalg.norm(rows, axis=1, keepdims=True)
+    return np.where(norms > 0.0, norms, 1.0)
 
 
 class WindowSpeed:

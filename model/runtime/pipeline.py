@@ -1,8 +1,9 @@
 """The serving pipeline: one :class:`Pipeline` per session, numpy + onnxruntime, no torch.
 
     push_rgbd(frame)   visual encoder once per NEW frame -> keypoint cache (frames.KeypointCache)
-    push_hmd(sample)   -> x_t into the HMD window -> heading frame -> visual tokens from the cache (Alg. 1)
-                       -> fusion net -> FK anchored at the headset's head joint -> One Euro on positions
+    push_hmd(sample)   devices smoothed (filters.DevicePoseFilter) -> x_t into the HMD window -> heading frame
+                       -> visual tokens from the cache (Alg. 1) -> fusion net -> FK anchored at the headset's head
+                       joint -> One Euro on positions (two stages)
                        -> KPO (if the model has it; lost controllers: hands.LostHandPolicy)
                        -> rotations re-derived from the positions -> PoseResult
 
@@ -20,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..hmd import HmdFeatureExtractor, TrackingState, ignore_untracked
+from ..hmd import HmdFeatureExtractor, TrackingState, check_poses, ignore_untracked
 from ..inputs import canonicalize_hmd, heading_frame
 from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
@@ -28,7 +29,7 @@ from . import kernels
 from .body import BodyCalibrator
 from .calibration import Calibration, body_measurements, canonical_poses
 from .contact import FootContacts
-from .filters import OneEuroFilter
+from .filters import DevicePoseFilter, OneEuroCascade
 from .frames import (
     CachedFrame,
     EncodedFrame,
@@ -43,10 +44,13 @@ from .kpo import KpoWeights, rederive_rotations, solve_kpo
 from .loading import LoadedModel
 from .stance import SteadyStance
 
-# One Euro on joint positions (paper Eq. 8). Chosen on 4 val clips: (4 Hz, 2) costs 0.2-0.3 cm MPJPE against no
-# filter and cuts jitter 4.5x; (2 Hz, 1) halves jitter again but lags by 0.6 cm upper body.
-POSITION_MIN_CUTOFF_HZ = 4.0
-POSITION_BETA = 2.0
+# One Euro on joint positions (paper Eq. 8), two stages (filters.OneEuroCascade), and on the devices' poses
+# before anything reads them (filters.DevicePoseFilter): the jitter/lag trade chosen on the training split
+# (MODEL_CARD.md, "Jitter").
+POSITION_MIN_CUTOFF_HZ = 6.0
+POSITION_BETA = 4.0  # Hz per m/s
+DEVICE_POSITION = (12.0, 40.0)  # (min cutoff Hz, beta Hz per m/s)
+DEVICE_ROTATION = (12.0, 10.0)  # (min cutoff Hz, beta Hz per quaternion unit/s)
 _PARENTS = PARENTS.astype(np.int64)
 _TRACKED = np.array(TRACKED_JOINTS)
 _LEG_BONES = np.array([4, 5, 7, 8])  # thighs and shins: the scale that a foot's step is measured in
@@ -119,7 +123,8 @@ class Pipeline:
         self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)
-        self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
+        self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
+        self.position_filter = OneEuroCascade(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.hands = LostHandPolicy()
         self.feet = FootContacts()
         self.stance = SteadyStance()
@@ -197,10 +202,9 @@ class Pipeline:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Update the stream state -> poses (3, 7), valid (3,), tracked joint positions (3, 3)."""
         valid = np.asarray(valid, dtype=bool)
-        poses = ignore_untracked(
-            poses, valid
-        )  # checks the shapes; an untracked device's numbers are never read
-        poses = canonical_poses(poses, self.calibration)
+        poses = ignore_untracked(poses, valid)  # an untracked device's numbers are never read
+        check_poses(poses, valid)  # before any state changes: a bad sample leaves the session as it was
+        poses = self.device_filter(t_us, canonical_poses(poses, self.calibration), valid)
         x = self.features.push(t_us, poses, valid)
         if self.model.info.config.device_validity:
             x = np.concatenate([x, self.tracking.push(t_us, valid)])

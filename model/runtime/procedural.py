@@ -29,19 +29,25 @@ from typing import Final
 
 import numpy as np
 
-from ...protocol.errors import InputError
 from ..config import FusionConfig, ModelMetadata
-from ..hmd import ignore_untracked
+from ..hmd import check_poses, ignore_untracked
 from ..inputs import heading_frame
 from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..skeleton import FOOT_JOINT_HEIGHT_M, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
 from .calibration import Calibration, body_measurements, canonical_poses
-from .filters import OneEuroFilter
+from .filters import DevicePoseFilter, OneEuroCascade
 from .kpo import rederive_rotations
 from .loading import ModelInfo
-from .pipeline import POSITION_BETA, POSITION_MIN_CUTOFF_HZ, PendingPose, PoseResult
+from .pipeline import (
+    DEVICE_POSITION,
+    DEVICE_ROTATION,
+    POSITION_BETA,
+    POSITION_MIN_CUTOFF_HZ,
+    PendingPose,
+    PoseResult,
+)
 
 NAME: Final = "procedural"
 DESCRIPTION: Final = "no network: pelvis under the head, planted feet that step, IK knees and arms (baseline)"
@@ -145,7 +151,8 @@ class ProceduralPipeline:
         self.frames_encoded = 0
         self.velocity = np.zeros(3)
         self.last_pelvis: np.ndarray | None = None
-        self.position_filter = OneEuroFilter(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
+        self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
+        self.position_filter = OneEuroCascade(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.standing_pelvis_y = 0.0  # the highest an upright pelvis under the head has been
         self.support_shift = np.zeros(3)
         if self.calibration is not None:
@@ -175,9 +182,8 @@ class ProceduralPipeline:
         t_us = int(t_us)
         valid = np.asarray(valid, dtype=bool)
         poses = ignore_untracked(poses, valid)
-        if not np.isfinite(poses[valid]).all():
-            raise InputError("tracked poses must be finite")
-        poses = canonical_poses(poses, self.calibration)
+        check_poses(poses, valid)
+        poses = self.device_filter(t_us, canonical_poses(poses, self.calibration), valid)
         if valid[0]:
             self.last_head = poses[0].copy()
         device_poses = poses.copy()

@@ -1,9 +1,17 @@
-"""The One Euro filter is a first-order low-pass at rest that opens up with speed."""
+"""The One Euro filter is a first-order low-pass at rest that opens up with speed; two of them in a row smooth
+jitter better for the same lag; the devices' poses are smoothed per device and forgotten when lost."""
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from egoposevr.model.runtime.filters import OneEuroFilter, WindowSpeed, smoothing_factor
+from egoposevr.model.runtime.filters import (
+    DevicePoseFilter,
+    OneEuroCascade,
+    OneEuroFilter,
+    WindowSpeed,
+    smoothing_factor,
+)
 
 DT_US = 10_000  # 100 Hz
 
@@ -93,3 +101,81 @@ def test_a_window_speed_is_the_move_over_the_window_not_the_per_sample_jitter():
         measured = speed.push(t_us, np.array([0.5 * t_us * 1e-6, 0.0, 0.0]) + rng.normal(0.0, 0.005, 3))
     assert measured == pytest.approx(0.5, abs=0.06)  # per-sample differences alone would read ~1 m/s
     assert 0.2 <= speed.span_s < 0.2 + 0.012 and speed.step_s == pytest.approx(0.011111)
+
+
+def _jerk(x: np.ndarray, dt_s: float) -> float:
+    return float(np.abs(np.diff(x, n=3, axis=0)).mean() / dt_s**3)
+
+
+def test_two_stages_at_twice_the_cutoff_lag_as_one_and_cut_the_jitter():
+    """A slow ramp with 1 mm of white noise at 90 Hz (beta 0: fixed cutoffs): the cascade lags the ramp
+    like the single stage (the sum of the stages' time constants) and its output's jerk is far lower."""
+    dt_us, n = 11_111, 900
+    t_us = np.arange(n) * dt_us
+    ramp = 0.3 * t_us * 1e-6  # 0.3 m/s
+    noisy = ramp + np.random.default_rng(0).normal(0.0, 0.001, n)
+    one, two = OneEuroFilter(4.0, 0.0), OneEuroCascade(8.0, 0.0, stages=2)
+    out_one = np.array([one(t, np.array([x]))[0] for t, x in zip(t_us, noisy, strict=True)])
+    out_two = np.array([two(t, np.array([x]))[0] for t, x in zip(t_us, noisy, strict=True)])
+    lag_one, lag_two = (float((ramp - out)[n // 2 :].mean()) for out in (out_one, out_two))
+    assert lag_two == pytest.approx(lag_one, rel=0.1)
+    assert _jerk(out_two, dt_us * 1e-6) < 0.5 * _jerk(out_one, dt_us * 1e-6)
+    assert two.value == pytest.approx([out_two[-1]])
+    two.reset()
+    assert two.value is None
+    with pytest.raises(ValueError, match="stage"):
+        OneEuroCascade(4.0, 0.0, stages=0)
+
+
+def _poses(position_m: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """(3, 7) poses: every device at position_m (3, 3) with rotations rotvec (3, 3)."""
+    return np.concatenate([position_m, Rotation.from_rotvec(rotvec).as_quat()], axis=1)
+
+
+def test_device_poses_are_smoothed_per_device_and_stay_unit_quaternions():
+    rng = np.random.default_rng(1)
+    filt = DevicePoseFilter(position=(12.0, 40.0), rotation=(12.0, 10.0))
+    rest = _poses(np.array([[0.0, 1.6, 0.0], [-0.3, 1.0, -0.3], [0.3, 1.0, -0.3]]), np.zeros((3, 3)))
+    raw_spread, out = [], []
+    for i in range(180):
+        noisy = rest.copy()
+        noisy[:, :3] += rng.normal(0.0, 0.001, (3, 3))
+        noisy[:, 3:] = Rotation.from_rotvec(rng.normal(0.0, np.radians(0.3), (3, 3))).as_quat()
+        noisy[1, 3:] *= -1.0 if i % 2 else 1.0  # the same rotation from either hemisphere
+        raw_spread.append(noisy[:, :3])
+        out.append(filt(i * 11_111, noisy, np.ones(3, dtype=bool)))
+    out = np.array(out)[30:]
+    assert np.allclose(np.linalg.norm(out[..., 3:], axis=-1), 1.0)
+    dt_s = 0.011111
+    assert _jerk(out[:, :, :3], dt_s) < 0.2 * _jerk(np.array(raw_spread)[30:], dt_s)
+    turned_deg = np.degrees(Rotation.from_quat(out[:, 1, 3:]).magnitude())
+    assert turned_deg.max() < 1.0  # the flipped quaternions did not average to nonsense (raw: 0.3° per axis)
+
+
+def test_a_lost_device_comes_back_where_it_is_and_a_pause_forgets_all():
+    filt = DevicePoseFilter(position=(12.0, 40.0), rotation=(12.0, 10.0))
+    here = _poses(np.zeros((3, 3)), np.zeros((3, 3)))
+    there = _poses(np.ones((3, 3)), np.full((3, 3), 0.5))
+    tracked = np.ones(3, dtype=bool)
+    for i in range(20):
+        filt(i * 11_111, here, tracked)
+    lost_left = np.array([True, False, True])
+    out = filt(20 * 11_111, there, lost_left)
+    np.testing.assert_array_equal(out[1], there[1])  # not tracked: as given, and forgotten
+    assert np.abs(out[0, :3] - there[0, :3]).min() > 0.1  # tracked: smoothed towards the jump
+    out = filt(21 * 11_111, there, tracked)
+    np.testing.assert_allclose(out[1], there[1])  # back where it is, no glide from where it was lost
+    out = filt(21 * 11_111 + 600_000, here, tracked)  # a pause longer than max_gap_s
+    np.testing.assert_allclose(out, here)
+    out = filt(0, there, tracked)  # time going back
+    np.testing.assert_allclose(out, there)
+
+
+def test_fresh_rows_start_afresh_while_the_others_are_filtered():
+    filt = OneEuroFilter(1.0, 0.0)
+    filt(0, np.zeros((2, 3)))
+    out = filt(10_000, np.ones((2, 3)), fresh=np.array([False, True]))
+    np.testing.assert_array_equal(out[1], np.ones(3))  # passed through
+    assert (out[0] < 0.1).all()  # smoothed
+    out = filt(20_000, np.full((2, 3), 2.0))
+    assert (out[1] > 1.0).all() and (out[1] < 2.0).all()  # filtered again, from where it restarted

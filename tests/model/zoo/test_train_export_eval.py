@@ -242,6 +242,29 @@ def test_bad_headset_input_is_refused_and_the_pipeline_keeps_working(tiny_weight
     assert np.isfinite(pipeline.push_hmd(0, seq["hmd_poses"][0], seq["hmd_valid"][0]).joints).all()
 
 
+def test_a_refused_sample_leaves_the_session_as_it_was(tiny_weights, val):
+    """A bad sample in mid-stream (NaN, a zero quaternion) changes nothing: the next good sample gets the pose
+    that a session which never saw the bad one gives (the smoothing of the devices included)."""
+    seq, _ = val
+    model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+    clean, disturbed = Pipeline(model), Pipeline(model)
+    t_us, poses, valid = seq["hmd_t_us"], seq["hmd_poses"], seq["hmd_valid"]
+    for i in range(5):
+        clean.push_hmd(int(t_us[i]), poses[i], valid[i])
+        disturbed.push_hmd(int(t_us[i]), poses[i], valid[i])
+        nan, zero = poses[i + 1].copy(), poses[i + 1].copy()
+        nan[0, 1] = np.nan
+        zero[0, 3:] = 0.0
+        with pytest.raises(ValueError, match="finite"):
+            disturbed.push_hmd(int(t_us[i + 1]), nan, np.ones(3, dtype=bool))
+        with pytest.raises(ValueError, match="zero length"):
+            disturbed.push_hmd(int(t_us[i + 1]), zero, np.ones(3, dtype=bool))
+    expected = clean.push_hmd(int(t_us[5]), poses[5], valid[5])
+    np.testing.assert_array_equal(
+        disturbed.push_hmd(int(t_us[5]), poses[5], valid[5]).joints, expected.joints
+    )
+
+
 def test_files_that_are_not_models_are_refused_clearly(tiny_weights, tmp_path):
     junk = tmp_path / "junk.onnx"
     junk.write_bytes(b"not a graph")
