@@ -1,9 +1,16 @@
-"""What the served wrist does when its controller is lost (it reports its last pose with ``valid = False``).
+"""Where the served wrists are and which way the served head and hands face, from the devices, and what a wrist
+does when its controller is lost (it reports its last pose with ``valid = False``).
 
-KPO holds the wrist at the network's position plus the correction tracking last gave it, fading with
-``LOST_HAND_FADE_S``, for ``LOST_HAND_HOLD_S``; then the wrist is free like any untracked joint. Without it
-the served hand jumps where the network alone puts it at the moment of loss. MODEL_CARD.md ("Lost
-controllers") has the measurements that chose the policy and its constants.
+- **Position of a lost wrist**: KPO holds the wrist at the network's position plus the correction tracking
+  last gave it, fading with ``LOST_HAND_FADE_S``, for ``LOST_HAND_HOLD_S``; then the wrist is free like any
+  untracked joint. Without it the served hand jumps where the network alone puts it at the moment of loss.
+- **Orientation** (:meth:`LostHandPolicy.orientations`): a tracked device says how its joint is turned far
+  better than the network does (the head and wrists are leaves, whose predicted rotations nothing else
+  corrects), so the served head and each tracked hand take their device's global rotation. A lost hand
+  keeps the turn that tracking last gave it against the network's, fading the same way but with no hold (a
+  turn left at its end would snap).
+
+MODEL_CARD.md ("Lost controllers", "Heads and hands that face as their devices") has the measurements.
 
 Shape legend: ``J`` = 22 joints; devices 0 head, 1 left controller, 2 right controller.
 """
@@ -13,10 +20,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..rig import TRACKED_JOINTS
+from . import kernels
 
 LOST_HAND_FADE_S = 0.5
 LOST_HAND_HOLD_S = 1.5
 CONTROLLERS = (1, 2)
+FADED = 1e-3  # a lost hand's turn this small is dropped
 
 
 class LostHandPolicy:
@@ -25,6 +34,9 @@ class LostHandPolicy:
     def __init__(self) -> None:
         self._last_tracked: dict[int, tuple[np.ndarray, int]] = {}  # device -> (wrist m, t_us)
         self._correction: dict[int, np.ndarray] = {}  # lost device -> last tracked - network, m
+        self._last_rot: dict[int, np.ndarray] = {}  # device -> the wrist's last tracked global rotation
+        # lost device -> (rotation vector from the network's wrist to the tracked one, the first lost t_us)
+        self._turn: dict[int, tuple[np.ndarray, int]] = {}
 
     def targets(
         self,
@@ -57,3 +69,34 @@ class LostHandPolicy:
             correction = self._correction.setdefault(device, last_pos - joints[wrist])
             targets[wrist] = joints[wrist] + np.exp(-age_s / LOST_HAND_FADE_S) * correction
             observed[wrist] = True
+
+    def orientations(
+        self, t_us: int, valid: np.ndarray, tracked_rot: np.ndarray, glob: np.ndarray
+    ) -> tuple[list[int], list[np.ndarray]]:
+        """The leaves whose served global rotation the devices give, and those rotations: the head and each
+        tracked wrist their device's; a lost wrist the network's, turned by the difference at the loss,
+        fading with LOST_HAND_FADE_S until under FADED. tracked_rot (3, 3, 3) the devices' joint
+        rotations, glob (J, 3, 3) the served global rotations so far -> (joints, rotations (3, 3) each)."""
+        leaves: list[int] = [TRACKED_JOINTS[0]] if valid[0] else []
+        rotations: list[np.ndarray] = [tracked_rot[0]] if valid[0] else []
+        for device in CONTROLLERS:
+            wrist = TRACKED_JOINTS[device]
+            if valid[device]:
+                self._last_rot[device] = tracked_rot[device]
+                self._turn.pop(device, None)
+                leaves.append(wrist)
+                rotations.append(tracked_rot[device])
+                continue
+            if device not in self._last_rot:
+                continue
+            if device not in self._turn:  # the first lost sample: from the last tracked rotation
+                last_rot = self._last_rot[device]
+                self._turn[device] = (kernels.matrices_to_rotvecs((last_rot @ glob[wrist].T)[None])[0], t_us)
+            turn, lost_us = self._turn[device]
+            share = np.exp(-max(t_us - lost_us, 0) * 1e-6 / LOST_HAND_FADE_S)
+            if share < FADED:  # unlike the position, no hold: a turn that is left when it ends would snap
+                continue
+            faded = kernels.rotvecs_to_matrices((share * turn)[None])[0]
+            leaves.append(wrist)
+            rotations.append(faded @ glob[wrist])
+        return leaves, rotations

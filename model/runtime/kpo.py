@@ -123,6 +123,19 @@ _LEAVES: Final = np.array([j for j in range(NUM_JOINTS) if not CHILDREN[j]], dty
 _PARENTS: Final = PARENTS.astype(np.int64)
 
 
+def orient_leaves(
+    local: np.ndarray, glob: np.ndarray, leaves: list[int], leaf_rot: np.ndarray | list[np.ndarray]
+) -> None:
+    """Turn leaf joints (head, wrists, feet: no child) so that their global rotations are ``leaf_rot``
+    (L, 3, 3). local (J, 3, 3) and glob (J, 3, 3), its FK's global rotations, change in place in the leaves'
+    rows; a leaf moves no joint, so FK's positions stay as they were."""
+    for joint, rot in zip(leaves, leaf_rot, strict=True):
+        if CHILDREN[joint]:
+            raise ValueError(f"joint {joint} is not a leaf")
+        local[joint] = glob[PARENTS[joint]].T @ rot
+        glob[joint] = rot
+
+
 def rederive_rotations(
     local_pred: np.ndarray, joints: np.ndarray, offsets: np.ndarray, glob_pred: np.ndarray | None = None
 ) -> np.ndarray:

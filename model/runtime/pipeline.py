@@ -40,7 +40,7 @@ from .frames import (
     head_from_cam,
 )
 from .hands import LostHandPolicy
-from .kpo import KpoWeights, rederive_rotations, solve_kpo
+from .kpo import KpoWeights, orient_leaves, rederive_rotations, solve_kpo
 from .loading import LoadedModel
 from .stance import SteadyStance
 
@@ -199,8 +199,9 @@ class Pipeline:
 
     def _ingest(
         self, t_us: int, poses: np.ndarray, valid: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Update the stream state -> poses (3, 7), valid (3,), tracked joint positions (3, 3)."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Update the stream state -> poses (3, 7), valid (3,), tracked joints' positions (3, 3) and global
+        rotations (3, 3, 3)."""
         valid = np.asarray(valid, dtype=bool)
         poses = ignore_untracked(poses, valid)  # an untracked device's numbers are never read
         check_poses(poses, valid)  # before any state changes: a bad sample leaves the session as it was
@@ -217,10 +218,10 @@ class Pipeline:
         self.hmd_window[-1] = x
         device_poses = poses.copy()
         device_poses[0] = self.last_head_pose  # the newest tracked headset pose
-        tracked_pos, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
+        tracked_pos, tracked_rot = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
         if not self.fixed_body and self.body.push(tracked_pos, valid):
             self.offsets = rest_offsets(self.body.bone_scale)
-        return poses, valid, tracked_pos
+        return poses, valid, tracked_pos, tracked_rot
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
@@ -233,7 +234,7 @@ class Pipeline:
         and then :meth:`finish_hmd` each; nothing else may touch this pipeline in between."""
         started = time.perf_counter()
         t_us = int(t_us)
-        _, valid, tracked_pos = self._ingest(t_us, poses, valid)
+        _, valid, tracked_pos, tracked_rot = self._ingest(t_us, poses, valid)
         rot, origin = heading_frame(self.last_head_pose)
         inputs = {"hmd": canonicalize_hmd(self.hmd_window, rot, origin)[None]}  # float32
         features_done = time.perf_counter()
@@ -246,7 +247,9 @@ class Pipeline:
             inputs["visual"] = tokens[None]
             timing["visual"] = self._pending_visual_us + int((time.perf_counter() - features_done) * 1e6)
             self._pending_visual_us = 0
-        return PendingPose(t_us, valid, tracked_pos, rot, camera, timing, self.model, inputs)
+        return PendingPose(
+            t_us, valid, tracked_pos, rot, camera, timing, self.model, inputs, tracked_rot=tracked_rot
+        )
 
     def finish_hmd(self, pending: PendingPose, sixd: np.ndarray) -> PoseResult:
         """The rest of :meth:`push_hmd` from the fusion net's output sixd (J, 6): FK, filter, KPO,
@@ -282,7 +285,10 @@ class Pipeline:
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)
         # The served joints are FK of the served rotations, so the two always agree exactly.
-        joints, _ = kernels.forward_kinematics_one(local, joints[0].copy(), self.offsets, _PARENTS)
+        joints, glob = kernels.forward_kinematics_one(local, joints[0].copy(), self.offsets, _PARENTS)
+        if pending.tracked_rot is not None:  # head and hands face as their devices do (no joint moves)
+            leaves, leaf_rot = self.hands.orientations(t_us, valid, pending.tracked_rot, glob)
+            orient_leaves(local, glob, leaves, leaf_rot)
         axis_angle = kernels.matrices_to_rotvecs(local)
         global_orient, body_pose = axis_angle[0], axis_angle[1:].reshape(-1)
         lap("rotations")
@@ -314,6 +320,9 @@ class PendingPose:
     inputs: dict[str, np.ndarray]  # hmd (1, T, D) [, visual (1, Tv, 90)] float32; {} runs no net
     done: PoseResult | None = None  # a pipeline without a net (procedural) answers in begin_hmd
     contact_p: np.ndarray | None = None  # (2,) left / right foot on the floor, from a net with a contact head
+    tracked_rot: np.ndarray | None = (
+        None  # (3, 3, 3) the head's and wrists' global rotations from the devices
+    )
 
 
 def run_fusion(pending: list[PendingPose]) -> list[np.ndarray | None]:

@@ -12,10 +12,12 @@ avatar legs that VR users know):
   body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
   stood, it steps in ``STEP_S`` along a low arc to where its hip will be when the step ends (the pelvis's
   smoothed velocity ahead); one foot at a time;
-- the joints get the One Euro filter of the network pipeline, except the feet and tracked wrists (exact);
+- the devices get the network pipeline's smoothing, and the joints its One Euro filter, except the feet and
+  tracked wrists (exact);
 - knees and elbows by two-bone IK (knees forward, elbows down and back); a wrist goes to its controller, or
   hangs when the controller is lost; crouching bends the knees, never sinks the feet;
-- the served rotations are re-derived from the joints (:func:`.kpo.rederive_rotations`), as for every model.
+- the served rotations are re-derived from the joints (:func:`.kpo.rederive_rotations`), as for every model,
+  and the head and hands face as their devices do (:meth:`.hands.LostHandPolicy.orientations`).
 
 Shape legend: ``J`` = 22 joints; device order head, left, right.
 """
@@ -38,7 +40,8 @@ from . import kernels
 from .body import BodyCalibrator
 from .calibration import Calibration, body_measurements, canonical_poses
 from .filters import DevicePoseFilter, OneEuroCascade
-from .kpo import rederive_rotations
+from .hands import LostHandPolicy
+from .kpo import orient_leaves, rederive_rotations
 from .loading import ModelInfo
 from .pipeline import (
     DEVICE_POSITION,
@@ -152,6 +155,7 @@ class ProceduralPipeline:
         self.velocity = np.zeros(3)
         self.last_pelvis: np.ndarray | None = None
         self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
+        self.hands = LostHandPolicy()  # the head's and hands' orientations from their devices
         self.position_filter = OneEuroCascade(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.standing_pelvis_y = 0.0  # the highest an upright pelvis under the head has been
         self.support_shift = np.zeros(3)
@@ -188,7 +192,7 @@ class ProceduralPipeline:
             self.last_head = poses[0].copy()
         device_poses = poses.copy()
         device_poses[0] = self.last_head
-        tracked, _ = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
+        tracked, tracked_rot = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
         if not self.fixed_body and self.body.push(tracked, valid):
             self._set_offsets(rest_offsets(self.body.bone_scale))
         dt_s = 0.0 if self.last_t_us is None else max(t_us - self.last_t_us, 0) * 1e-6
@@ -202,9 +206,10 @@ class ProceduralPipeline:
         local[0] = body_rot
         glob = np.broadcast_to(body_rot, (NUM_JOINTS, 3, 3))  # FK of identity joints under the pelvis
         local = rederive_rotations(local, joints, self.offsets, glob)
-        joints, _ = kernels.forward_kinematics_one(
+        joints, glob = kernels.forward_kinematics_one(
             local, joints[0].copy(), self.offsets, PARENTS.astype(np.int64)
         )
+        orient_leaves(local, glob, *self.hands.orientations(t_us, valid, tracked_rot, glob))
         axis_angle = kernels.matrices_to_rotvecs(local)
         return PoseResult(
             t_us=t_us, model=NAME, global_orient=axis_angle[0], body_pose=axis_angle[1:].reshape(-1),

@@ -9,6 +9,8 @@ asks for a pose. Metrics, per the paper's Tables 2-3:
 - MPJRE (deg): geodesic angle between served and true local rotations (row 0: pelvis global);
 - H-PE (cm): wrists' position error; H-PE lost: the same over the wrists whose controller is lost at that
   sample (``lost_share``: how often that is);  Jitter (m/s³): mean norm of the third time derivative of positions;
+- Facing (deg): geodesic angle between the served and true GLOBAL rotations of the head and of the wrists
+  (which way the face looks and the hands point: what a viewer sees, which MPJRE's local angles do not say);
 - FPS: one stream, batch 1, a NEW RGB-D frame before every headset sample (decode + visual encoder
   included), wall clock, median of ``FPS_REPEATS`` runs.
 
@@ -33,7 +35,7 @@ from ..runtime.frames import encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
-from ..skeleton import LOWER_BODY, UPPER_BODY
+from ..skeleton import LOWER_BODY, PARENTS, UPPER_BODY
 from .dataset import DatasetError, load_split
 from .plausibility import plausibility, summarize_plausibility
 
@@ -42,11 +44,12 @@ FPS_SAMPLES = 200
 FPS_REPEATS = 3
 METRIC_KEYS = (
     "mpjpe_u_cm", "mpjpe_l_cm", "pa_mpjpe_u_cm", "pa_mpjpe_l_cm", "mpjre_u_deg", "mpjre_l_deg", "hpe_cm",
-    "hpe_lost_cm", "lost_share",
+    "hpe_lost_cm", "lost_share", "facing_head_deg", "facing_hands_deg",
     "jitter", "foot_skate_cm_s", "floor_float_cm", "floor_penetration_cm", "leg_leakage_cm", "jerk", "jerk_true",
     "fps",
 )  # fmt: skip
 WRISTS = np.array([20, 21])
+HEAD_JOINT: Final = 15
 
 
 def replay_sequence(
@@ -83,6 +86,17 @@ def procrustes_aligned(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return scale[:, None, None] * p @ rot + mu_g
 
 
+FACING: Final = np.array([HEAD_JOINT, *WRISTS])  # the joints whose global rotation "facing" measures
+
+
+def _global(local_rot: np.ndarray) -> np.ndarray:
+    """(N, J, 3, 3) local rotations (row 0 the pelvis' global) -> global rotations, down the tree."""
+    glob = local_rot.copy()
+    for joint in range(1, local_rot.shape[1]):
+        glob[:, joint] = glob[:, PARENTS[joint]] @ local_rot[:, joint]
+    return glob
+
+
 def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -> dict[str, np.ndarray]:
     """Per-sample, per-joint errors of one sequence: position (N, J) m, aligned (N, J) m, rotation (N, J) deg,
     and the jitter of the served joints (N-3,) m/s³."""
@@ -94,6 +108,7 @@ def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -
         "pos": np.linalg.norm(joints - gt, axis=-1),
         "pa": np.linalg.norm(procrustes_aligned(joints, gt) - gt, axis=-1),
         "rot": np.degrees(geodesic_angle(rots, gt_rot)),
+        "facing": np.degrees(geodesic_angle(_global(rots)[:, FACING], _global(gt_rot)[:, FACING])),
         "jitter": np.linalg.norm(third, axis=-1).mean(-1),
         "plausibility": plausibility(joints, gt, np.asarray(seq["hmd_t_us"])),
         "lost": ~np.asarray(seq["hmd_valid"], dtype=bool)[:, 1:],  # (N, 2) left, right controller lost
@@ -107,6 +122,7 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
     rot = np.concatenate([e["rot"] for e in errors])
     jitter = np.concatenate([e["jitter"] for e in errors])
     lost = np.concatenate([e["lost"] for e in errors])  # (N, 2), the wrists' order
+    facing = np.concatenate([e["facing"] for e in errors])  # (N, 3) head, left wrist, right wrist
     wrists = pos[:, WRISTS]
     return {
         "mpjpe_u_cm": 100 * float(pos[:, UPPER_BODY].mean()),
@@ -118,6 +134,8 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
         "hpe_cm": 100 * float(wrists.mean()),
         "hpe_lost_cm": 100 * float(wrists[lost].mean()) if lost.any() else float("nan"),
         "lost_share": float(lost.mean()),
+        "facing_head_deg": float(facing[:, 0].mean()),
+        "facing_hands_deg": float(facing[:, 1:].mean()),
         "jitter": float(jitter.mean()) if len(jitter) else 0.0,
         **summarize_plausibility([e["plausibility"] for e in errors]),
     }
@@ -326,13 +344,14 @@ def markdown_table(results: dict[str, dict[str, float]]) -> str:
     """The paper's Tables 2-3 shape: one row per model."""
     head = (
         "| model | MPJPE-U cm | MPJPE-L cm | PA-MPJPE-U cm | PA-MPJPE-L cm | MPJRE-U ° | MPJRE-L ° | H-PE cm "
-        "| H-PE lost cm | Jitter m/s³ | FPS |"
+        "| H-PE lost cm | facing head / hands ° | Jitter m/s³ | FPS |"
     )
-    rows = [head, "|" + "---|" * 11]
+    rows = [head, "|" + "---|" * 12]
     for name, m in results.items():
         rows.append(
             f"| {name} | {m['mpjpe_u_cm']:.2f} | {m['mpjpe_l_cm']:.2f} | {m['pa_mpjpe_u_cm']:.2f} | "
             f"{m['pa_mpjpe_l_cm']:.2f} | {m['mpjre_u_deg']:.2f} | {m['mpjre_l_deg']:.2f} | {m['hpe_cm']:.2f} | "
-            f"{m['hpe_lost_cm']:.2f} | {m['jitter']:.1f} | {m['fps']:.0f} |"
+            f"{m['hpe_lost_cm']:.2f} | {m['facing_head_deg']:.1f} / {m['facing_hands_deg']:.1f} | "
+            f"{m['jitter']:.1f} | {m['fps']:.0f} |"
         )
     return "\n".join(rows)

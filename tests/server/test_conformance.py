@@ -427,6 +427,25 @@ def test_every_pose_answers_its_sample_with_its_truth_and_agrees_with_its_rotati
         assert np.abs(rebuilt - joints).max() < 1e-4
 
 
+@pytest.mark.protocol("pose-faces-devices")
+@pytest.mark.parametrize("model", ["egoposevr", "procedural"])
+def test_the_served_head_and_hands_face_as_their_devices(server, model):
+    from scipy.spatial.transform import Rotation
+
+    from egoposevr.model.skeleton import smpl_to_local_rot
+
+    first = _hmd_stream(limit=10)[0]
+    still = [first.model_copy(update={"seq": k, "t_us": first.t_us + k * 11_111}) for k in range(40)]
+    pose = _serve(server, f"faces-{model}", still, model=model)[39]
+    local = smpl_to_local_rot(np.array(pose.global_orient), np.array(pose.body_pose))
+    _, global_rot = forward_kinematics(local, np.zeros(3), np.zeros((22, 3)))
+    devices = Rotation.from_quat(np.reshape(first.poses(), (3, 7))[:, 3:]).as_matrix()
+    assert all(first.valid)
+    for joint, device in zip((15, 20, 21), devices, strict=True):
+        wanted = device @ np.diag([-1.0, 1.0, -1.0])
+        assert np.degrees(Rotation.from_matrix(global_rot[joint].T @ wanted).magnitude()) < 0.5
+
+
 def _offsets_from(joints: np.ndarray, local: np.ndarray, parents: list[int]) -> np.ndarray:
     """The skeleton's rest offsets implied by served joints and rotations (FK inverted bone by bone)."""
     _, global_rot = forward_kinematics(local, joints[0], np.zeros((22, 3)))

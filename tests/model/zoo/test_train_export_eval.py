@@ -6,10 +6,13 @@ import numpy as np
 import pytest
 
 from egoposevr.cli.main import main
+from egoposevr.model.rig import joints_from_devices
+from egoposevr.model.rotations import geodesic_angle
 from egoposevr.model.runtime import hands
 from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
-from egoposevr.model.skeleton import rest_offsets
+from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
+from egoposevr.model.skeleton import PARENTS, forward_kinematics, rest_offsets
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
 from egoposevr.model.training.dataset import load_split, load_splits, split_camera
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
@@ -402,6 +405,40 @@ def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(ti
     jump_cm = 100 * np.linalg.norm(handed_over[60] - handed_over[59])
     assert jump_cm < 1.0
     assert 100 * np.linalg.norm(dropped[60] - dropped[59]) > 3 * jump_cm  # what the hold prevents
+
+
+def _global_rotations(local: np.ndarray) -> np.ndarray:
+    glob = local.copy()
+    for joint in range(1, 22):
+        glob[joint] = glob[PARENTS[joint]] @ local[joint]
+    return glob
+
+
+@pytest.mark.parametrize("model_name", ["egoposevr", "hmd", "procedural"])
+def test_the_served_head_and_hands_face_as_their_devices(tiny_weights, val, model_name):
+    """Whatever the (here untrained) network says, the served head and tracked hands take their devices'
+    global rotations, and a lost hand starts from its last tracked rotation."""
+    seq, _ = val
+    model = (
+        ProceduralModel()
+        if model_name == "procedural"
+        else LoadedModel.load(tiny_weights / f"{model_name}.onnx")
+    )
+    pipeline = pipeline_for(model)
+    poses = seq["hmd_poses"][0].copy()
+    _, device_rot = joints_from_devices(poses, model.info.rig_offsets_m)
+    t0, valid = int(seq["hmd_t_us"][0]), np.ones(3, dtype=bool)
+    for i in range(60):  # still devices: the smoothing has settled on them
+        pose = pipeline.push_hmd(t0 + i * 11_111, poses, valid)
+    glob = _global_rotations(pose.local_rot)
+    for row, joint in enumerate((15, 20, 21)):
+        assert np.degrees(geodesic_angle(glob[joint], device_rot[row])) < 0.1
+    np.testing.assert_allclose(  # a leaf turned moves no joint: the served joints are FK of the rotations
+        forward_kinematics(pose.local_rot, pose.transl, pipeline.offsets)[0], pose.joints, atol=1e-9
+    )
+    valid[1] = False  # the left controller is lost: it repeats its last pose
+    pose = pipeline.push_hmd(t0 + 60 * 11_111, poses, valid)
+    assert np.degrees(geodesic_angle(_global_rotations(pose.local_rot)[20], device_rot[1])) < 1.0
 
 
 def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny_weights, tmp_path, capsys):
