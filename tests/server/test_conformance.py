@@ -436,14 +436,22 @@ def test_the_served_head_and_hands_face_as_their_devices(server, model):
 
     first = _hmd_stream(limit=10)[0]
     still = [first.model_copy(update={"seq": k, "t_us": first.t_us + k * 11_111}) for k in range(40)]
-    pose = _serve(server, f"faces-{model}", still, model=model)[39]
-    local = smpl_to_local_rot(np.array(pose.global_orient), np.array(pose.body_pose))
-    _, global_rot = forward_kinematics(local, np.zeros(3), np.zeros((22, 3)))
+    lost_left = first.model_copy(
+        update={"seq": 40, "t_us": first.t_us + 40 * 11_111, "valid": [True, False, True]}
+    )
+    poses = _serve(server, f"faces-{model}", [*still, lost_left], model=model)
     devices = Rotation.from_quat(np.reshape(first.poses(), (3, 7))[:, 3:]).as_matrix()
     assert all(first.valid)
-    for joint, device in zip((15, 20, 21), devices, strict=True):
+
+    def off_deg(pose: Any, joint: int, device: np.ndarray) -> float:
+        local = smpl_to_local_rot(np.array(pose.global_orient), np.array(pose.body_pose))
+        _, global_rot = forward_kinematics(local, np.zeros(3), np.zeros((22, 3)))
         wanted = device @ np.diag([-1.0, 1.0, -1.0])
-        assert np.degrees(Rotation.from_matrix(global_rot[joint].T @ wanted).magnitude()) < 0.5
+        return float(np.degrees(Rotation.from_matrix(global_rot[joint].T @ wanted).magnitude()))
+
+    for joint, device in zip((15, 20, 21), devices, strict=True):
+        assert off_deg(poses[39], joint, device) < 0.5
+    assert off_deg(poses[40], 20, devices[1]) < 1.0  # lost: it starts where tracking left it
 
 
 def _offsets_from(joints: np.ndarray, local: np.ndarray, parents: list[int]) -> np.ndarray:
