@@ -121,7 +121,9 @@ class DevicePoseFilter:
     wrists' KPO targets) would pass on to the served body as jitter.
 
     A device that is not tracked is forgotten, so that it comes back where it is, not gliding from where it
-    was lost; a pause longer than ``max_gap_s`` or time going back forgets all of them. Rotations are
+    was lost; so is one that jumps more than ``jump_m`` from one sample to the next (a recentred reference
+    space, a replay that starts over: no body moves that fast, and a glide would read as motion); a pause
+    longer than ``max_gap_s`` or time going back forgets all of them. Rotations are
     filtered as quaternions on the hemisphere of the last output, then normalised (steps between samples
     are a few degrees at most, where that is as good as filtering on the sphere).
 
@@ -134,12 +136,13 @@ class DevicePoseFilter:
         rotation: tuple[float, float],
         stages: int = 2,
         max_gap_s: float = 0.5,
+        jump_m: float = 0.25,
     ) -> None:
         """position, rotation: (min_cutoff_hz, beta) of each, beta in Hz per m/s and Hz per (quaternion
         units)/s."""
         self._position = OneEuroCascade(*position, stages=stages)
         self._rotation = OneEuroCascade(*rotation, stages=stages)
-        self.max_gap_s = max_gap_s
+        self.max_gap_s, self.jump_m = max_gap_s, jump_m
         self.reset()
 
     def reset(self) -> None:
@@ -147,6 +150,8 @@ class DevicePoseFilter:
         self._rotation.reset()
         self._last_us: int | None = None
         self._tracked = np.zeros(3, dtype=bool)  # each device tracked at the last sample
+        self._last_pos = np.zeros((3, 3))  # each device's position as given at the last sample, m
+        self.jumped = np.zeros(3, dtype=bool)  # each tracked device jumped at the last sample (jump_m)
 
     def __call__(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """poses (D, 7) with finite tracked rows, valid (D,) bool -> (D, 7) smoothed (a copy; untracked rows
@@ -155,9 +160,12 @@ class DevicePoseFilter:
             self.reset()
         self._last_us = int(t_us)
         valid = np.asarray(valid, dtype=bool)
-        fresh = ~(valid & self._tracked)  # lost now, or back since the last sample: start where it is
-        self._tracked = valid.copy()
         poses = np.asarray(poses, dtype=np.float64)
+        self.jumped = (
+            valid & self._tracked & (np.linalg.norm(poses[:, :3] - self._last_pos, axis=1) > self.jump_m)
+        )
+        fresh = ~(valid & self._tracked) | self.jumped  # lost now, back since the last sample, or teleported
+        self._tracked, self._last_pos = valid.copy(), poses[:, :3].copy()
         out = poses.copy()
         out[:, :3] = self._position(t_us, out[:, :3], fresh)
         quats = out[:, 3:] / _norms(out[:, 3:])

@@ -137,11 +137,16 @@ class KeypointCache:
 
     def __init__(self, visual_window: int, naive: bool = False) -> None:
         self.visual_window, self.naive = visual_window, naive
-        self.frames: deque[CachedFrame] = deque(maxlen=max(visual_window, 1))
+        self.frames_encoded = 0
+        self.forget()
+
+    def forget(self) -> None:
+        """Drop the frames, the visibility filter's state and the remembered headset poses (the count of
+        encoder runs stays)."""
+        self.frames: deque[CachedFrame] = deque(maxlen=max(self.visual_window, 1))
         self.visibility = VisibilityFilter()
         self.head_t_us: deque[int] = deque()
         self.head_poses: deque[np.ndarray] = deque()
-        self.frames_encoded = 0
 
     def takes(self, t_us: int) -> bool:
         """Whether a frame captured at t_us is newer than every cached one (the cache is ordered)."""

@@ -132,6 +132,17 @@ class Pipeline:
         if self.calibration is not None:
             self._apply_calibration()
 
+    def _restart_stream(self) -> None:
+        """The headset jumped (filters.DevicePoseFilter.jump_m: a recentred reference space, a replay that
+        starts over): the stream before it would read as a flight across the room. The HMD window, the
+        frames and the filters start again from this sample, and no foot stays planted where the body was;
+        the body's size, the calibration and the tracking state stay."""
+        self.features = HmdFeatureExtractor()
+        self.hmd_window = None
+        self.cache.forget()
+        self.position_filter.reset()
+        self.feet, self.stance, self.hands = FootContacts(), SteadyStance(), LostHandPolicy()
+
     @property
     def frames_encoded(self) -> int:
         """Encoder runs so far (the naive baseline counts every re-encoded frame)."""
@@ -206,6 +217,8 @@ class Pipeline:
         poses = ignore_untracked(poses, valid)  # an untracked device's numbers are never read
         check_poses(poses, valid)  # before any state changes: a bad sample leaves the session as it was
         poses = self.device_filter(t_us, canonical_poses(poses, self.calibration), valid)
+        if self.device_filter.jumped[0]:
+            self._restart_stream()
         x = self.features.push(t_us, poses, valid)
         if self.model.info.config.device_validity:
             x = np.concatenate([x, self.tracking.push(t_us, valid)])

@@ -146,6 +146,15 @@ class ProceduralPipeline:
     def reset(self) -> None:
         self.body = BodyCalibrator()
         self._set_offsets(rest_offsets(self.bone_scale))
+        self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
+        self._restart_stream()
+        if self.calibration is not None:
+            self.calibrate(self.calibration)
+
+    def _restart_stream(self) -> None:
+        """A new session, or the headset jumped (a recentred space, as in :meth:`Pipeline._restart_stream
+        <egoposevr.model.runtime.pipeline.Pipeline._restart_stream>`): the stream starts again from the next
+        sample; the body's size and the device filter (which already restarted the jumped devices) stay."""
         self.feet: list[_Foot] | None = None
         self.yaw: float | None = None
         self.stood_yaw = 0.0
@@ -154,13 +163,10 @@ class ProceduralPipeline:
         self.frames_encoded = 0
         self.velocity = np.zeros(3)
         self.last_pelvis: np.ndarray | None = None
-        self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
         self.hands = LostHandPolicy()  # the head's and hands' orientations from their devices
         self.position_filter = OneEuroCascade(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.standing_pelvis_y = 0.0  # the highest an upright pelvis under the head has been
         self.support_shift = np.zeros(3)
-        if self.calibration is not None:
-            self.calibrate(self.calibration)
 
     # The camera is not read.
     def push_rgbd(self, *args, **kwargs) -> bool:
@@ -188,6 +194,8 @@ class ProceduralPipeline:
         poses = ignore_untracked(poses, valid)
         check_poses(poses, valid)
         poses = self.device_filter(t_us, canonical_poses(poses, self.calibration), valid)
+        if self.device_filter.jumped[0]:
+            self._restart_stream()
         if valid[0]:
             self.last_head = poses[0].copy()
         device_poses = poses.copy()

@@ -454,6 +454,27 @@ def test_the_served_head_and_hands_face_as_their_devices(server, model):
     assert off_deg(poses[40], 20, devices[1]) < 1.0  # lost: it starts where tracking left it
 
 
+@pytest.mark.protocol("recentre")
+@pytest.mark.parametrize("model", ["egoposevr", "procedural"])
+def test_a_recentred_space_moves_the_whole_body_at_once(server, model):
+    samples = _hmd_stream(limit=120)[:40]
+    shift = np.array([8.0, 0.0, -6.0])  # the runtime recentred: every device 10 m away from one sample on
+
+    def moved(sample: Hmd) -> Hmd:
+        poses = np.reshape(sample.poses(), (3, 7)).copy()
+        poses[:, :3] += shift
+        return sample.model_copy(
+            update={"head": list(poses[0]), "left": list(poses[1]), "right": list(poses[2])}
+        )
+
+    poses = _serve(server, f"recentre-{model}", [*samples[:30], *map(moved, samples[30:])], model=model)
+    for sample in samples[30:]:
+        joints = np.reshape(poses[sample.seq].joints, (22, 3))
+        head_m = np.reshape(moved(sample).poses(), (3, 7))[0, :3]
+        assert np.linalg.norm(joints[15] - head_m) < 0.3  # the head at its headset
+        assert np.linalg.norm(joints - joints[15], axis=1).max() < 2.0  # and the body with it
+
+
 def _offsets_from(joints: np.ndarray, local: np.ndarray, parents: list[int]) -> np.ndarray:
     """The skeleton's rest offsets implied by served joints and rotations (FK inverted bone by bone)."""
     _, global_rot = forward_kinematics(local, joints[0], np.zeros((22, 3)))

@@ -155,14 +155,14 @@ def test_device_poses_are_smoothed_per_device_and_stay_unit_quaternions():
 def test_a_lost_device_comes_back_where_it_is_and_a_pause_forgets_all():
     filt = DevicePoseFilter(position=(12.0, 40.0), rotation=(12.0, 10.0))
     here = _poses(np.zeros((3, 3)), np.zeros((3, 3)))
-    there = _poses(np.ones((3, 3)), np.full((3, 3), 0.5))
+    there = _poses(np.full((3, 3), 0.1), np.full((3, 3), 0.5))  # 17 cm away: a quick move, not a jump
     tracked = np.ones(3, dtype=bool)
     for i in range(20):
         filt(i * 11_111, here, tracked)
     lost_left = np.array([True, False, True])
     out = filt(20 * 11_111, there, lost_left)
     np.testing.assert_array_equal(out[1], there[1])  # not tracked: as given, and forgotten
-    assert np.abs(out[0, :3] - there[0, :3]).min() > 0.1  # tracked: smoothed towards the jump
+    assert np.abs(out[0, :3] - there[0, :3]).min() > 0.01  # tracked: smoothed towards the move
     out = filt(21 * 11_111, there, tracked)
     np.testing.assert_allclose(out[1], there[1])  # back where it is, no glide from where it was lost
     out = filt(21 * 11_111 + 600_000, here, tracked)  # a pause longer than max_gap_s
@@ -179,3 +179,21 @@ def test_fresh_rows_start_afresh_while_the_others_are_filtered():
     assert (out[0] < 0.1).all()  # smoothed
     out = filt(20_000, np.full((2, 3), 2.0))
     assert (out[1] > 1.0).all() and (out[1] < 2.0).all()  # filtered again, from where it restarted
+
+
+def test_a_device_that_jumps_starts_again_where_it_lands_and_says_so():
+    """A recentred space or a replay that starts over moves a device metres in one sample: no glide across
+    the room. A fast hand (5 m/s) is not a jump."""
+    filt = DevicePoseFilter(position=(12.0, 40.0), rotation=(12.0, 10.0), jump_m=0.25)
+    tracked, t_us = np.ones(3, dtype=bool), 0
+    position = np.zeros((3, 3))
+    for _ in range(30):  # the right hand moves at 5 m/s
+        t_us += 11_111
+        position[2, 0] += 5.0 * 0.011111
+        out = filt(t_us, _poses(position, np.zeros((3, 3))), tracked)
+        assert not filt.jumped.any()
+    assert abs(out[2, 0] - position[2, 0]) > 0.005  # smoothed, so lagging a little
+    landed = position + np.array([3.0, 0.0, -2.0])  # the whole space recentred
+    out = filt(t_us + 11_111, _poses(landed, np.zeros((3, 3))), tracked)
+    assert filt.jumped.all()
+    np.testing.assert_allclose(out[:, :3], landed)

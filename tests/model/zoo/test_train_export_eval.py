@@ -268,6 +268,24 @@ def test_a_refused_sample_leaves_the_session_as_it_was(tiny_weights, val):
     )
 
 
+def test_a_recentred_headset_starts_the_stream_again_where_it_lands(tiny_weights, val):
+    """The whole stream jumps 3 m mid-session (a recentred reference space): from that sample on, the session
+    serves what a new session given the moved stream serves, not a body flying across the room."""
+    seq, _ = val
+    model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+    t_us, poses, valid = seq["hmd_t_us"], seq["hmd_poses"].copy(), seq["hmd_valid"]
+    moved = poses.copy()
+    moved[:, :, :3] += np.array([3.0, 0.0, -2.0])
+    session, fresh = Pipeline(model, bone_scale=np.ones(22)), Pipeline(model, bone_scale=np.ones(22))
+    for i in range(20):
+        session.push_hmd(int(t_us[i]), poses[i], valid[i])
+    for i in range(20, 40):
+        served = session.push_hmd(int(t_us[i]), moved[i], valid[i])
+        expected = fresh.push_hmd(int(t_us[i]), moved[i], valid[i])
+        np.testing.assert_allclose(served.joints, expected.joints, atol=1e-9)
+        np.testing.assert_allclose(served.local_rot, expected.local_rot, atol=1e-9)
+
+
 def test_files_that_are_not_models_are_refused_clearly(tiny_weights, tmp_path):
     junk = tmp_path / "junk.onnx"
     junk.write_bytes(b"not a graph")
