@@ -1,5 +1,5 @@
-"""Where the served wrists are and which way the served head and hands face, from the devices, and what a wrist
-does when its controller is lost (it reports its last pose with ``valid = False``).
+"""Where the served wrists are and which way the served head and hands face, from the devices, and what a
+wrist does when its controller is lost (it reports its last pose with ``valid = False``).
 
 - **Position of a lost wrist**: KPO holds the wrist at the network's position plus the correction tracking
   last gave it, fading with ``LOST_HAND_FADE_S``, for ``LOST_HAND_HOLD_S``; then the wrist is free like any

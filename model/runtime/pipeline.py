@@ -2,8 +2,8 @@
 
     push_rgbd(frame)   visual encoder once per NEW frame -> keypoint cache (frames.KeypointCache)
     push_hmd(sample)   devices smoothed (filters.DevicePoseFilter) -> x_t into the HMD window -> heading frame
-                       -> visual tokens from the cache (Alg. 1) -> fusion net -> FK anchored at the headset's head
-                       joint -> One Euro on positions (two stages)
+                       -> visual tokens from the cache (Alg. 1) -> fusion net -> FK anchored at the headset's
+                       head joint -> One Euro on positions (two stages)
                        -> KPO (if the model has it; lost controllers: hands.LostHandPolicy)
                        -> rotations re-derived from the positions -> PoseResult
 
@@ -116,29 +116,25 @@ class Pipeline:
 
     def reset(self) -> None:
         """Forget the stream (a new session, a model switch, a long pause); a calibration stays."""
-        self.features = HmdFeatureExtractor()
         self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
         self.body = BodyCalibrator(self.model.info.body_regressor)
-        self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)
         self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
         self.position_filter = OneEuroCascade(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
-        self.hands = LostHandPolicy()
-        self.feet = FootContacts()
-        self.stance = SteadyStance()
         self._pending_visual_us = 0
+        self._restart_stream()
         if self.calibration is not None:
             self._apply_calibration()
 
     def _restart_stream(self) -> None:
-        """The headset jumped (filters.DevicePoseFilter.jump_m: a recentred reference space, a replay that
-        starts over): the stream before it would read as a flight across the room. The HMD window, the
-        frames and the filters start again from this sample, and no foot stays planted where the body was;
-        the body's size, the calibration and the tracking state stay."""
+        """What a new session starts with and a headset that jumped (filters.DevicePoseFilter.jump_m: a
+        recentred reference space, a replay that starts over) starts again with, since the stream before the
+        jump would read as a flight across the room: the HMD window, the frames, the joints' filter, and no
+        foot planted where the body was. The body's size, the calibration and the tracking state stay."""
         self.features = HmdFeatureExtractor()
-        self.hmd_window = None
+        self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.cache.forget()
         self.position_filter.reset()
         self.feet, self.stance, self.hands = FootContacts(), SteadyStance(), LostHandPolicy()

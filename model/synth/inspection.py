@@ -1,9 +1,10 @@
-"""What ``egoposevr motion inspect`` says about a motion file: the rig read from it, and how well it retargets.
+"""What ``egoposevr motion inspect`` says about a motion file: the rig read from it, how well it retargets.
 
 A report per file (family, joint mapping, units, axes, frame rate, duration, frames dropped, retargeting
 error, whether the feet stand flat and grip: their tilt, how much they slide while the body travels, before
-and after synth's import fixes them, and how high a standing foot is) and a PNG of a few frames with the source skeleton (grey, every joint of the file) beside the
-retargeted SMPL-22 skeleton (colour), both seen from the front in our axes.
+and after synth's import fixes them, and how high a standing foot is) and a PNG of a few frames with the
+source skeleton (grey, every joint of the file) beside the retargeted SMPL-22 skeleton (colour), both seen
+from the front in our axes.
 
 Shape legend: ``F`` frames, ``S`` source joints, ``J`` = 22 SMPL joints.
 """

@@ -29,13 +29,14 @@ from typing import Any, Final
 import numpy as np
 
 from ..inputs import decode_rgbd
+from ..rig import TRACKED_JOINTS
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
 from ..runtime.calibration import DEFAULT_SECONDS, Calibration, CalibrationCollector
 from ..runtime.frames import encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
-from ..skeleton import LOWER_BODY, PARENTS, UPPER_BODY
+from ..skeleton import LOWER_BODY, UPPER_BODY, forward_kinematics
 from .dataset import DatasetError, load_split
 from .plausibility import plausibility, summarize_plausibility
 
@@ -49,7 +50,8 @@ METRIC_KEYS = (
     "fps",
 )  # fmt: skip
 WRISTS = np.array([20, 21])
-HEAD_JOINT: Final = 15
+# Head, left wrist, right wrist: the joints whose global rotation "facing" measures.
+FACING: Final = np.array(TRACKED_JOINTS)
 
 
 def replay_sequence(
@@ -86,15 +88,9 @@ def procrustes_aligned(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return scale[:, None, None] * p @ rot + mu_g
 
 
-FACING: Final = np.array([HEAD_JOINT, *WRISTS])  # the joints whose global rotation "facing" measures
-
-
-def _global(local_rot: np.ndarray) -> np.ndarray:
-    """(N, J, 3, 3) local rotations (row 0 the pelvis' global) -> global rotations, down the tree."""
-    glob = local_rot.copy()
-    for joint in range(1, local_rot.shape[1]):
-        glob[:, joint] = glob[:, PARENTS[joint]] @ local_rot[:, joint]
-    return glob
+def _global_rot(local_rot: np.ndarray) -> np.ndarray:
+    """(N, J, 3, 3) local rotations (row 0 the pelvis' global) -> global rotations."""
+    return forward_kinematics(local_rot, np.zeros(3))[1]
 
 
 def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -108,7 +104,7 @@ def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -
         "pos": np.linalg.norm(joints - gt, axis=-1),
         "pa": np.linalg.norm(procrustes_aligned(joints, gt) - gt, axis=-1),
         "rot": np.degrees(geodesic_angle(rots, gt_rot)),
-        "facing": np.degrees(geodesic_angle(_global(rots)[:, FACING], _global(gt_rot)[:, FACING])),
+        "facing": np.degrees(geodesic_angle(_global_rot(rots)[:, FACING], _global_rot(gt_rot)[:, FACING])),
         "jitter": np.linalg.norm(third, axis=-1).mean(-1),
         "plausibility": plausibility(joints, gt, np.asarray(seq["hmd_t_us"])),
         "lost": ~np.asarray(seq["hmd_valid"], dtype=bool)[:, 1:],  # (N, 2) left, right controller lost

@@ -12,7 +12,7 @@ from egoposevr.model.runtime import hands
 from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
-from egoposevr.model.skeleton import PARENTS, forward_kinematics, rest_offsets
+from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
 from egoposevr.model.training.dataset import load_split, load_splits, split_camera
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
@@ -426,10 +426,7 @@ def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(ti
 
 
 def _global_rotations(local: np.ndarray) -> np.ndarray:
-    glob = local.copy()
-    for joint in range(1, 22):
-        glob[joint] = glob[PARENTS[joint]] @ local[joint]
-    return glob
+    return forward_kinematics(local, np.zeros(3))[1]
 
 
 @pytest.mark.parametrize("model_name", ["egoposevr", "hmd", "procedural"])
