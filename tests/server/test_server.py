@@ -90,14 +90,18 @@ def _stalled_viewer_case(server):
     healthy.hello("render", session)
     headset.collect()
     healthy.collect()
-    baseline_ms = _median_latency_ms(headset, replay(headset, WALK[:120]))  # no stalled viewer yet
+    baseline = replay(headset, WALK[:120])  # no stalled viewer yet
+    baseline_ms = _median_latency_ms(headset, baseline)
+    baseline_answered = len(headset.poses()) / len(baseline)
     stalled = raw_client(server.url, session, receive_buffer=4096)  # never reads
     dropped_before = server.metric("egoposevr_dropped_poses_total", role="render")
     headset.received.clear()
     sent = replay(headset, WALK[120:])
     headset.wait_for(lambda: _accounted(headset, sent))
     answered = headset.poses()
-    assert len(answered) >= 0.9 * len(sent)  # the headset was not slowed into skipping
+    # The headset was not slowed into skipping: compared with the same machine a moment before, as a loaded
+    # CI machine may skip some samples with no viewer stalled at all.
+    assert len(answered) / len(sent) >= 0.9 * baseline_answered
     # Generous bound (shared 2-core machines are noisy): a viewer blocking the server would add tens of ms.
     assert _median_latency_ms(headset, sent) < 2 * baseline_ms + 3
     healthy.wait_for(lambda: len([p for p in healthy.poses() if p.seq in sent]) >= len(answered))
