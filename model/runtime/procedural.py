@@ -15,7 +15,8 @@ avatar legs that VR users know):
 - the devices get the network pipeline's smoothing, and the joints its One Euro filter, except the feet and
   tracked wrists (exact);
 - knees and elbows by two-bone IK (knees forward, elbows down and back); a wrist goes to its controller, or
-  hangs when the controller is lost; crouching bends the knees, never sinks the feet;
+  hangs when the controller is lost and comes back to it over ``hands.REACQUIRE_S`` when it is found;
+  crouching bends the knees, never sinks the feet;
 - the served rotations are re-derived from the joints (:func:`.kpo.rederive_rotations`), as for every model,
   and the head and hands face as their devices do (:meth:`.hands.LostHandPolicy.orientations`).
 
@@ -34,7 +35,7 @@ import numpy as np
 from ..config import FusionConfig, ModelMetadata
 from ..hmd import check_poses, ignore_untracked
 from ..inputs import heading_frame
-from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
+from ..rig import DEFAULT_OFFSETS_M, TRACKED_JOINTS, joints_from_devices
 from ..skeleton import FOOT_JOINT_HEIGHT_M, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
 from . import kernels
 from .body import BodyCalibrator
@@ -205,11 +206,13 @@ class ProceduralPipeline:
             self._set_offsets(rest_offsets(self.body.bone_scale))
         dt_s = 0.0 if self.last_t_us is None else max(t_us - self.last_t_us, 0) * 1e-6
         self.last_t_us = t_us
-        joints, body_rot = self._solve(t_us * 1e-6, dt_s, tracked, valid)
+        joints, body_rot = self._solve(t_us, dt_s, tracked, valid)
         exact = FEET_AND_ANKLES + [20 + k for k in range(2) if valid[k + 1]]  # planted feet, tracked wrists
         kept = joints[exact].copy()
         joints = self.position_filter(t_us, joints)
         joints[exact] = kept
+        for device in np.flatnonzero(~valid[1:]) + 1:
+            self.hands.lost_wrist(int(device), joints[TRACKED_JOINTS[device]])
         local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
         local[0] = body_rot
         glob = np.broadcast_to(body_rot, (NUM_JOINTS, 3, 3))  # FK of identity joints under the pelvis
@@ -251,8 +254,9 @@ class ProceduralPipeline:
         return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.diag([-1.0, 1.0, -1.0])
 
     def _solve(
-        self, now_s: float, dt_s: float, tracked: np.ndarray, valid: np.ndarray
+        self, t_us: int, dt_s: float, tracked: np.ndarray, valid: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
+        now_s = t_us * 1e-6
         body_rot = self._turn(dt_s)
         offsets, rest = self.offsets, self._rest
         rest_world = rest @ body_rot.T  # upright, at the pelvis
@@ -280,8 +284,8 @@ class ProceduralPipeline:
             joints[foot] = ankle_pos + body_rot @ (rest[foot] - rest[ankle])
         for side, (shoulder, elbow, wrist) in enumerate(ARM_CHAINS):
             upper, lower = np.linalg.norm(offsets[elbow]), np.linalg.norm(offsets[wrist])
-            if valid[side + 1]:
-                target = tracked[side + 1]
+            if valid[side + 1]:  # a controller found again: from where its wrist was while lost
+                target = tracked[side + 1] + self.hands.found_gap(t_us, side + 1, tracked[side + 1])
             else:  # hanging by the side
                 target = joints[shoulder] + np.array([0.0, -(upper + lower) * 0.98, 0.0])
             target = _reach(joints[shoulder], target, upper + lower - 1e-6)

@@ -435,11 +435,15 @@ def test_the_served_head_and_hands_face_as_their_devices(server, model):
     from egoposevr.model.skeleton import smpl_to_local_rot
 
     first = _hmd_stream(limit=10)[0]
-    still = [first.model_copy(update={"seq": k, "t_us": first.t_us + k * 11_111}) for k in range(40)]
-    lost_left = first.model_copy(
-        update={"seq": 40, "t_us": first.t_us + 40 * 11_111, "valid": [True, False, True]}
-    )
-    poses = _serve(server, f"faces-{model}", [*still, lost_left], model=model)
+
+    def still(k: int, left_tracked: bool = True) -> Hmd:
+        return first.model_copy(
+            update={"seq": k, "t_us": first.t_us + k * 11_111, "valid": [True, left_tracked, True]}
+        )
+
+    lost_left = range(40, 70)  # the left controller lost for a third of a second, then found again
+    samples = [still(k, left_tracked=k not in lost_left) for k in range(90)]
+    poses = _serve(server, f"faces-{model}", samples, model=model)
     devices = Rotation.from_quat(np.reshape(first.poses(), (3, 7))[:, 3:]).as_matrix()
     assert all(first.valid)
 
@@ -452,6 +456,10 @@ def test_the_served_head_and_hands_face_as_their_devices(server, model):
     for joint, device in zip((15, 20, 21), devices, strict=True):
         assert off_deg(poses[39], joint, device) < 0.5
     assert off_deg(poses[40], 20, devices[1]) < 1.0  # lost: it starts where tracking left it
+    left_off_deg = [off_deg(poses[k], 20, devices[1]) for k in range(69, 90)]
+    assert abs(left_off_deg[1] - left_off_deg[0]) < 1.0  # found: it starts where it was while lost
+    assert max(np.abs(np.diff(left_off_deg))) < 0.5 * left_off_deg[0] + 0.2  # turning over several samples
+    assert max(left_off_deg[9:]) < 0.5  # and faces its controller again within 75 ms (7 samples)
 
 
 @pytest.mark.protocol("recentre")

@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 
+from egoposevr.model.rig import joints_from_devices
+from egoposevr.model.runtime.hands import REACQUIRE_S
 from egoposevr.model.runtime.procedural import ProceduralModel, ProceduralPipeline, pipeline_for
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 from egoposevr.model.synth.headset import simulate_headset
@@ -59,6 +61,25 @@ def test_served_rotations_give_the_served_joints_and_lost_controllers_let_the_ar
     left_hand, left_shoulder = pose.joints[20], pose.joints[16]
     assert left_hand[1] < left_shoulder[1] - 0.4 and abs(left_hand[0] - left_shoulder[0]) < 0.15
     assert pose.camera is None and not pipeline.push_rgbd(0, None, None, None)
+
+
+def test_a_controller_found_again_brings_the_hanging_arm_back_without_a_jump(model):
+    rng = np.random.default_rng(1)
+    track = simulate_headset(generate("stand_interact", 3.0, 60.0, rng), 90.0, rng)
+    valid = track.valid.copy()
+    valid[:, 1] = True
+    valid[90:180, 1] = False  # the left controller lost for a second: the arm hangs
+    pipeline = ProceduralPipeline(model)
+    wrist = np.array(
+        [pipeline.push_hmd(int(t), track.poses[i], valid[i]).joints[20] for i, t in enumerate(track.t_us)]
+    )
+    controller = joints_from_devices(track.poses)[0][:, 1]  # where the controller puts the wrist (unsmoothed)
+    gap_m = np.linalg.norm(wrist[179] - controller[180])
+    assert gap_m > 0.2  # the hanging hand was far from it
+    assert np.linalg.norm(wrist[180] - wrist[179]) < 0.05 * gap_m  # found: no jump
+    assert np.linalg.norm(np.diff(wrist[179:200], axis=0), axis=1).max() < 0.3 * gap_m  # over several samples
+    closed = 180 + round(REACQUIRE_S * 90) + 1
+    assert np.linalg.norm(wrist[closed:] - controller[closed:], axis=1).max() < 0.03  # back on the controller
 
 
 def test_pipeline_for_picks_the_network_pipeline_for_onnx_models(model):
