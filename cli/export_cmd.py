@@ -7,12 +7,16 @@ torch (max |difference| must stay under 1e-4). The bundled weights are model/wei
 --encoders DIR takes the visual encoders (and their body regressors) from DIR as they are, for fusion nets
 trained on them with `egoposevr train --encoders DIR`.
 
+--runs with several folders (the same training with other seeds) serves each model as the mean of their
+nets: one graph, the members' rotations (made orthonormal) and contact probabilities averaged.
+
 --add-batch-axis rewrites model files exported for batch 1 (before the server batched sessions) in place
 so that their fusion net takes a batch axis, checked against the original row by row.
 
 Examples:
   egoposevr export --runs runs/cpu16 --out model/weights
   egoposevr export --runs runs/temporal --out runs/temporal-weights --model egoposevr --encoders model/weights
+  egoposevr export --runs runs/lock runs/lock2 --out runs/pair-weights --model egoposevr --encoders model/weights
   egoposevr export --add-batch-axis model/weights/egoposevr.onnx model/weights/hmd.onnx
 """
 
@@ -24,7 +28,9 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=Path, metavar="DIR", help="checkpoints from train")
+    parser.add_argument("--runs", type=Path, nargs="+", metavar="DIR",
+                        help="checkpoints from train; several: each model is the mean of their nets "
+                             "(a seed ensemble; needs --encoders)")  # fmt: skip
     parser.add_argument("--out", type=Path, metavar="DIR")
     parser.add_argument("--model", default="all", help="zoo names, comma-separated, or all (default)")
     parser.add_argument("--encoders", type=Path, metavar="DIR",

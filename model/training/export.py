@@ -182,25 +182,64 @@ def copy_encoder(source: Path, out_path: Path) -> None:
         regressor_path(out_path).unlink(missing_ok=True)  # a stale one would not match these bytes
 
 
-def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
-    """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net); returns the parity error."""
+class SeedEnsemble(torch.nn.Module):
+    """Several trainings of one fusion net (same config, other seeds) served as one graph: the mean of
+    their rotations, each member's rot6d (B, J, 6) first made orthonormal (Gram-Schmidt, as the runtime
+    reads it) so that no member weighs more for a longer raw vector, and the mean of their contact
+    probabilities (B, 2) where they have a contact head. The runtime reads the mean like any rot6d."""
+
+    def __init__(self, nets: list[torch.nn.Module]) -> None:
+        super().__init__()
+        configs = {repr(net.cfg) for net in nets}
+        if len(configs) != 1:
+            raise ValueError(f"an ensemble's nets must share one config, got {len(configs)}")
+        self.cfg = nets[0].cfg
+        self.members = torch.nn.ModuleList(
+            [ContactOutputs(net) if self.cfg.contact_head else net for net in nets]
+        )
+
+    def forward(
+        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        outputs = [member(hmd) if visual is None else member(hmd, visual) for member in self.members]
+        if not self.cfg.contact_head:
+            return torch.stack([_orthonormal_sixd(o) for o in outputs]).mean(0)
+        sixd = torch.stack([_orthonormal_sixd(o[0]) for o in outputs]).mean(0)
+        return sixd, torch.stack([o[1] for o in outputs]).mean(0)
+
+
+def _orthonormal_sixd(sixd: torch.Tensor) -> torch.Tensor:
+    """(..., 6) -> the same two columns after Gram-Schmidt (kernels.sixd_to_matrices), (..., 6)."""
+    b1 = torch.nn.functional.normalize(sixd[..., :3], dim=-1, eps=1e-8)
+    a2 = sixd[..., 3:]
+    b2 = torch.nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1, eps=1e-8)
+    return torch.cat([b1, b2], dim=-1)
+
+
+def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
+    """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
+    :class:`SeedEnsemble`); returns the parity error."""
     entry = ZOO[name]
-    ckpt = load_checkpoint(runs_dir / f"fusion-{entry.fusion_name}.pt")
-    net = build_net(ckpt)
-    cfg = net.cfg
+    ckpts = [load_checkpoint(runs_dir / f"fusion-{entry.fusion_name}.pt") for runs_dir in runs_dirs]
+    nets = [build_net(ckpt) for ckpt in ckpts]
+    cfg = nets[0].cfg
     inputs = _fusion_inputs(cfg, batch=2)
     example = tuple(torch.from_numpy(v) for v in inputs.values())
     batch = torch.export.Dim("batch", min=1, max=64)  # the server batches sessions (server/scheduler.py)
-    module, outputs = (
-        (ContactOutputs(net).eval(), ["rot6d", "contact"]) if cfg.contact_head else (net, ["rot6d"])
-    )
+    outputs = ["rot6d", "contact"] if cfg.contact_head else ["rot6d"]
+    if len(nets) > 1:
+        module: torch.nn.Module = SeedEnsemble(nets).eval()
+        training = {"ensemble": [_training_record(ckpt) for ckpt in ckpts]}
+    else:
+        module = ContactOutputs(nets[0]).eval() if cfg.contact_head else nets[0]
+        training = _training_record(ckpts[0])
     _export(module, example, out_path, (list(inputs), outputs), {name: {0: batch} for name in inputs})
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
         inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
         visual_encoder=f"visual-{entry.visual}.onnx" if entry.visual else "",
         joint_names=JOINT_NAMES, rig_offsets_m=tuple(map(tuple, DEFAULT_OFFSETS_M.tolist())),
-        training=_training_record(ckpt),
+        training=training,
         units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
               "config.device_validity]; visual: tokens (model/inputs.py); "
               "rot6d (B, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
@@ -211,11 +250,19 @@ def export_model(name: str, runs_dir: Path, out_path: Path) -> float:
 
 
 def export_zoo(
-    names: list[str], runs_dir: Path, out_dir: Path, encoders_dir: Path | None = None
+    names: list[str], runs_dirs: Path | list[Path], out_dir: Path, encoders_dir: Path | None = None
 ) -> dict[str, float | None]:
     """Every named model and the visual encoders they use -> out_dir; {file name: parity error}. With
     ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
-    regressors are that folder's, copied as they are (None: nothing exported, nothing to check)."""
+    regressors are that folder's, copied as they are (None: nothing exported, nothing to check). Several
+    runs folders make each model the :class:`SeedEnsemble` of their nets; they must then have been trained
+    on one set of encoders, given as ``encoders_dir``."""
+    runs_dirs = [runs_dirs] if isinstance(runs_dirs, Path) else list(runs_dirs)
+    if len(runs_dirs) > 1 and encoders_dir is None:
+        raise ValueError(
+            "an ensemble of several runs needs --encoders: the encoders its nets were trained on"
+        )
+    runs_dir = runs_dirs[0]
     out_dir.mkdir(parents=True, exist_ok=True)
     errors: dict[str, float | None] = {}
     for kind in sorted({ZOO[n].visual for n in names if ZOO[n].visual}):
@@ -226,5 +273,5 @@ def export_zoo(
         else:
             errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name)
     for name in names:
-        errors[f"{name}.onnx"] = export_model(name, runs_dir, out_dir / f"{name}.onnx")
+        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_dir / f"{name}.onnx")
     return errors

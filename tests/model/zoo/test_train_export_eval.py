@@ -90,6 +90,59 @@ def test_fusion_nets_train_on_an_exported_encoders_keypoints(
     assert "visual-rgbd.onnx" in capsys.readouterr().err
 
 
+def test_seeds_export_as_one_graph_that_serves_their_mean(
+    tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
+):
+    import onnxruntime as ort
+
+    from egoposevr.model.runtime.kernels import sixd_to_matrices
+    from egoposevr.model.training.export import _fusion_inputs
+
+    seed1 = tmp_path / "seed1"  # the tiny zoo's net (seed 0, on the encoders it exported) and another seed
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    assert (
+        main(
+            [
+                *train,
+                "--out",
+                str(seed1),
+                "--seed",
+                "1",
+                "--fusion-steps",
+                "3",
+                "--encoders",
+                str(tiny_weights),
+            ]
+        )
+        == 0
+    )
+    export = ["export", "--model", "egoposevr", "--encoders", str(tiny_weights), "--runs"]
+    assert main([*export, str(seed1), "--out", str(tmp_path / "seed1-weights")]) == 0
+    assert main([*export, str(tiny_runs), str(seed1), "--out", str(tmp_path / "both")]) == 0
+    assert "max |torch - onnx|" in capsys.readouterr().out  # parity checked for the ensemble's graph too
+
+    both = LoadedModel.load(tmp_path / "both" / "egoposevr.onnx")
+    assert [m["seed"] for m in both.info.metadata.training["ensemble"]] == [0, 1]
+    feed = _fusion_inputs(both.info.config, batch=3, seed=5)
+    singles = [
+        ort.InferenceSession(str(folder / "egoposevr.onnx")).run(None, feed)
+        for folder in (tiny_weights, tmp_path / "seed1-weights")
+    ]
+    got = both.fusion.run(None, feed)
+    members = [sixd_to_matrices(s[0].reshape(-1, 6).astype(np.float64)) for s in singles]
+    mean = sixd_to_matrices(got[0].reshape(-1, 6).astype(np.float64))
+    for member in members:  # between its members: nearer each than they are to each other
+        assert (geodesic_angle(mean, member) <= geodesic_angle(members[0], members[1]) + 1e-4).all()
+    columns = np.mean([np.concatenate([m[:, :, 0], m[:, :, 1]], axis=1) for m in members], axis=0)
+    np.testing.assert_allclose(got[0].reshape(-1, 6), columns, atol=1e-5)  # unit columns, averaged
+    np.testing.assert_allclose(got[1], np.mean([s[1] for s in singles], axis=0), atol=1e-6)  # contacts
+
+    capsys.readouterr()
+    without_encoders = ["export", "--model", "egoposevr", "--runs", str(tiny_runs), str(seed1)]
+    assert main([*without_encoders, "--out", str(tmp_path / "x")]) == 2
+    assert "--encoders" in capsys.readouterr().err  # members must share the encoders they were trained on
+
+
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
     more = tmp_path / "more"
     synth = ["synth", "--procedural", "1", "--families", "still_stand", "--seed", "6", "--out", str(more)]
