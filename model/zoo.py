@@ -1,7 +1,9 @@
 """The model zoo (DESIGN §5): each served name, what it reads and how it is built. No torch here.
 
 Models share trained parts: one visual encoder per modality (``rgb``, ``rgbd``) serves every model of that
-modality, and ``egoposevr`` is ``hmd-rgbd``'s fusion net with KPO switched on in the runtime.
+modality, and ``egoposevr`` is ``hmd-rgbd``'s fusion net with KPO switched on in the runtime. The bundled
+``egoposevr`` and ``hmd-rgbd`` serve several trainings of that net as one graph (a seed ensemble, made by
+``export``); ``egoposevr-lite`` serves one of them, for servers that need sessions more than accuracy.
 """
 
 from __future__ import annotations
@@ -40,6 +42,14 @@ ZOO: Final = {
             "egoposevr", "HMD + multi-frame RGB-D + KPO (the full system)", "rgbd", {}, True, "hmd-rgbd"
         ),
         ZooEntry("hmd-rgbd-concat", "ablation: fusion by concatenation", "rgbd", {"fusion": "concat"}),
+        ZooEntry(
+            "egoposevr-lite",
+            "the full system on one training of its net: a third of egoposevr's fusion cost",
+            "rgbd",
+            {},
+            True,
+            "hmd-rgbd",
+        ),
     )
 }
 

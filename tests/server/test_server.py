@@ -174,8 +174,9 @@ def test_select_and_list_models(server):
         headset.send(ListModels())
         models = headset.recv_type("models")
         assert models.active == "egoposevr"
-        assert [m.name for m in models.models][:7] == [
+        assert [m.name for m in models.models][:8] == [
             "procedural", "hmd", "hmd-rgb1", "hmd-rgb", "hmd-rgbd", "egoposevr", "hmd-rgbd-concat",
+            "egoposevr-lite",
         ]  # fmt: skip
         headset.send(Ping(nonce=7, t_us=5))
         pong = headset.recv_type("pong")
