@@ -329,9 +329,8 @@ class PendingPose:
     inputs: dict[str, np.ndarray]  # hmd (1, T, D) [, visual (1, Tv, 90)] float32; {} runs no net
     done: PoseResult | None = None  # a pipeline without a net (procedural) answers in begin_hmd
     contact_p: np.ndarray | None = None  # (2,) left / right foot on the floor, from a net with a contact head
-    tracked_rot: np.ndarray | None = (
-        None  # (3, 3, 3) the head's and wrists' global rotations from the devices
-    )
+    # (3, 3, 3) the head's and wrists' global rotations from the devices
+    tracked_rot: np.ndarray | None = None
 
 
 def run_fusion(pending: list[PendingPose]) -> list[np.ndarray | None]:

@@ -250,14 +250,13 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
 
 
 def export_zoo(
-    names: list[str], runs_dirs: Path | list[Path], out_dir: Path, encoders_dir: Path | None = None
+    names: list[str], runs_dirs: list[Path], out_dir: Path, encoders_dir: Path | None = None
 ) -> dict[str, float | None]:
     """Every named model and the visual encoders they use -> out_dir; {file name: parity error}. With
     ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
     regressors are that folder's, copied as they are (None: nothing exported, nothing to check). Several
     runs folders make each model the :class:`SeedEnsemble` of their nets; they must then have been trained
     on one set of encoders, given as ``encoders_dir``."""
-    runs_dirs = [runs_dirs] if isinstance(runs_dirs, Path) else list(runs_dirs)
     if len(runs_dirs) > 1 and encoders_dir is None:
         raise ValueError(
             "an ensemble of several runs needs --encoders: the encoders its nets were trained on"
