@@ -55,6 +55,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="train only fusion nets, on the keypoints of DIR's exported visual-<kind>.onnx (e.g. the bundled)",
     )
+    parser.add_argument(
+        "--teachers",
+        type=Path,
+        nargs="+",
+        default=(),
+        metavar="DIR",
+        help="distil: each fusion net also learns the mean output of these runs folders' nets of its kind",
+    )
+    parser.add_argument(
+        "--distill-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="with --teachers: the share of each loss term taken against the teachers (default 0.5)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -62,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError
     from ..model.training.dataset import DatasetError
-    from ..model.training.train import PRESETS, DeviceError, train_zoo
+    from ..model.training.train import PRESETS, DeviceError, TeacherError, train_zoo
     from ..model.zoo import resolve
 
     try:
@@ -75,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
-            ("temporal_weight", args.temporal_weight),
+            ("temporal_weight", args.temporal_weight), ("distill_weight", args.distill_weight),
         )
         if value is not None
     }  # fmt: skip
@@ -83,9 +98,16 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     try:
         paths = train_zoo(
-            names, args.data, args.out, config, args.resume, not args.no_progress, args.encoders
+            names,
+            args.data,
+            args.out,
+            config,
+            args.resume,
+            not args.no_progress,
+            args.encoders,
+            args.teachers,
         )
-    except (DatasetError, ModelError, DeviceError) as error:
+    except (DatasetError, ModelError, DeviceError, TeacherError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)
         return 2
     for name, path in paths.items():

@@ -27,7 +27,7 @@ from ..rig import DEFAULT_OFFSETS_M
 from ..runtime.body import regressor_path
 from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
-from .nets.fusion import ContactOutputs
+from .nets.fusion import ContactOutputs, SeedEnsemble
 from .train import build_net, load_checkpoint
 
 PARITY_TOL = 1e-4
@@ -147,7 +147,7 @@ def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
         "seed": ckpt["train_config"]["seed"],
         "train_seconds": round(ckpt["train_seconds"], 1),
         "final_losses": ckpt["history"][-1] if ckpt["history"] else {},
-    }
+    } | ({"teachers": ckpt["teachers"]} if "teachers" in ckpt else {})
 
 
 def export_visual(ckpt_path: Path, out_path: Path) -> float:
@@ -180,40 +180,6 @@ def copy_encoder(source: Path, out_path: Path) -> None:
         shutil.copyfile(regressor_path(source), regressor_path(out_path))
     else:
         regressor_path(out_path).unlink(missing_ok=True)  # a stale one would not match these bytes
-
-
-class SeedEnsemble(torch.nn.Module):
-    """Several trainings of one fusion net (same config, other seeds) served as one graph: the mean of
-    their rotations, each member's rot6d (B, J, 6) first made orthonormal (Gram-Schmidt, as the runtime
-    reads it) so that no member weighs more for a longer raw vector, and the mean of their contact
-    probabilities (B, 2) where they have a contact head. The runtime reads the mean like any rot6d."""
-
-    def __init__(self, nets: list[torch.nn.Module]) -> None:
-        super().__init__()
-        configs = {repr(net.cfg) for net in nets}
-        if len(configs) != 1:
-            raise ValueError(f"an ensemble's nets must share one config, got {len(configs)}")
-        self.cfg = nets[0].cfg
-        self.members = torch.nn.ModuleList(
-            [ContactOutputs(net) if self.cfg.contact_head else net for net in nets]
-        )
-
-    def forward(
-        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
-    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        outputs = [member(hmd) if visual is None else member(hmd, visual) for member in self.members]
-        if not self.cfg.contact_head:
-            return torch.stack([_orthonormal_sixd(o) for o in outputs]).mean(0)
-        sixd = torch.stack([_orthonormal_sixd(o[0]) for o in outputs]).mean(0)
-        return sixd, torch.stack([o[1] for o in outputs]).mean(0)
-
-
-def _orthonormal_sixd(sixd: torch.Tensor) -> torch.Tensor:
-    """(..., 6) -> the same two columns after Gram-Schmidt (kernels.sixd_to_matrices), (..., 6)."""
-    b1 = torch.nn.functional.normalize(sixd[..., :3], dim=-1, eps=1e-8)
-    a2 = sixd[..., 3:]
-    b2 = torch.nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1, eps=1e-8)
-    return torch.cat([b1, b2], dim=-1)
 
 
 def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:

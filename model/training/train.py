@@ -51,7 +51,7 @@ from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
 from .augment import crop_and_flip, mirror_sequence, mirror_world_keypoints, retime_sequence
 from .dataset import decode_frames, load_splits, split_camera
-from .nets.fusion import FusionNet, set_input_statistics
+from .nets.fusion import FusionNet, SeedEnsemble, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
 from .plausibility import contacts
@@ -89,6 +89,9 @@ class TrainConfig:
     # body's jitter is mostly the network's own sample-to-sample noise (MODEL_CARD.md). 0: off, the batch is
     # tc.batch windows; on, each window also runs with the one a sample before it (2 x batch).
     temporal_weight: float = 0.0
+    # With teachers (train_fusion's ``teachers``): the share of each fusion loss term taken against the
+    # teachers' mean output instead of the truth (knowledge distillation; MODEL_CARD.md).
+    distill_weight: float = 0.5
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
@@ -506,7 +509,12 @@ def sample_window(
     return hmd, tokens
 
 
-def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
+def fusion_loss_fn(
+    net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig, teacher: SeedEnsemble | None = None
+):
+    """The fusion net's loss terms on a random batch. With ``teacher`` (frozen nets that read the same
+    inputs), each term is split: ``1 - tc.distill_weight`` of it against the truth, the rest (keys
+    ``*_teacher``) against the teacher's output: its rotations, its joints and its contact probabilities."""
     cfg = net.cfg
     dev = torch.device(tc.device)
     lengths = np.array([len(s.t_us) for s in seqs])
@@ -540,22 +548,52 @@ def fusion_loss_fn(net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig):
         if cfg.contact_head:
             sixd, contact_logits = net.forward_with_contact(hmd, visual)
         else:
-            sixd = net(hmd, visual)
-        rot_loss = (sixd - target).abs().mean()
-        pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(hmd), 3, device=dev), offsets)
-        pos = pos + (anchor - pos[:, HEAD])[:, None]
-        pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
-        losses = {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
+            sixd, contact_logits = net(hmd, visual), None
+        pos = _anchored_joints(sixd, anchor, offsets)
+        losses = _fit_terms(sixd, pos, contact_logits, (target, joints, contact), weight, tc)
         if tc.temporal_weight > 0:
             error = pos - joints  # (2B, J, 3): each window's, then the previous sample's
             now, before = error.chunk(2)
             losses["temporal"] = (now - before).abs().sum(-1).mean() * tc.temporal_weight
-        if cfg.contact_head:
-            bce = torch.nn.functional.binary_cross_entropy_with_logits(contact_logits, contact)
-            losses["contact"] = bce * tc.contact_weight
-        return losses
+        if teacher is None:
+            return losses
+        with torch.no_grad():
+            taught = teacher(hmd, visual)
+            t_sixd, t_contact = taught if cfg.contact_head else (taught, None)
+            t_pos = _anchored_joints(t_sixd, anchor, offsets)
+        mimic = _fit_terms(sixd, pos, contact_logits, (t_sixd, t_pos, t_contact), weight, tc)
+        share = tc.distill_weight
+        fitted = {k: v * (1 - share) if k in mimic else v for k, v in losses.items()}
+        return fitted | {f"{k}_teacher": v * share for k, v in mimic.items()}
 
     return loss
+
+
+def _anchored_joints(sixd: torch.Tensor, anchor: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Joints (B, J, 3) of the rotations sixd (B, J, 6) on the bone offsets (B, J, 3), the head at
+    anchor (B, 3)."""
+    pos, _ = forward_kinematics(sixd_to_matrix(sixd), torch.zeros(len(sixd), 3, device=sixd.device), offsets)
+    return pos + (anchor - pos[:, HEAD])[:, None]
+
+
+def _fit_terms(
+    sixd: torch.Tensor,
+    pos: torch.Tensor,
+    contact_logits: torch.Tensor | None,
+    wanted: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None],
+    weight: torch.Tensor,
+    tc: TrainConfig,
+) -> dict[str, torch.Tensor]:
+    """L1 of the 6D rotations, weighted L1 of the joints (m) and the contact's cross-entropy against
+    wanted = (rot6d (B, J, 6), joints (B, J, 3), contact (B, 2) probabilities or None)."""
+    target, joints, contact = wanted
+    rot_loss = (sixd - target).abs().mean()
+    pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
+    losses = {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
+    if contact_logits is not None and contact is not None:
+        bce = F.binary_cross_entropy_with_logits(contact_logits, contact)
+        losses["contact"] = bce * tc.contact_weight
+    return losses
 
 
 def _with_previous_samples(
@@ -583,9 +621,11 @@ def train_fusion(
     seqs: list[dict[str, Any]] | None = None,
     cache: dict[Any, Any] | None = None,
     encoders_dir: Path | None = None,
+    teachers: Sequence[Path] = (),
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
-    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``."""
+    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teachers``
+    (runs folders holding this entry's trained fusion net) it also learns their mean output."""
     path = out_dir / f"fusion-{name}.pt"
     if resume and _finished(path):
         return path
@@ -602,11 +642,48 @@ def train_fusion(
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     net.to(tc.device)
+    teacher = load_teacher(entry.fusion_name, teachers, cfg, tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": _dirs_field(data_dirs), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
-    _run_steps(net, fusion_loss_fn(net, prepared, tc), path, tc.fusion_steps, tc, meta, resume, progress)
+    if teacher is not None:
+        meta["teachers"] = [str(d) for d in teachers]
+    loss_fn = fusion_loss_fn(net, prepared, tc, teacher)
+    _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress)
     return path
+
+
+class TeacherError(ValueError):
+    """Teachers that are missing, or that cannot read the student's inputs."""
+
+
+_TEACHER_MUST_MATCH: Final = ("window", "device_validity", "fusion")
+
+
+def load_teacher(
+    fusion_name: str, runs_dirs: Sequence[Path], student: FusionConfig, device: str
+) -> SeedEnsemble | None:
+    """The frozen :class:`SeedEnsemble` of each runs folder's ``fusion-<fusion_name>.pt`` (None without
+    folders). Its nets must read the student's inputs and, where the student predicts contact, predict it."""
+    if not runs_dirs:
+        return None
+    paths = [Path(d) / f"fusion-{fusion_name}.pt" for d in runs_dirs]
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        raise TeacherError(f"no teacher checkpoint: {', '.join(missing)}")
+    nets = [build_net(load_checkpoint(p)) for p in paths]
+    for path, net in zip(paths, nets, strict=True):
+        wanted = _TEACHER_MUST_MATCH + (("visual_window",) if student.uses_camera else ())
+        if student.contact_head:
+            wanted += ("contact_head",)
+        differ = [f for f in wanted if getattr(net.cfg, f) != getattr(student, f)]
+        if differ:
+            raise TeacherError(f"teacher {path} differs from the student in {', '.join(differ)}")
+    try:
+        teacher = SeedEnsemble(nets)
+    except ValueError as error:
+        raise TeacherError(f"teachers {', '.join(map(str, runs_dirs))}: {error}") from error
+    return teacher.eval().requires_grad_(False).to(device)
 
 
 def _stage_one(
@@ -674,9 +751,11 @@ def train_zoo(
     resume: bool = False,
     progress: bool = True,
     encoders_dir: Path | None = None,
+    teachers: Sequence[Path] = (),
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
-    ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained."""
+    ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained; with
+    ``teachers`` each fusion net also learns the mean output of those runs folders' nets of its kind."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -693,6 +772,6 @@ def train_zoo(
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
-            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir
+            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, teachers
         )
     return paths

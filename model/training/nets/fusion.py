@@ -164,6 +164,38 @@ class ContactOutputs(nn.Module):
         return sixd, torch.sigmoid(logits)
 
 
+class SeedEnsemble(nn.Module):
+    """Several trainings of one fusion net (same config, other seeds) served as one graph: the mean of
+    their rotations, each member's rot6d (B, J, 6) first made orthonormal (Gram-Schmidt, as the runtime
+    reads it) so that no member weighs more for a longer raw vector, and the mean of their contact
+    probabilities (B, 2) where they have a contact head. The runtime reads the mean like any rot6d."""
+
+    def __init__(self, nets: list[nn.Module]) -> None:
+        super().__init__()
+        configs = {repr(net.cfg) for net in nets}
+        if len(configs) != 1:
+            raise ValueError(f"an ensemble's nets must share one config, got {len(configs)}")
+        self.cfg = nets[0].cfg
+        self.members = nn.ModuleList([ContactOutputs(net) if self.cfg.contact_head else net for net in nets])
+
+    def forward(
+        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        outputs = [member(hmd) if visual is None else member(hmd, visual) for member in self.members]
+        if not self.cfg.contact_head:
+            return torch.stack([orthonormal_sixd(o) for o in outputs]).mean(0)
+        sixd = torch.stack([orthonormal_sixd(o[0]) for o in outputs]).mean(0)
+        return sixd, torch.stack([o[1] for o in outputs]).mean(0)
+
+
+def orthonormal_sixd(sixd: torch.Tensor) -> torch.Tensor:
+    """(..., 6) -> the same two columns after Gram-Schmidt (kernels.sixd_to_matrices), (..., 6)."""
+    b1 = nn.functional.normalize(sixd[..., :3], dim=-1, eps=1e-8)
+    a2 = sixd[..., 3:]
+    b2 = nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1, eps=1e-8)
+    return torch.cat([b1, b2], dim=-1)
+
+
 def set_input_statistics(encoder: StreamEncoder, samples: torch.Tensor) -> None:
     """Normalisation from training samples (N, in_dim): mean and std per feature (std floored)."""
     with torch.no_grad():

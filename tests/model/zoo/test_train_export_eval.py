@@ -143,6 +143,44 @@ def test_seeds_export_as_one_graph_that_serves_their_mean(
     assert "--encoders" in capsys.readouterr().err  # members must share the encoders they were trained on
 
 
+def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, capsys):
+    import dataclasses
+
+    import torch
+
+    from egoposevr.model.training.train import TeacherError, fusion_config, load_teacher, sample_window
+
+    train = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    teachers = [tmp_path / "t1", tmp_path / "t2"]
+    for seed, folder in enumerate(teachers, start=1):
+        assert main([*train, "--out", str(folder), "--seed", str(seed), "--fusion-steps", "60"]) == 0
+    student = [*train, "--seed", "3", "--fusion-steps", "30", "--teachers", *map(str, teachers)]
+    for share in ("1", "0"):  # the same draws; only what the loss asks for differs
+        assert main([*student, "--out", str(tmp_path / f"s{share}"), "--distill-weight", share]) == 0
+
+    ckpt = load_checkpoint(tmp_path / "s1" / "fusion-hmd.pt")
+    assert ckpt["teachers"] == [str(t) for t in teachers] and "rot_teacher" in ckpt["history"][-1]
+    tc = dataclasses.replace(PRESETS["tiny"], seed=3)
+    cfg = fusion_config("hmd", tc)
+    teacher = load_teacher("hmd", teachers, cfg, "cpu")
+    fs = prepare_fusion_sequence(load_split(tiny_data, "train")[0], np.random.default_rng(0), tc, None)
+    hmd = torch.from_numpy(np.stack([sample_window(fs, i, cfg, None, tc)[0] for i in range(0, 100, 5)]))
+    with torch.no_grad():
+        wanted = teacher(hmd)[0]
+        gaps = {
+            share: (build_net(load_checkpoint(tmp_path / f"s{share}" / "fusion-hmd.pt"))(hmd) - wanted).abs()
+            for share in ("1", "0")
+        }
+    assert (
+        gaps["1"].mean() < 0.7 * gaps["0"].mean()
+    )  # nearer its teachers than the same net taught by the truth
+
+    with pytest.raises(TeacherError, match="window"):  # a teacher must read the student's inputs
+        load_teacher("hmd", teachers, dataclasses.replace(cfg, window=cfg.window + 1), "cpu")
+    assert main([*train, "--out", str(tmp_path / "x"), "--teachers", str(tmp_path / "none")]) == 2
+    assert "no teacher checkpoint" in capsys.readouterr().err
+
+
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
     more = tmp_path / "more"
     synth = ["synth", "--procedural", "1", "--families", "still_stand", "--seed", "6", "--out", str(more)]
