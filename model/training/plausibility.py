@@ -10,7 +10,10 @@ still while only the arms move. Measured against the truth of a dataset sequence
 - **Leg leakage** (cm): over stretches of at least ``STILL_MIN_S`` where the true lower body is still (every
   lower-body joint slower than ``STILL_SPEED_M_S``), the served lower-body joints' mean distance from where
   they were at the stretch's start, averaged over the stretch.
-- **Jerk** (m/s³): the mean norm of the third time derivative of the joints, served and true.
+- **Jerk** (m/s³): the mean norm of the third time derivative of the joints, served and true; and, where
+  the caller gives it, of the truth with its head and tracked wrists moved to where the devices put them
+  (``jerk_devices``): the least a body that follows its devices can have, since their tracking noise is in
+  every served head and hand and not in the truth.
 
 The world is a stage space: the floor is y = 0 (PROTOCOL.md §3).
 
@@ -72,9 +75,12 @@ def jerk(joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.diff(joints, n=3, axis=0) / dt_s**3, axis=-1).mean(-1)
 
 
-def plausibility(served: np.ndarray, truth: np.ndarray, t_us: np.ndarray) -> dict[str, np.ndarray]:
+def plausibility(
+    served: np.ndarray, truth: np.ndarray, t_us: np.ndarray, on_devices: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Per-sample (or per-stretch) values for one sequence, pooled later by :func:`summarize_plausibility`:
-    served (N, J, 3), truth (N, J, 3), t_us (N,)."""
+    served (N, J, 3), truth (N, J, 3), t_us (N,); on_devices (N, J, 3) the truth moved onto the devices
+    (evaluate.truth_on_devices), or None."""
     touch = contacts(truth, t_us)
     served_speed = _speeds(served[:, FEET], t_us, horizontal=True)
     sole = served[:, FEET, 1] - FOOT_JOINT_HEIGHT_M
@@ -88,12 +94,13 @@ def plausibility(served: np.ndarray, truth: np.ndarray, t_us: np.ndarray) -> dic
         "leakage": np.array(leakage),
         "jerk": jerk(served, t_us),
         "jerk_true": jerk(truth, t_us),
-    }
+    } | ({} if on_devices is None else {"jerk_devices": jerk(on_devices, t_us)})
 
 
 def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
     """Pooled over sequences: foot_skate_cm_s, floor_float_cm, floor_penetration_cm, leg_leakage_cm (NaN
-    where nothing was in contact or still), jerk and jerk_true (m/s³)."""
+    where nothing was in contact or still), jerk, jerk_true and jerk_devices (m/s³; NaN unless every part
+    has it)."""
 
     def pooled(key: str) -> np.ndarray:
         return np.concatenate([p[key] for p in parts]) if parts else np.zeros(0)
@@ -109,4 +116,7 @@ def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, floa
         "leg_leakage_cm": mean(pooled("leakage"), 100.0),
         "jerk": mean(pooled("jerk")),
         "jerk_true": mean(pooled("jerk_true")),
+        "jerk_devices": mean(pooled("jerk_devices"))
+        if all("jerk_devices" in p for p in parts)
+        else float("nan"),
     }

@@ -67,3 +67,31 @@ def test_penetration_is_the_depth_below_the_floor():
     served[:, 11, 1] -= 0.04
     result = summarize_plausibility([plausibility(served, truth, t_us)])
     assert result["floor_penetration_cm"] == pytest.approx(2.0) and result["floor_float_cm"] == 0.0
+
+
+def test_the_devices_jerk_is_the_truths_with_the_head_and_tracked_wrists_where_the_devices_put_them():
+    from egoposevr.model.rig import DEFAULT_OFFSETS_M, DEVICE_FROM_JOINT, TRACKED_JOINTS
+    from egoposevr.model.rotations import matrix_to_quat_xyzw
+    from egoposevr.model.training.evaluate import truth_on_devices
+
+    truth, t_us = standing()
+    noise_m = np.random.default_rng(0).normal(0.0, 0.002, (len(t_us), 3, 3))  # tracking noise, 2 mm
+    poses = np.zeros((len(t_us), 3, 7))  # each device on its joint, which is not turned
+    poses[..., :3] = truth[:, list(TRACKED_JOINTS)] + DEFAULT_OFFSETS_M + noise_m
+    poses[..., 3:] = matrix_to_quat_xyzw(DEVICE_FROM_JOINT)
+    valid = np.ones((len(t_us), 3), dtype=bool)
+    valid[:, 2] = False  # the right controller is lost throughout: its wrist stays the truth's
+    pinned = truth_on_devices(truth, {"hmd_poses": poses, "hmd_valid": valid})
+    np.testing.assert_allclose(
+        pinned[:, list(TRACKED_JOINTS[:2])], truth[:, list(TRACKED_JOINTS[:2])] + noise_m[:, :2]
+    )
+    np.testing.assert_array_equal(
+        np.delete(pinned, TRACKED_JOINTS[:2], axis=1), np.delete(truth, TRACKED_JOINTS[:2], axis=1)
+    )
+
+    result = summarize_plausibility([plausibility(truth, truth, t_us, pinned)])
+    assert result["jerk_true"] == pytest.approx(0.0, abs=1e-6)
+    # White noise of s per axis: its third difference has s * sqrt(20) per axis; two noisy joints of 22.
+    expected = 2 / 22 * 0.002 * np.sqrt(20) * RATE_HZ**3 * np.sqrt(8 / np.pi)  # the mean of a 3-D normal norm
+    assert result["jerk_devices"] == pytest.approx(expected, rel=0.1)
+    assert np.isnan(summarize_plausibility([plausibility(truth, truth, t_us)])["jerk_devices"])

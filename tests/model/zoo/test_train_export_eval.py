@@ -400,7 +400,11 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     assert list(results) == ["hmd", "egoposevr"]
     assert set(results["hmd"]) == set(METRIC_KEYS)
     assert all(v is None or (np.isfinite(v) and v >= 0) for m in results.values() for v in m.values())
-    assert all(np.isfinite(m[k]) for m in results.values() for k in ("mpjpe_u_cm", "foot_skate_cm_s", "jerk"))
+    assert all(
+        np.isfinite(m[k])
+        for m in results.values()
+        for k in ("mpjpe_u_cm", "foot_skate_cm_s", "jerk", "jerk_devices")
+    )
 
 
 def test_eval_serves_the_runtime_before_the_steady_stance_on_request(tiny_data, tiny_weights, tmp_path):
