@@ -56,6 +56,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="train only fusion nets, on the keypoints of DIR's exported visual-<kind>.onnx (e.g. the bundled)",
     )
     parser.add_argument(
+        "--tracking-cone",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("MIN", "MAX"),
+        help="fusion nets: the mirrored copies also lose controllers outside a cone drawn from MIN-MAX degrees",
+    )
+    parser.add_argument(
         "--teachers",
         type=Path,
         nargs="+",
@@ -91,9 +99,13 @@ def run(args: argparse.Namespace) -> int:
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
             ("temporal_weight", args.temporal_weight), ("distill_weight", args.distill_weight),
+            ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
         )
         if value is not None
     }  # fmt: skip
+    if args.tracking_cone and not 0.0 < args.tracking_cone[0] <= args.tracking_cone[1] <= 180.0:
+        print("egoposevr train: --tracking-cone MIN MAX needs 0 < MIN <= MAX <= 180 degrees", file=sys.stderr)
+        return 2
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
     started = time.perf_counter()
     try:

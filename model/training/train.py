@@ -49,7 +49,13 @@ from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.loading import load_encoder
 from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
-from .augment import crop_and_flip, mirror_sequence, mirror_world_keypoints, retime_sequence
+from .augment import (
+    crop_and_flip,
+    mirror_sequence,
+    mirror_world_keypoints,
+    narrow_tracking_cone,
+    retime_sequence,
+)
 from .dataset import decode_frames, load_splits, split_camera
 from .nets.fusion import FusionNet, SeedEnsemble, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
@@ -95,6 +101,9 @@ class TrainConfig:
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
+    # Stage 2: the mirrored copies also lose each controller outside a tracking cone drawn from this range,
+    # degrees off the headset's forward axis (augment.narrow_tracking_cone); None: the losses as rendered.
+    tracking_cone_deg: tuple[float, float] | None = None
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
@@ -695,11 +704,16 @@ def _stage_one(
 
 
 def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
-    """Stage 2's sequences: each as recorded and, with ``mirror_p`` > 0, mirrored at a random speed."""
+    """Stage 2's sequences: each as recorded and, with ``mirror_p`` > 0, mirrored at a random speed (and with
+    ``tracking_cone_deg``, tracked over a narrower cone)."""
     if tc.mirror_p <= 0:
         return list(seqs)
     speeds = np.random.default_rng([tc.seed, 11]).uniform(*tc.speed_range, len(seqs))
-    return list(seqs) + [mirror_sequence(retime_sequence(s, v)) for s, v in zip(seqs, speeds, strict=True)]
+    copies = [mirror_sequence(retime_sequence(s, v)) for s, v in zip(seqs, speeds, strict=True)]
+    if tc.tracking_cone_deg is not None:
+        cones = np.random.default_rng([tc.seed, 13]).uniform(*tc.tracking_cone_deg, len(seqs))
+        copies = [narrow_tracking_cone(c, deg) for c, deg in zip(copies, cones, strict=True)]
+    return list(seqs) + copies
 
 
 def _set_statistics(

@@ -13,6 +13,7 @@ from egoposevr.model.training.augment import (
     MIRROR_JOINTS,
     crop_and_flip,
     mirror_sequence,
+    narrow_tracking_cone,
     retime_sequence,
 )
 
@@ -59,6 +60,42 @@ def test_retiming_scales_the_clocks_only() -> None:
     np.testing.assert_array_equal(fast["hmd_t_us"], seq["hmd_t_us"] // 2)
     np.testing.assert_array_equal(fast["cam_t_us"], seq["cam_t_us"] // 2)
     assert fast["hmd_poses"] is seq["hmd_poses"] and fast["images_key"] == "val/0"
+
+
+def test_a_narrower_tracking_cone_loses_a_controller_once_its_hand_has_left_it_for_the_grace() -> None:
+    n, rate_hz = 91, 90.0
+    t_us = np.round(np.arange(n) * 1e6 / rate_hz).astype(np.int64) + 5_000_000
+    angle_deg = np.linspace(0.0, 90.0, n)  # the left hand sweeps from straight ahead to the side in 1 s
+    wrists_m = np.zeros((n, 22, 3))
+    wrists_m[:, 20] = 0.5 * np.stack(
+        [-np.sin(np.radians(angle_deg)), 0 * angle_deg, -np.cos(np.radians(angle_deg))], 1
+    )
+    wrists_m[:, 21] = [0.1, -0.2, -0.5]  # the right one stays in view
+    poses = np.zeros((n, 3, 7))
+    poses[..., 6] = 1.0  # the headset at the origin looking down -z; devices turned as the head
+    poses[:, 1:, :3] = (
+        wrists_m[:, [20, 21]] + 0.01 * np.arange(n)[:, None, None]
+    )  # reported poses, all distinct
+    valid = np.ones((n, 3), dtype=bool)
+    valid[10:15, 2] = False  # a loss the render already had, reporting the last tracked pose
+    poses[10:15, 2] = poses[9, 2]
+    seq = {"key": "train/3", "hmd_t_us": t_us, "hmd_poses": poses.astype(np.float32), "hmd_valid": valid,
+           "gt_joints_m": wrists_m}  # fmt: skip
+
+    narrowed = narrow_tracking_cone(seq, cone_deg=60.0, grace_s=0.25)
+    outside_s = (t_us - t_us[np.argmax(angle_deg > 60.0)]) * 1e-6
+    np.testing.assert_array_equal(narrowed["hmd_valid"][:, 1], outside_s <= 0.25)
+    np.testing.assert_array_equal(narrowed["hmd_valid"][:, [0, 2]], valid[:, [0, 2]])
+    last = np.flatnonzero(narrowed["hmd_valid"][:, 1])[-1]
+    assert (narrowed["hmd_poses"][last:, 1] == seq["hmd_poses"][last, 1]).all()  # its last tracked pose
+    np.testing.assert_array_equal(narrowed["hmd_poses"][: last + 1], seq["hmd_poses"][: last + 1])
+    assert (
+        narrowed["key"] != seq["key"] and narrowed["images_key"] == "train/3"
+    )  # other HMD features, same frames
+
+    unchanged = narrow_tracking_cone(seq, cone_deg=180.0)
+    np.testing.assert_array_equal(unchanged["hmd_valid"], valid)
+    np.testing.assert_array_equal(unchanged["hmd_poses"], seq["hmd_poses"])
 
 
 @pytest.mark.parametrize(("crop_p", "flip_p"), [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])

@@ -181,6 +181,32 @@ def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, ca
     assert "no teacher checkpoint" in capsys.readouterr().err
 
 
+def test_a_narrower_tracking_cone_trains_the_mirrored_copies_on_more_lost_controllers(
+    tiny_data, tmp_path, capsys
+):
+    import dataclasses
+
+    from egoposevr.model.training.train import augmented
+
+    seqs = load_split(tiny_data, "train")
+    plain = augmented(seqs, dataclasses.replace(PRESETS["tiny"], mirror_p=0.5))
+    narrow = augmented(
+        seqs, dataclasses.replace(PRESETS["tiny"], mirror_p=0.5, tracking_cone_deg=(10.0, 20.0))
+    )
+    n = len(seqs)
+    for before, after in zip(plain[:n], narrow[:n], strict=True):
+        assert after is before  # the sequences as rendered stay as they are
+    lost_before = np.mean([~s["hmd_valid"][:, 1:] for s in plain[n:]])
+    lost_after = np.mean([~s["hmd_valid"][:, 1:] for s in narrow[n:]])
+    assert lost_after > lost_before + 0.2
+
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path), "--fusion-steps", "2", "--tracking-cone", "50", "70"]) == 0
+    assert load_checkpoint(tmp_path / "fusion-hmd.pt")["train_config"]["tracking_cone_deg"] == (50.0, 70.0)
+    assert main([*args, "--out", str(tmp_path / "x"), "--tracking-cone", "70", "50"]) == 2
+    assert "--tracking-cone" in capsys.readouterr().err
+
+
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
     more = tmp_path / "more"
     synth = ["synth", "--procedural", "1", "--families", "still_stand", "--seed", "6", "--out", str(more)]
