@@ -639,11 +639,13 @@ def train_fusion(
     if resume and _finished(path):
         return path
     entry = ZOO[name]
+    cfg = fusion_config(name, tc)
+    # Before minutes of data preparation, and before the seed: building the teachers draws from torch's RNG.
+    teacher = load_teacher(entry.fusion_name, teachers, cfg, tc.device)
     visual: KeypointNet | ExportedEncoder | None = None
     if entry.visual:
         visual = _stage_one(entry.visual, out_dir, encoders_dir, tc)
     torch.manual_seed(tc.seed)
-    cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     data_dirs = dataset_dirs(data)
     seqs = seqs if seqs is not None else load_splits(data_dirs, "train", tc.limit_sequences)
@@ -651,7 +653,6 @@ def train_fusion(
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     net.to(tc.device)
-    teacher = load_teacher(entry.fusion_name, teachers, cfg, tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": _dirs_field(data_dirs), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
@@ -776,6 +777,8 @@ def train_zoo(
         torch.set_num_threads(tc.threads)
     fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
+    for f in fusions:  # teachers that cannot teach are an error now, not after the encoders have trained
+        load_teacher(f, teachers, fusion_config(f, tc), "cpu")
     data_dirs = dataset_dirs(data)
     seqs = load_splits(data_dirs, "train", tc.limit_sequences)
     paths = {}
