@@ -12,8 +12,8 @@ still while only the arms move. Measured against the truth of a dataset sequence
   they were at the stretch's start, averaged over the stretch.
 - **Jerk** (m/s³): the mean norm of the third time derivative of the joints, served and true; and, where
   the caller gives it, of the truth with its head and tracked wrists moved to where the devices put them
-  (``jerk_devices``): the least a body that follows its devices can have, since their tracking noise is in
-  every served head and hand and not in the truth.
+  (``jerk_devices``): what a perfect network would serve with the head and hands exactly on their devices,
+  whose tracking noise is then in every served head and hand and not in the truth.
 
 The world is a stage space: the floor is y = 0 (PROTOCOL.md §3).
 
