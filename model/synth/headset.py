@@ -152,6 +152,13 @@ def out_of_view(poses: np.ndarray, t_s: np.ndarray, rig: HeadsetRig) -> np.ndarr
     return np.stack([_grace(lost[:, k], t_s, rig.tracking_grace_s) for k in range(2)], axis=1)
 
 
+def hold_last_tracked(device_poses: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """One device's poses (N, 7) as it reports them: while lost (valid (N,) False) its last tracked pose, as
+    runtimes do (a device lost from the first sample keeps its own first pose)."""
+    samples = np.arange(len(valid))
+    return device_poses[np.maximum.accumulate(np.where(valid, samples, 0))]
+
+
 def _drift(rng: np.random.Generator, n: int, rate_hz: float, scale_m: float) -> np.ndarray:
     """(n, 3) slow random offsets: a random walk pulled back to zero (time constant ~2 s)."""
     pull = np.exp(-1.0 / (2.0 * rate_hz))
@@ -203,9 +210,7 @@ def simulate_headset(
         in_head = head_rot.inv().apply(poses[:, k, :3] - poses[:, 0, :3])
         behind = in_head[:, 2] > rig.behind_head_m  # device +z points backwards
         valid[:, k] = ~(behind | unseen[:, k - 1] | _dropouts(rng, motion_t_s, rig))
-        for i in range(1, count):  # a lost controller reports its last tracked pose, as runtimes do
-            if not valid[i, k]:
-                poses[i, k] = poses[i - 1, k]
+        poses[:, k] = hold_last_tracked(poses[:, k], valid[:, k])
 
     start_us = int(rng.integers(1_000_000, 10_000_000_000)) if start_us is None else start_us
     jitter = np.clip(rng.normal(0.0, rig.jitter_us, count), -3 * rig.jitter_us, 3 * rig.jitter_us)

@@ -21,7 +21,8 @@ from typing import Any, Final
 import cv2
 import numpy as np
 
-from ..rotations import quat_xyzw_to_matrix
+from ..rig import TRACKED_JOINTS
+from ..synth.headset import HeadsetRig, hold_last_tracked, out_of_view
 
 # SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
 MIRROR_JOINTS: Final = np.array(
@@ -75,35 +76,22 @@ def retime_sequence(seq: dict[str, Any], speed: float) -> dict[str, Any]:
 def narrow_tracking_cone(seq: dict[str, Any], cone_deg: float, grace_s: float = 0.25) -> dict[str, Any]:
     """The sequence as a headset whose cameras track a controller only within ``cone_deg`` of its forward
     axis would report it (a new dict): a true wrist further off-axis than that for longer than ``grace_s``
-    (the IMU's bridge) also loses its controller, which then reports its last tracked pose, as the renders'
-    losses do (synth.headset). Losses the sequence already has are kept."""
+    (the IMU's bridge) also loses its controller, which then reports its last tracked pose: the renders' own
+    rules (synth.headset.out_of_view, hold_last_tracked). Losses the sequence already has are kept."""
     poses = np.array(seq["hmd_poses"], dtype=np.float64)  # (N, 3, 7)
     valid = np.array(seq["hmd_valid"], dtype=bool)  # (N, 3)
-    wrists_m = np.asarray(seq["gt_joints_m"], dtype=np.float64)[:, [20, 21]]  # left, right (N, 2, 3)
-    head_rot = quat_xyzw_to_matrix(poses[:, 0, 3:])  # (N, 3, 3)
-    rel = np.einsum("nji,nkj->nki", head_rot, wrists_m - poses[:, None, 0, :3])  # in the headset's frame
-    forward = -rel[..., 2] / np.maximum(np.linalg.norm(rel, axis=-1), 1e-9)  # the view looks down -z
-    outside = np.degrees(np.arccos(np.clip(forward, -1.0, 1.0))) > cone_deg  # (N, 2)
+    at_wrists = poses.copy()  # the controllers where the true wrists are: what the cameras would have to see
+    at_wrists[:, 1:, :3] = np.asarray(seq["gt_joints_m"], dtype=np.float64)[:, list(TRACKED_JOINTS[1:])]
     t_s = (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
-    samples = np.arange(len(t_s))
-    for side, device in enumerate((1, 2)):
-        valid[:, device] &= ~_lasting(outside[:, side], t_s, grace_s)
-        last_tracked = np.maximum.accumulate(np.where(valid[:, device], samples, 0))
-        poses[:, device] = poses[last_tracked, device]
+    unseen = out_of_view(at_wrists, t_s, HeadsetRig(tracking_cone_deg=cone_deg, tracking_grace_s=grace_s))
+    for device in (1, 2):
+        valid[:, device] &= ~unseen[:, device - 1]
+        poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
     out = dict(seq)
     out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
     out["key"] = f"{seq['key']}~cone{cone_deg:.0f}"
     out["images_key"] = seq.get("images_key", seq["key"])
     return out
-
-
-def _lasting(flag: np.ndarray, t_s: np.ndarray, grace_s: float) -> np.ndarray:
-    """(N,) bool: where ``flag`` has held for longer than grace_s (t_s (N,) seconds)."""
-    starts = np.flatnonzero(flag & ~np.concatenate([[False], flag[:-1]]))  # each run's first sample
-    run_start_s = np.full(len(flag), np.inf)
-    run_start_s[starts] = t_s[starts]
-    since_s = t_s - np.maximum.accumulate(np.where(np.isinf(run_start_s), -np.inf, run_start_s))
-    return flag & (since_s > grace_s)
 
 
 def crop_and_flip(
