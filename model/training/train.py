@@ -630,22 +630,20 @@ def train_fusion(
     seqs: list[dict[str, Any]] | None = None,
     cache: dict[Any, Any] | None = None,
     encoders_dir: Path | None = None,
-    teachers: Sequence[Path] = (),
+    teacher: Teacher | None = None,
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
-    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teachers``
-    (runs folders holding this entry's trained fusion net) it also learns their mean output."""
+    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teacher``
+    (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output."""
     path = out_dir / f"fusion-{name}.pt"
     if resume and _finished(path):
         return path
     entry = ZOO[name]
-    cfg = fusion_config(name, tc)
-    # Before minutes of data preparation, and before the seed: building the teachers draws from torch's RNG.
-    teacher = load_teacher(entry.fusion_name, teachers, cfg, tc.device)
     visual: KeypointNet | ExportedEncoder | None = None
     if entry.visual:
         visual = _stage_one(entry.visual, out_dir, encoders_dir, tc)
     torch.manual_seed(tc.seed)
+    cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     data_dirs = dataset_dirs(data)
     seqs = seqs if seqs is not None else load_splits(data_dirs, "train", tc.limit_sequences)
@@ -657,8 +655,8 @@ def train_fusion(
             "data": {"dir": _dirs_field(data_dirs), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     if teacher is not None:
-        meta["teachers"] = [str(d) for d in teachers]
-    loss_fn = fusion_loss_fn(net, prepared, tc, teacher)
+        meta["teachers"] = list(teacher.runs_dirs)
+    loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None)
     _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress)
     return path
 
@@ -667,14 +665,23 @@ class TeacherError(ValueError):
     """Teachers that are missing, or that cannot read the student's inputs."""
 
 
+@dataclasses.dataclass(frozen=True)
+class Teacher:
+    """What a student learns from: the frozen nets, and the runs folders they came from (for its record)."""
+
+    nets: SeedEnsemble
+    runs_dirs: tuple[str, ...]
+
+
 _TEACHER_MUST_MATCH: Final = ("window", "device_validity", "fusion")
 
 
 def load_teacher(
     fusion_name: str, runs_dirs: Sequence[Path], student: FusionConfig, device: str
-) -> SeedEnsemble | None:
-    """The frozen :class:`SeedEnsemble` of each runs folder's ``fusion-<fusion_name>.pt`` (None without
-    folders). Its nets must read the student's inputs and, where the student predicts contact, predict it."""
+) -> Teacher | None:
+    """A :class:`Teacher`: the frozen :class:`SeedEnsemble` of each runs folder's ``fusion-<fusion_name>.pt``
+    (None without folders). Its nets must read the student's inputs and, where the student predicts contact,
+    predict it."""
     if not runs_dirs:
         return None
     paths = [Path(d) / f"fusion-{fusion_name}.pt" for d in runs_dirs]
@@ -682,18 +689,17 @@ def load_teacher(
     if missing:
         raise TeacherError(f"no teacher checkpoint: {', '.join(missing)}")
     nets = [build_net(load_checkpoint(p)) for p in paths]
+    wanted = _TEACHER_MUST_MATCH + (("visual_window",) if student.uses_camera else ())
+    wanted += ("contact_head",) if student.contact_head else ()
     for path, net in zip(paths, nets, strict=True):
-        wanted = _TEACHER_MUST_MATCH + (("visual_window",) if student.uses_camera else ())
-        if student.contact_head:
-            wanted += ("contact_head",)
         differ = [f for f in wanted if getattr(net.cfg, f) != getattr(student, f)]
         if differ:
             raise TeacherError(f"teacher {path} differs from the student in {', '.join(differ)}")
     try:
-        teacher = SeedEnsemble(nets)
+        ensemble = SeedEnsemble(nets)
     except ValueError as error:
         raise TeacherError(f"teachers {', '.join(map(str, runs_dirs))}: {error}") from error
-    return teacher.eval().requires_grad_(False).to(device)
+    return Teacher(ensemble.eval().requires_grad_(False).to(device), tuple(map(str, runs_dirs)))
 
 
 def _stage_one(
@@ -777,8 +783,8 @@ def train_zoo(
         torch.set_num_threads(tc.threads)
     fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
-    for f in fusions:  # teachers that cannot teach are an error now, not after the encoders have trained
-        load_teacher(f, teachers, fusion_config(f, tc), "cpu")
+    # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
+    taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
     data_dirs = dataset_dirs(data)
     seqs = load_splits(data_dirs, "train", tc.limit_sequences)
     paths = {}
@@ -789,6 +795,6 @@ def train_zoo(
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
-            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, teachers
+            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f]
         )
     return paths

@@ -166,7 +166,7 @@ def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, ca
     fs = prepare_fusion_sequence(load_split(tiny_data, "train")[0], np.random.default_rng(0), tc, None)
     hmd = torch.from_numpy(np.stack([sample_window(fs, i, cfg, None, tc)[0] for i in range(0, 100, 5)]))
     with torch.no_grad():
-        wanted = teacher(hmd)[0]
+        wanted = teacher.nets(hmd)[0]
         gaps = {
             share: (build_net(load_checkpoint(tmp_path / f"s{share}" / "fusion-hmd.pt"))(hmd) - wanted).abs()
             for share in ("1", "0")
