@@ -44,6 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="weight of the fusion nets' temporal term (the error's change between consecutive samples); 0 off",
     )
     parser.add_argument(
+        "--skate-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="weight of the fusion nets' skating term (a truly planted foot's served slide, m); 0 off",
+    )
+    parser.add_argument(
         "--device",
         choices=("cpu", "cuda"),
         default=None,
@@ -98,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
-            ("temporal_weight", args.temporal_weight), ("distill_weight", args.distill_weight),
+            ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
+            ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
         )
         if value is not None

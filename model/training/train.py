@@ -6,7 +6,8 @@ Stage 2 (per zoo fusion net): the frozen stage-1 encoder's keypoints (its checkp
 encoder's: :class:`ExportedEncoder`) go through exactly the runtime's preparation
 (:mod:`egoposevr.model.inputs`: heading frame, Alg. 1, visual tokens); losses are L1 on the 6D rotations +
 L1 on FK joint positions anchored at the headset's head joint, as the runtime anchors them, + BCE on each
-foot's contact, + optionally the temporal term (``TrainConfig.temporal_weight``).
+foot's contact, + optionally the temporal term (``TrainConfig.temporal_weight``) and the skating term
+(``TrainConfig.skate_weight``), both on pairs of windows a headset sample apart.
 
 The nets train on the CPU or on CUDA (``TrainConfig.device``); batches are built in numpy either way.
 
@@ -60,7 +61,7 @@ from .dataset import decode_frames, load_splits, split_camera
 from .nets.fusion import FusionNet, SeedEnsemble, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
-from .plausibility import contacts
+from .plausibility import FEET, contacts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +96,10 @@ class TrainConfig:
     # body's jitter is mostly the network's own sample-to-sample noise (MODEL_CARD.md). 0: off, the batch is
     # tc.batch windows; on, each window also runs with the one a sample before it (2 x batch).
     temporal_weight: float = 0.0
+    # L1 (m, summed over x, y, z) of how much each foot's error changes, in the world, from the sample before,
+    # where the truth has that foot down at both samples: a planted foot that the net lets slide. Summed over
+    # the feet (not averaged over the 22 joints as the temporal term is). 0: off; on, pairs as above.
+    skate_weight: float = 0.0
     # With teachers (train_fusion's ``teachers``): the share of each fusion loss term taken against the
     # teachers' mean output instead of the truth (knowledge distillation; MODEL_CARD.md).
     distill_weight: float = 0.5
@@ -532,7 +537,7 @@ def fusion_loss_fn(
     def batch(rng: np.random.Generator):
         which = rng.choice(len(seqs), tc.batch, p=weights)
         items = [(seqs[s], int(rng.integers(0, lengths[s]))) for s in which]
-        if tc.temporal_weight > 0:
+        if _uses_pairs(tc):
             items, inputs = _with_previous_samples(items, rng, cfg, tc)
         else:
             inputs = [sample_window(fs, i, cfg, rng, tc) for fs, i in items]
@@ -548,11 +553,13 @@ def fusion_loss_fn(
             weight[np.ix_(lost[:, side], arm)] = tc.lost_hand_weight
         contact = torch.from_numpy(np.stack([fs.contact[i] for fs, i in items]))
         weight_t = torch.from_numpy(weight / weight.mean(1, keepdims=True))
-        tensors = (hmd, vis, target, joints, anchor, offsets, weight_t, contact)
+        heading = np.stack([fs.head_pose[i] for fs, i in items])
+        world_from_heading = torch.from_numpy(heading_frame(heading)[0].astype(np.float32))
+        tensors = (hmd, vis, target, joints, anchor, offsets, weight_t, contact, world_from_heading)
         return tuple(t.to(dev, non_blocking=True) for t in tensors)
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        hmd, vis, target, joints, anchor, offsets, weight, contact = batch(rng)
+        hmd, vis, target, joints, anchor, offsets, weight, contact, world_from_heading = batch(rng)
         visual = vis if cfg.uses_camera else None
         if cfg.contact_head:
             sixd, contact_logits = net.forward_with_contact(hmd, visual)
@@ -564,6 +571,8 @@ def fusion_loss_fn(
             error = pos - joints  # (2B, J, 3): each window's, then the previous sample's
             now, before = error.chunk(2)
             losses["temporal"] = (now - before).abs().sum(-1).mean() * tc.temporal_weight
+        if tc.skate_weight > 0:
+            losses["skate"] = skate_term(pos - joints, world_from_heading, contact) * tc.skate_weight
         if teacher is None:
             return losses
         with torch.no_grad():
@@ -576,6 +585,23 @@ def fusion_loss_fn(
         return fitted | {f"{k}_teacher": v * share for k, v in mimic.items()}
 
     return loss
+
+
+def _uses_pairs(tc: TrainConfig) -> bool:
+    """Whether each batch also holds every window's sample before (the temporal and skating terms)."""
+    return tc.temporal_weight > 0 or tc.skate_weight > 0
+
+
+def skate_term(error: torch.Tensor, world_from_heading: torch.Tensor, contact: torch.Tensor) -> torch.Tensor:
+    """How far the served feet slide while the true feet are down: for joint errors (2B, J, 3) in each
+    window's heading frame (world_from_heading (2B, 3, 3)), the B windows then the B a sample before them,
+    the L1 (m) of each foot's error change in the world, where contact (2B, 2) has that foot down at both
+    samples; summed over the feet, mean over the B pairs. The truth's own motion cancels: only the served
+    foot's motion beyond the true foot's counts."""
+    feet_world = error[:, list(FEET)] @ world_from_heading.transpose(-1, -2)  # (2B, 2, 3)
+    now, before = feet_world.chunk(2)
+    down_now, down_before = contact.chunk(2)
+    return ((now - before).abs().sum(-1) * down_now * down_before).sum(-1).mean()
 
 
 def _anchored_joints(sixd: torch.Tensor, anchor: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:

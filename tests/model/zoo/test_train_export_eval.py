@@ -57,6 +57,14 @@ def test_the_temporal_term_trains_on_pairs_of_consecutive_windows(tiny_data, tmp
     assert seen[:41] == seen[41:] and 0 < sum(seen[:41]) < 41  # each pair drew the same drop
 
 
+def test_the_skating_term_trains_on_pairs_and_is_recorded(tiny_data, tmp_path):
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
+    assert main([*args, "--fusion-steps", "3", "--skate-weight", "8", "--no-progress"]) == 0
+    ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
+    assert ckpt["train_config"]["skate_weight"] == 8.0 and ckpt["train_config"]["temporal_weight"] == 0.0
+    assert "skate" in ckpt["history"][-1] and "temporal" not in ckpt["history"][-1]
+
+
 def test_fusion_nets_train_on_an_exported_encoders_keypoints(
     tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
 ):
