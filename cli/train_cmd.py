@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="weight of the fusion nets' temporal term (the error's change between consecutive samples); 0 off",
     )
     parser.add_argument(
+        "--window", type=int, default=None, metavar="T", help="fusion nets' HMD window, headset samples"
+    )
+    parser.add_argument(
         "--skate-weight",
         type=float,
         default=None,
@@ -105,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
+            ("window", args.window),
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
@@ -113,6 +117,9 @@ def run(args: argparse.Namespace) -> int:
     }  # fmt: skip
     if args.tracking_cone and not 0.0 < args.tracking_cone[0] <= args.tracking_cone[1] <= 180.0:
         print("egoposevr train: --tracking-cone MIN MAX needs 0 < MIN <= MAX <= 180 degrees", file=sys.stderr)
+        return 2
+    if args.window is not None and args.window < 1:
+        print("egoposevr train: --window T needs T >= 1 headset samples", file=sys.stderr)
         return 2
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
     started = time.perf_counter()

@@ -65,6 +65,15 @@ def test_the_skating_term_trains_on_pairs_and_is_recorded(tiny_data, tmp_path):
     assert "skate" in ckpt["history"][-1] and "temporal" not in ckpt["history"][-1]
 
 
+def test_the_hmd_window_is_a_training_choice_the_checkpoint_keeps(tiny_data, tmp_path, capsys):
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
+    assert main([*args, "--fusion-steps", "2", "--window", "5", "--no-progress"]) == 0
+    ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
+    assert ckpt["config"]["window"] == 5 and ckpt["train_config"]["window"] == 5
+    assert main([*args, "--window", "0", "--no-progress"]) == 2
+    assert "--window T needs T >= 1" in capsys.readouterr().err
+
+
 def test_fusion_nets_train_on_an_exported_encoders_keypoints(
     tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
 ):
