@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from loopback import Client
 
+from egoposevr.model.runtime.contact import ANCHOR_SPEED_M_S
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
 from egoposevr.model.synth.headset import simulate_headset
 from egoposevr.model.synth.procedural import generate
@@ -44,9 +45,12 @@ def test_planted_feet_stay_on_the_floor_and_a_local_space_gets_the_sessions_own_
 
     local = served_feet(server, "floor-local", 1.6)  # y = 0 at the head: the feet hang far below it
     assert local[..., 1].max() < -0.5  # not pulled up to y = 0
-    # With y = 0 at the head the body's height is unknown and the network's legs are a crouch whose one foot
-    # still wanders; the other is planted on the floor the session estimated under them, and no sole goes
-    # below that floor.
+    # With y = 0 at the head the body's height is unknown and the network's legs are a crouch whose pelvis
+    # wanders (about 15 cm over these 2 s). The feet stay planted on the floor the session estimated under
+    # them, and no sole goes below that floor. A planted foot's anchor settles towards the network's
+    # placements at most ANCHOR_SPEED_M_S in a steady stance, and KPO holds the foot within about 0.7 cm of
+    # its anchor here: a free foot would follow the wandering legs.
     floor_y_m = local[..., 1].min()
-    assert min(np.ptp(local[:, k], axis=0).max() for k in range(2)) < 0.02
+    settled_m = ANCHOR_SPEED_M_S * 2.0 + 0.01
+    assert min(np.ptp(local[:, k], axis=0).max() for k in range(2)) < settled_m
     assert np.abs(local[:, np.argmin(np.ptp(local[..., 0], axis=0)), 1] - floor_y_m).max() < 0.02
