@@ -553,13 +553,14 @@ def fusion_loss_fn(
             weight[np.ix_(lost[:, side], arm)] = tc.lost_hand_weight
         contact = torch.from_numpy(np.stack([fs.contact[i] for fs, i in items]))
         weight_t = torch.from_numpy(weight / weight.mean(1, keepdims=True))
-        heading = np.stack([fs.head_pose[i] for fs, i in items])
-        world_from_heading = torch.from_numpy(heading_frame(heading)[0].astype(np.float32))
-        tensors = (hmd, vis, target, joints, anchor, offsets, weight_t, contact, world_from_heading)
+        tensors = (hmd, vis, target, joints, anchor, offsets, weight_t, contact)
+        if tc.skate_weight > 0:  # only the skating term needs each window's frame (B, 3, 3)
+            heading = np.stack([fs.head_pose[i] for fs, i in items])
+            tensors += (torch.from_numpy(heading_frame(heading)[0].astype(np.float32)),)
         return tuple(t.to(dev, non_blocking=True) for t in tensors)
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        hmd, vis, target, joints, anchor, offsets, weight, contact, world_from_heading = batch(rng)
+        hmd, vis, target, joints, anchor, offsets, weight, contact, *world_from_heading = batch(rng)
         visual = vis if cfg.uses_camera else None
         if cfg.contact_head:
             sixd, contact_logits = net.forward_with_contact(hmd, visual)
@@ -567,12 +568,12 @@ def fusion_loss_fn(
             sixd, contact_logits = net(hmd, visual), None
         pos = _anchored_joints(sixd, anchor, offsets)
         losses = _fit_terms(sixd, pos, contact_logits, (target, joints, contact), weight, tc)
+        error = pos - joints  # with pairs (2B, J, 3): each window's, then the previous sample's
         if tc.temporal_weight > 0:
-            error = pos - joints  # (2B, J, 3): each window's, then the previous sample's
             now, before = error.chunk(2)
             losses["temporal"] = (now - before).abs().sum(-1).mean() * tc.temporal_weight
         if tc.skate_weight > 0:
-            losses["skate"] = skate_term(pos - joints, world_from_heading, contact) * tc.skate_weight
+            losses["skate"] = skate_term(error, world_from_heading[0], contact) * tc.skate_weight
         if teacher is None:
             return losses
         with torch.no_grad():
