@@ -15,8 +15,11 @@ is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of
   or moves it more than ``RELEASE_DISTANCE_M`` (scaled by the body) from the anchor over the floor, faster
   than ``STEP_SPEED_M_S``; or it is ``SURE_RELEASE`` times that far at any speed (a slow knee raise). A
   slow drift within that is the network's legs wandering while the user only moves the upper body, which is
-  what the plant is there to hide. For ``RELEASE_S`` the target then slides from the anchor to the
-  network's foot (no pop).
+  what the plant is there to hide.
+- **no jumps**: whenever a foot's state changes, what was served the sample before fades into the new
+  target (smoothstep, ``LAND_S`` for a plant, ``BLEND_S`` for a release), so a foot lowered onto the floor,
+  let go, or planted again at once elsewhere glides instead of moving centimetres in one sample (the jerk
+  spikes that were most of the served legs' jerk).
 - **a steady stance** (:mod:`.stance`: both feet planted, the headset still): a planted foot steps only when
   the network lifts it, however far its guess wanders over the floor, and the anchor moves towards the mean
   of the network's placements since the plant at most ``ANCHOR_SPEED_M_S`` (one early guess is a worse
@@ -54,7 +57,10 @@ RELEASE_HEIGHT_M: Final = 0.08
 RELEASE_DISTANCE_M: Final = 0.10  # for a body of SMPL's size
 STEP_SPEED_M_S: Final = 0.3  # a foot that leaves that far this fast steps; slower, it is the net wandering
 SURE_RELEASE: Final = 1.5  # ... unless it is this many times as far: a slow knee raise or lunge
-RELEASE_S: Final = 0.15
+# A plant or a release never moves a foot in one sample: what was served then fades into the new target
+# over this long (smoothstep), so a foot lowered onto the floor or let go is not a jump (a jerk spike).
+BLEND_S: Final = 0.15
+LAND_S: Final = 0.05  # a plant: shorter, or a landing foot would float (chosen on the training split)
 # In a steady stance (stance.py) a planted foot's anchor moves to the mean of the network's placements of it
 # since the plant, never faster than this: the foot is still, so the mean is its best estimate, but a foot
 # seen to move faster than this would be skating.
@@ -79,7 +85,12 @@ class _Foot:
     # (2, 3) the network's placements on the floor since the plant, summed, and how many
     placed_sum: np.ndarray | None = None
     placed: int = 0
-    released_us: int | None = None  # when the last plant ended (the slide back to the network's foot)
+    served: np.ndarray | None = None  # (2, 3) what was served last sample (the network's own where no target)
+    # (2, 3) what was served minus the new state's target when the state last changed, fading out over
+    # BLEND_S, and when that was: a plant or a release never moves the foot in one sample
+    blend_m: np.ndarray | None = None
+    switched_us: int = 0
+    blend_s: float = BLEND_S
     speed: WindowSpeed = dataclasses.field(
         default_factory=lambda: WindowSpeed(SPEED_WINDOW_S)
     )  # foot joint's
@@ -185,33 +196,76 @@ class FootContacts:
         rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
         lift_m = predicted[1, 1] - rest_y
         if lift_m < -FLOOR_TRUST_M:
-            foot.planted, foot.released_us = False, None
+            foot.planted, foot.served, foot.blend_m = False, None, None
             return None
-        xz = predicted[1, [0, 2]]
         speed_m_s = foot.speed.push(t_us, predicted[1])
         if foot.planted:
             assert foot.anchor is not None
-            drift_m = float(np.linalg.norm(xz - foot.anchor[1, [0, 2]]))
-            away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
-            if steady:  # the network's foot wandering over the floor is not a step while the head is still
-                sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
-                stepping = lift_m > RELEASE_HEIGHT_M and sure
-            elif contact_p is not None:
-                stepping = contact_p < RELEASE_P or away > SURE_RELEASE
-            else:
-                stepping = away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S)
-            if stepping:
-                foot.planted, foot.released_us = False, t_us
+            if self._steps(foot, predicted, lift_m, body_scale, speed_m_s, contact_p, steady):
+                foot.planted = False
+                self._switch(foot, t_us, predicted, BLEND_S)
             else:
                 if steady:
                     self._settle(foot, predicted - np.array([0.0, lift_m, 0.0]))
-                return foot.anchor
+                return self._serve(foot, t_us, foot.anchor, predicted, rest_y)
         elif self._plants(lift_m, speed_m_s, contact_p):
-            foot.planted, foot.released_us = True, None
+            foot.planted = True
             foot.anchor = predicted - np.array([0.0, lift_m, 0.0])  # sole on the floor, foot as predicted
             foot.placed_sum, foot.placed = foot.anchor.copy(), 1
-            return foot.anchor
-        return self._free_target(foot, t_us, predicted, rest_y)
+            self._switch(foot, t_us, foot.anchor, LAND_S)
+            return self._serve(foot, t_us, foot.anchor, predicted, rest_y)
+        return self._serve(foot, t_us, None, predicted, rest_y)
+
+    @staticmethod
+    def _steps(
+        foot: _Foot,
+        predicted: np.ndarray,
+        lift_m: float,
+        body_scale: float,
+        speed_m_s: float,
+        contact_p: float | None,
+        steady: bool,
+    ) -> bool:
+        """Whether a planted foot steps now (module docstring: planted -> free)."""
+        assert foot.anchor is not None
+        drift_m = float(np.linalg.norm(predicted[1, [0, 2]] - foot.anchor[1, [0, 2]]))
+        away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
+        if steady:  # the network's foot wandering over the floor is not a step while the head is still
+            sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
+            return lift_m > RELEASE_HEIGHT_M and sure
+        if contact_p is not None:
+            return contact_p < RELEASE_P or away > SURE_RELEASE
+        return away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S)
+
+    @staticmethod
+    def _switch(foot: _Foot, t_us: int, target_m: np.ndarray, blend_s: float) -> None:
+        """The foot's state changed and its target is now target_m (2, 3): what was served last fades into
+        it over BLEND_S."""
+        if foot.served is not None:
+            foot.blend_m, foot.switched_us, foot.blend_s = foot.served - target_m, t_us, blend_s
+
+    @staticmethod
+    def _serve(
+        foot: _Foot, t_us: int, target: np.ndarray | None, predicted: np.ndarray, rest_y: float
+    ) -> np.ndarray | None:
+        """The state's target (2, 3), or None for the network's foot ``predicted``, plus what is left of the
+        last change's blend; a free foot never below the floor. Returns None where that is the network's
+        foot as it is."""
+        out = predicted.copy() if target is None else target.copy()
+        if foot.blend_m is not None:
+            share = (t_us - foot.switched_us) * 1e-6 / foot.blend_s
+            if 0.0 <= share < 1.0:
+                out += (1.0 - share * share * (3.0 - 2.0 * share)) * foot.blend_m
+            else:
+                foot.blend_m = None
+        if target is None:
+            below = out[:, 1] < rest_y
+            out[below, 1] = rest_y
+            if foot.blend_m is None and not below.any():
+                foot.served = out
+                return None
+        foot.served = out
+        return out
 
     @staticmethod
     def _settle(foot: _Foot, on_floor: np.ndarray) -> None:
@@ -234,19 +288,3 @@ class FootContacts:
         if contact_p is not None:
             return contact_p >= PLANT_P and lift_m < RELEASE_HEIGHT_M
         return lift_m < PLANT_HEIGHT_M and speed_m_s < PLANT_SPEED_M_S
-
-    def _free_target(self, foot: _Foot, t_us: int, predicted: np.ndarray, rest_y: float) -> np.ndarray | None:
-        """A free foot: sliding from its last anchor after a release, and never below the floor."""
-        target = predicted.copy()
-        if foot.released_us is not None and foot.anchor is not None:
-            share = (t_us - foot.released_us) * 1e-6 / RELEASE_S
-            if share < 1.0:
-                smooth = share * share * (3.0 - 2.0 * share)
-                target = foot.anchor + smooth * (predicted - foot.anchor)
-            else:
-                foot.released_us = None
-        below = target[:, 1] < rest_y
-        if foot.released_us is None and not below.any():
-            return None
-        target[below, 1] = rest_y
-        return target

@@ -4,12 +4,13 @@ import numpy as np
 import pytest
 
 from egoposevr.model.runtime.contact import (
+    BLEND_S,
     FEET,
+    LAND_S,
     MAX_GAP_S,
     PLANT_SPEED_M_S,
     RELEASE_DISTANCE_M,
     RELEASE_HEIGHT_M,
-    RELEASE_S,
     FootContacts,
 )
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
@@ -82,9 +83,9 @@ def test_a_plant_ends_when_the_network_steps_and_the_foot_slides_back_without_a_
     steps_m = np.linalg.norm(np.diff(served, axis=0), axis=1)
     threshold = RELEASE_HEIGHT_M if move == "lift" else RELEASE_DISTANCE_M
     # The release happens once the network is `threshold` away: a pop would move the foot that far (and more)
-    # in one sample; the slide spreads it over RELEASE_S.
+    # in one sample; the slide spreads it over BLEND_S.
     assert steps_m.max() < 0.5 * threshold
-    assert (steps_m > 0.001).sum() * STEP_US * 1e-6 >= RELEASE_S - 2 * STEP_US * 1e-6
+    assert (steps_m > 0.001).sum() * STEP_US * 1e-6 >= BLEND_S - 2 * STEP_US * 1e-6
     assert np.allclose(served[-1], frames[-1][LEFT_FOOT])  # and then it is the network's foot again
 
 
@@ -197,3 +198,49 @@ def test_the_floor_of_a_floor_level_space_stays_where_it_is():
     for lift_m in (0.04, -0.05):
         run(contacts, [standing_joints(rng) + np.array([0.0, lift_m, 0.0]) for _ in range(200)])
         assert contacts.floor_now_m == 0.0
+
+
+def served_feet(contacts: FootContacts, frames: list[np.ndarray], contact_p: list[np.ndarray]) -> np.ndarray:
+    """(N, 3) the left foot joint served at each frame: its target, or the network's where it has none."""
+    served = []
+    for i, (joints, p) in enumerate(zip(frames, contact_p, strict=True)):
+        targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
+        contacts.targets(i * STEP_US, joints, 1.0, targets, observed, p)
+        served.append(targets[LEFT_FOOT] if observed[LEFT_FOOT] else joints[LEFT_FOOT])
+    return np.array(served)
+
+
+def test_a_plant_lowers_a_hovering_foot_onto_the_floor_over_land_s_not_in_one_sample():
+    """The network calls a foot down while it holds it 6 cm up: the sole goes onto the floor, smoothly."""
+    rng = np.random.default_rng(9)
+    hover_m = 0.06
+    frames = [standing_joints(rng, 0.0) + np.array([0.0, hover_m, 0.0]) for _ in range(40)]
+    frames = [f - np.array([0.0, hover_m, 0.0]) * np.isin(np.arange(22), [8, 11])[:, None] for f in frames]
+    up, down = np.array([0.0, 1.0]), np.array([1.0, 1.0])  # the right foot stands throughout
+    served = served_feet(FootContacts(), frames, [up] * 10 + [down] * 30)
+    assert served[9, 1] == pytest.approx(FOOT_JOINT_HEIGHT_M + hover_m, abs=0.001)  # free: the network's
+    drops_m = -np.diff(served[:, 1])
+    assert drops_m.max() < 0.4 * hover_m  # a jump would drop it all in one sample
+    landed = 10 + int(np.ceil(LAND_S / (STEP_US * 1e-6)))
+    assert served[landed:, 1] == pytest.approx(FOOT_JOINT_HEIGHT_M)  # and then it stands on the floor
+
+
+def test_a_foot_let_go_and_planted_again_glides_to_its_new_place():
+    """The contact head flickers (down, up for a few samples, down again) while the network moves the foot
+    12 cm: the second plant is where the network puts the foot, reached without a jump from the first."""
+    rng = np.random.default_rng(10)
+    frames = [standing_joints(rng, 0.0) for _ in range(30)]
+    for _ in range(50):
+        joints = standing_joints(rng, 0.0)
+        joints[[LEFT_ANKLE, LEFT_FOOT], 2] += 0.12
+        frames.append(joints)
+    down, left_up = np.ones(2), np.array([0.1, 1.0])
+    contact_p = [down] * 30 + [left_up] * 3 + [down] * 47
+    contacts = FootContacts()
+    served = served_feet(contacts, frames, contact_p)
+    assert contacts.planted == (True, True)
+    steps_m = np.linalg.norm(np.diff(served, axis=0), axis=1)
+    assert steps_m.max() < 0.4 * 0.12  # planted again at once, the old code jumped ~0.9 of it
+    assert served[-1, [0, 2]] == pytest.approx(
+        frames[-1][LEFT_FOOT, [0, 2]]
+    )  # planted where the network put it
