@@ -86,8 +86,8 @@ class _Foot:
     placed_sum: np.ndarray | None = None
     placed: int = 0
     served: np.ndarray | None = None  # (2, 3) what was served last sample (the network's own where no target)
-    # (2, 3) what was served minus the new state's target when the state last changed, fading out over
-    # BLEND_S, and when that was: a plant or a release never moves the foot in one sample
+    # (2, 3) what was served minus the new state's target when the state last changed, when that was, and
+    # how long it takes to fade out (LAND_S or BLEND_S): a plant or a release never moves the foot in one sample
     blend_m: np.ndarray | None = None
     switched_us: int = 0
     blend_s: float = BLEND_S
@@ -240,7 +240,7 @@ class FootContacts:
     @staticmethod
     def _switch(foot: _Foot, t_us: int, target_m: np.ndarray, blend_s: float) -> None:
         """The foot's state changed and its target is now target_m (2, 3): what was served last fades into
-        it over BLEND_S."""
+        it over blend_s."""
         if foot.served is not None:
             foot.blend_m, foot.switched_us, foot.blend_s = foot.served - target_m, t_us, blend_s
 
