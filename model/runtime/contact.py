@@ -63,8 +63,9 @@ BLEND_S: Final = 0.15
 LAND_S: Final = 0.05  # a plant: shorter, or a landing foot would float (chosen on the training split)
 # In a steady stance (stance.py) a planted foot's anchor moves to the mean of the network's placements of it
 # since the plant, never faster than this: the foot is still, so the mean is its best estimate, but a foot
-# seen to move faster than this would be skating.
-ANCHOR_SPEED_M_S: Final = 0.01
+# seen to move faster than this would be skating, and every centimetre it moves is the still legs' leakage
+# (0.25 cm/s chosen on the training split and procedural still streams; MODEL_CARD.md, "The steady anchor").
+ANCHOR_SPEED_M_S: Final = 0.0025
 SPEED_WINDOW_S: Final = 0.2  # a foot's speed is its move over this long: the network's feet jitter by ~1 cm
 MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the feet
 # A foot this far below y = 0 means the floor is not there (a LOCAL reference space, PROTOCOL.md §3): no
