@@ -47,7 +47,7 @@ from typing import Final
 import numpy as np
 
 from ..skeleton import FOOT_JOINT_HEIGHT_M
-from .filters import WindowSpeed
+from .filters import WindowSpeed, fade_left
 
 FEET: Final = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
 _FOOT_JOINTS: Final = [foot_j for _, foot_j in FEET]
@@ -254,19 +254,15 @@ class FootContacts:
         foot as it is."""
         out = predicted.copy() if target is None else target.copy()
         if foot.blend_m is not None:
-            share = (t_us - foot.switched_us) * 1e-6 / foot.blend_s
-            if 0.0 <= share < 1.0:
-                out += (1.0 - share * share * (3.0 - 2.0 * share)) * foot.blend_m
-            else:
+            left = fade_left((t_us - foot.switched_us) * 1e-6, foot.blend_s)
+            if left is None:
                 foot.blend_m = None
-        if target is None:
-            below = out[:, 1] < rest_y
-            out[below, 1] = rest_y
-            if foot.blend_m is None and not below.any():
-                foot.served = out
-                return None
+            else:
+                out += left * foot.blend_m
+        below = out[:, 1] < rest_y if target is None else np.zeros(2, dtype=bool)
+        out[below, 1] = rest_y
         foot.served = out
-        return out
+        return None if target is None and foot.blend_m is None and not below.any() else out
 
     @staticmethod
     def _settle(foot: _Foot, on_floor: np.ndarray) -> None:

@@ -1,7 +1,8 @@
 """One Euro filter (Casiez, Roussel and Vogel, CHI 2012), vectorised and driven by timestamps; cascades of
 them (:class:`OneEuroCascade`); the tracked devices' poses smoothed (:class:`DevicePoseFilter`); and a
 point's speed over a sliding time window (:class:`WindowSpeed`), which the planted feet and the steady stance
-gate on.
+gate on; and how much of a gap is left while it fades out (:func:`fade_left`), which a found controller and
+a foot that plants or steps close theirs by.
 
 A One Euro filter is a first-order low-pass whose cutoff rises with speed: ``fc = min_cutoff_hz + beta *
 |dx/dt|``. Slow motion is smoothed hard (less jitter), fast motion passes with little lag. Each element of
@@ -212,3 +213,12 @@ class WindowSpeed:
     def step_s(self) -> float:
         """The time between the last two samples (0 before the second)."""
         return (self._history[-1][0] - self._history[-2][0]) * 1e-6 if len(self._history) > 1 else 0.0
+
+
+def fade_left(elapsed_s: float, duration_s: float) -> float | None:
+    """The share of a gap still left ``elapsed_s`` into its fade over ``duration_s``: 1 at the start, down a
+    smoothstep (no jump in position or speed at either end) to 0; None outside [0, duration_s), the fade over."""
+    share = elapsed_s / duration_s
+    if not 0.0 <= share < 1.0:
+        return None
+    return 1.0 - share * share * (3.0 - 2.0 * share)

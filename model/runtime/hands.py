@@ -24,6 +24,7 @@ import numpy as np
 
 from ..rig import TRACKED_JOINTS
 from . import kernels
+from .filters import fade_left
 
 LOST_HAND_FADE_S = 0.5
 LOST_HAND_HOLD_S = 1.5
@@ -138,11 +139,11 @@ def _closing(gaps: dict[int, tuple[np.ndarray, int]], device: int, t_us: int) ->
     if device not in gaps:
         return None
     gap, found_us = gaps[device]
-    share = max(t_us - found_us, 0) * 1e-6 / REACQUIRE_S
-    if share >= 1.0:
+    left = fade_left(max(t_us - found_us, 0) * 1e-6, REACQUIRE_S)
+    if left is None:
         del gaps[device]
         return None
-    return (1.0 - share * share * (3.0 - 2.0 * share)) * gap
+    return left * gap
 
 
 def _rotvec(rotation: np.ndarray) -> np.ndarray:
