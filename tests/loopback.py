@@ -194,6 +194,29 @@ def replay(client: Client, messages: list[tuple[int, str, bytes]], speed: float 
     return sent
 
 
+def replay_until(
+    client: Client, messages: list[tuple[int, str, bytes]], done: Any, timeout: float, speed: float = 1.0
+) -> bool:
+    """Send ``messages`` paced by their times until ``done()`` holds (checked before each message) or
+    ``timeout`` seconds pass -> whether it held. For what the server does some time after a message: a real
+    headset keeps streaming meanwhile, so a test that stops sending could wait for a pose that never comes."""
+    start = time.perf_counter()
+    t0 = messages[0][0]
+    for t_us, _, data in messages:
+        if done():
+            return True
+        if time.perf_counter() - start > timeout:
+            return False
+        delay = (t_us - t0) * 1e-6 / speed - (time.perf_counter() - start)
+        if delay > 0:
+            time.sleep(delay)
+        client.send(data)
+    deadline = time.perf_counter() + 1.0  # the last messages' answers
+    while not done() and time.perf_counter() < deadline:
+        time.sleep(0.01)
+    return done()
+
+
 # ------------------------------------------------------------------------------------------ raw and odd clients
 def address(url: str) -> tuple[str, int]:
     """(host, port) of a ws:// URL."""

@@ -8,7 +8,7 @@ import threading
 import time
 
 import pytest
-from loopback import Client, raw_client, recorded_messages, replay, running_server
+from loopback import Client, raw_client, recorded_messages, replay, replay_until, running_server
 from websockets.sync.client import connect
 
 from egoposevr.clients.bench import STAGES
@@ -69,10 +69,9 @@ def test_pose_carries_stage_timings_and_camera_flag(server):
     with Client(server.url, "timed") as headset:
         headset.hello("input", "timed")  # the default model reads the camera
         headset.collect()
-        sent = replay(headset, WALK[:60])
-        headset.wait_for(lambda: _accounted(headset, sent))
-    pose = headset.poses()[-1]
-    assert pose.model == "egoposevr" and pose.camera is True
+        assert replay_until(headset, WALK, lambda: any(p.camera for p in headset.poses()), timeout=20)
+    pose = next(p for p in headset.poses() if p.camera)
+    assert pose.model == "egoposevr"
     assert set(STAGES) - {"image"} <= set(pose.timing_us)  # image: only after a new frame
     assert pose.timing_us["total"] >= pose.timing_us["fusion"]
 
@@ -133,8 +132,9 @@ def test_model_switch_mid_session_resets_cleanly(server):
         viewer.wait_for(
             lambda: any(m.type == "models" and m.active == "hmd-rgbd" for _, m in viewer.received)
         )
-        replay(headset, WALK[100:200])
-        headset.wait_for(lambda: any(p.model == "hmd-rgbd" and p.camera for p in headset.poses()))
+        assert replay_until(
+            headset, WALK[100:], lambda: any(p.model == "hmd-rgbd" and p.camera for p in headset.poses()), 20
+        )
         models = [p.model for p in headset.poses()]
         switched = models.index("hmd-rgbd")
         assert set(models[:switched]) == {"hmd"} and set(models[switched:]) == {"hmd-rgbd"}
