@@ -16,6 +16,9 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sour
 4. **A calibration** (:meth:`BodyCalibrator.calibrate`, runtime/calibration.py), when the session asked for
    one: its standing head height replaces the running one and its arms replace the estimated ones.
 
+The served skeleton (:class:`ServedScale`) follows the estimate at a bounded rate, so the body grows or
+shrinks over a few samples, never in one.
+
 Without a regressor, RGB-D models keep the height scale and put the measured thigh, shin and foot medians
 (30 sightings or more) in place. RGB-only models measure nothing: their keypoints guess depth
 (LoadedModel.measures_body). MODEL_CARD.md ("Body regressor") has the measurements behind these choices and
@@ -59,6 +62,13 @@ MEASURED_SCALE_RANGE: Final = (0.25, 4.0)  # a measurement outside this is a bro
 PREDICTED_SCALE_RANGE: Final = (0.3, 2.5)  # the regressor's output, per bone (CMU spine2 is 0.4, head 1.9)
 FAMILIES: Final = 2  # body proportion families the regressor looks for in its training bodies
 DISCRIMINANT_RIDGE: Final = 1e-3  # added to the features' covariance (the constant feature has none)
+# The served skeleton follows the estimate at most this fast (scale per second, per bone). A new measurement
+# (the regressor's first answer at a session's fifth camera frame changes the legs by ~5 %) never resizes the
+# body in one sample: KPO plants the soles on the position filter's body, whose bones lag behind, so a jump
+# put planted feet up to 7 cm off or through the floor for the next few samples. 0.5 is the slowest of 0.25 /
+# 0.5 / 1 that cost the training split at most 0.03 cm of lower body (MODEL_CARD.md, "A body that grows").
+SERVED_SCALE_RATE_PER_S: Final = 0.5
+SERVED_SCALE_MAX_STEP_S: Final = 0.1  # a longer pause between samples counts as this long
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
 REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -> visual-rgbd.body.json
 _REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
@@ -336,3 +346,27 @@ class BodyCalibrator:
             if measured:
                 scale[left] = scale[right] = float(np.clip(np.mean(measured), *VISUAL_SCALE_RANGE))
         return scale
+
+
+class ServedScale:
+    """The bone scale (J,) the served skeleton uses: it follows a target (the running estimate) at most
+    ``SERVED_SCALE_RATE_PER_S`` per second per bone. The first target is taken at once: there is no served
+    body yet to disturb."""
+
+    def __init__(self) -> None:
+        self.scale: np.ndarray | None = None
+        self._last_us: int | None = None
+
+    def follow(self, t_us: int, target: np.ndarray) -> bool:
+        """Step towards target (J,) for a sample at t_us -> whether the scale changed."""
+        elapsed_s = 0.0 if self._last_us is None else (t_us - self._last_us) * 1e-6
+        self._last_us = t_us
+        if self.scale is None:
+            self.scale = np.array(target, dtype=np.float64)
+            return True
+        gap = target - self.scale
+        if not gap.any():
+            return False
+        max_step = SERVED_SCALE_RATE_PER_S * float(np.clip(elapsed_s, 0.0, SERVED_SCALE_MAX_STEP_S))
+        self.scale = self.scale + np.clip(gap, -max_step, max_step)
+        return True

@@ -26,7 +26,7 @@ from ..inputs import canonicalize_hmd, heading_frame
 from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels
-from .body import BodyCalibrator
+from .body import BodyCalibrator, ServedScale
 from .calibration import Calibration, body_measurements, canonical_poses
 from .contact import FootContacts
 from .filters import DevicePoseFilter, OneEuroCascade
@@ -110,15 +110,15 @@ class Pipeline:
         self._apply_calibration()
 
     def _apply_calibration(self) -> None:
+        """The body takes the calibration's measures; the served skeleton follows from the next sample."""
         self.body.calibrate(*body_measurements(self.calibration))
-        if not self.fixed_body:
-            self.offsets = rest_offsets(self.body.bone_scale)
 
     def reset(self) -> None:
         """Forget the stream (a new session, a model switch, a long pause); a calibration stays."""
         self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
         self.body = BodyCalibrator(self.model.info.body_regressor)
+        self.served_scale = ServedScale()
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)
         self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
@@ -195,8 +195,7 @@ class Pipeline:
         encoder's body regressor when it has one. Only with a depth channel (LoadedModel.measures_body)."""
         if self.fixed_body or not self.model.measures_body:
             return
-        if self.body.push_visual(kp_cam, confidence > 0.0):
-            self.offsets = rest_offsets(self.body.bone_scale)
+        self.body.push_visual(kp_cam, confidence > 0.0)  # the served skeleton follows it in _ingest
 
     # ------------------------------------------------------------------------------------------ headset
     def observe_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> None:
@@ -228,8 +227,10 @@ class Pipeline:
         device_poses = poses.copy()
         device_poses[0] = self.last_head_pose  # the newest tracked headset pose
         tracked_pos, tracked_rot = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
-        if not self.fixed_body and self.body.push(tracked_pos, valid):
-            self.offsets = rest_offsets(self.body.bone_scale)
+        if not self.fixed_body:
+            self.body.push(tracked_pos, valid)
+            if self.served_scale.follow(t_us, self.body.bone_scale):
+                self.offsets = rest_offsets(self.served_scale.scale)
         return poses, valid, tracked_pos, tracked_rot
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
@@ -285,7 +286,7 @@ class Pipeline:
             observed[_TRACKED] = valid
             self.hands.targets(t_us, joints, valid, tracked_pos, targets, observed)
             if self.contacts:
-                bones = self.bone_scale if self.fixed_body else self.body.bone_scale
+                bones = self.bone_scale if self.fixed_body else self.served_scale.scale
                 leg_scale = float(bones[_LEG_BONES].mean())
                 steady = self.steady_stance and self.stance.observe_head(t_us, tracked_pos[0], bool(valid[0]))
                 self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)

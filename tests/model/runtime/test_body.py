@@ -1,5 +1,6 @@
 """Body size: the highest head sets the scale, within its range; legs the camera sees take their length;
-a fitted regressor carries what the camera sees to the bones it never sees."""
+a fitted regressor carries what the camera sees to the bones it never sees; the served skeleton follows the
+estimate over several samples, never in one."""
 
 import json
 
@@ -9,11 +10,13 @@ import pytest
 from egoposevr.model.runtime.body import (
     MIN_VISUAL_SAMPLES,
     SCALE_RANGE,
+    SERVED_SCALE_RATE_PER_S,
     STANDING_HEAD_HEIGHT_M,
     STEADY_SAMPLES,
     VISUAL_WINDOW,
     BodyCalibrator,
     BodyRegressor,
+    ServedScale,
     height_scale,
 )
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
@@ -169,3 +172,32 @@ def test_a_measurement_somewhat_off_stays_with_its_family():
     off = {1: 1.1, 2: 1.1, 4: 1.0, 5: 1.0}  # a mean body, hips measured 10 % long
     assert regressor.family_probabilities(1.0, off).max() > 0.99
     np.testing.assert_allclose(regressor.predict(1.0, off)[[12, 15]], 1.0, atol=0.05)
+
+
+def test_the_served_scale_takes_its_first_target_at_once_and_then_follows_at_a_bounded_rate():
+    served = ServedScale()
+    first = np.full(22, 1.05)
+    assert served.follow(0, first) and np.array_equal(served.scale, first)
+    assert not served.follow(11_111, first)  # nothing to follow
+    target = first.copy()
+    target[[4, 5]] = 1.15  # the thighs measured 10 % longer
+    steps, t_us = [], 11_111
+    while not np.array_equal(served.scale, target):
+        t_us += 11_111
+        before = served.scale.copy()
+        assert served.follow(t_us, target)
+        steps.append(np.abs(served.scale - before).max())
+        assert len(steps) < 1000
+    assert max(steps) <= SERVED_SCALE_RATE_PER_S * 0.011111 + 1e-12
+    assert len(steps) == pytest.approx(0.10 / SERVED_SCALE_RATE_PER_S / 0.011111, abs=1)
+    assert np.array_equal(served.scale[[0, 1, 2, 3]], first[[0, 1, 2, 3]])  # the other bones stay
+
+
+def test_a_long_pause_or_time_going_back_moves_the_served_scale_no_further_than_a_short_step():
+    served = ServedScale()
+    served.follow(0, np.ones(22))
+    served.follow(60_000_000, np.full(22, 1.2))  # a minute later
+    assert served.scale[1] == pytest.approx(1.0 + SERVED_SCALE_RATE_PER_S * 0.1)
+    before = served.scale.copy()
+    served.follow(0, np.full(22, 1.2))  # time went back
+    assert np.array_equal(served.scale, before)

@@ -149,8 +149,36 @@ def test_the_served_feet_of_a_user_who_only_moves_the_arms_stay_planted_on_the_f
     assert measured["foot_skate_cm_s"] < 3.0
     assert measured["floor_float_cm"] < 1.5 and measured["floor_penetration_cm"] < 0.5
     last = results[-1]
-    fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.body.bone_scale))
+    fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.served_scale.scale))
     assert np.allclose(fk, last.joints, atol=1e-6)
+
+
+@pytest.mark.parametrize("factor", [0.98, 1.05])
+def test_a_body_that_changes_size_grows_or_shrinks_over_samples_and_planted_feet_do_not_jump(factor):
+    """A calibration mid-stream (the camera's first measurement does the same) makes the body 2 % smaller or
+    5 % larger: the skeleton used to change in one sample, and KPO, which plants the soles on the position
+    filter's lagging body, moved the soles 1.8 / 4.5 cm in one sample, to 4.4 cm through the floor."""
+    from egoposevr.model.runtime.calibration import Calibration
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(1)
+    track = simulate_headset(generate("still_stand", 5.0, 60.0, rng), 90.0, rng)
+    pipeline = Pipeline(LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx"))
+    soles, change = [], 270  # 3 s in, the stance long settled
+    for i, t_us in enumerate(track.t_us):
+        if i == change:
+            head_m = factor * pipeline.body.highest_head_m
+            pipeline.calibrate(Calibration("stand", head_m, np.tile(np.eye(3), (3, 1, 1))))
+        result = pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        soles.append(result.joints[[10, 11], 1] - FOOT_JOINT_HEIGHT_M)
+    around = np.array(soles[change - 45 : change + 90])
+    assert np.abs(np.diff(around, axis=0)).max() < 0.01  # no sample moves a sole by a centimetre (now 5 mm)
+    assert np.abs(around).max() < 0.025  # within 2.5 cm of the floor (now 1.5 / 1.9 cm)
+    assert np.allclose(pipeline.served_scale.scale, pipeline.body.bone_scale)  # it got there
 
 
 def test_a_contact_head_decides_when_a_foot_is_down_and_when_it_steps():
