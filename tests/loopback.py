@@ -179,15 +179,21 @@ def recorded_messages(name: str = "walk-0000", limit: int | None = None) -> list
     return out[:limit]
 
 
-def replay(client: Client, messages: list[tuple[int, str, bytes]], speed: float = 1.0) -> dict[int, float]:
-    """Send ``messages`` paced by their times -> {hmd seq: perf_counter send time}."""
+def _paced(messages: list[tuple[int, str, bytes]], speed: float) -> Iterator[tuple[str, bytes]]:
+    """(type, message bytes) of each message, each at its time from the first's, divided by ``speed``."""
     start = time.perf_counter()
     t0 = messages[0][0]
-    sent = {}
     for t_us, kind, data in messages:
         delay = (t_us - t0) * 1e-6 / speed - (time.perf_counter() - start)
         if delay > 0:
             time.sleep(delay)
+        yield kind, data
+
+
+def replay(client: Client, messages: list[tuple[int, str, bytes]], speed: float = 1.0) -> dict[int, float]:
+    """Send ``messages`` paced by their times -> {hmd seq: perf_counter send time}."""
+    sent = {}
+    for kind, data in _paced(messages, speed):
         if kind == "hmd":
             sent[decode(data).seq] = time.perf_counter()
         client.send(data)
@@ -201,15 +207,11 @@ def replay_until(
     ``timeout`` seconds pass -> whether it held. For what the server does some time after a message: a real
     headset keeps streaming meanwhile, so a test that stops sending could wait for a pose that never comes."""
     start = time.perf_counter()
-    t0 = messages[0][0]
-    for t_us, _, data in messages:
+    for _, data in _paced(messages, speed):
         if done():
             return True
         if time.perf_counter() - start > timeout:
             return False
-        delay = (t_us - t0) * 1e-6 / speed - (time.perf_counter() - start)
-        if delay > 0:
-            time.sleep(delay)
         client.send(data)
     deadline = time.perf_counter() + 1.0  # the last messages' answers
     while not done() and time.perf_counter() < deadline:
