@@ -95,7 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError
     from ..model.training.dataset import DatasetError
-    from ..model.training.train import PRESETS, DeviceError, TeacherError, train_zoo
+    from ..model.training.train import PRESETS, CheckpointError, DeviceError, TeacherError, train_zoo
     from ..model.zoo import resolve
 
     try:
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
             args.encoders,
             args.teachers,
         )
-    except (DatasetError, ModelError, DeviceError, TeacherError) as error:
+    except (DatasetError, ModelError, DeviceError, TeacherError, CheckpointError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)
         return 2
     for name, path in paths.items():

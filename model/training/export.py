@@ -153,7 +153,7 @@ def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
 def export_visual(ckpt_path: Path, out_path: Path) -> float:
     """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error."""
     ckpt = load_checkpoint(ckpt_path)
-    module = _VisualOutputs(build_net(ckpt)).eval()
+    module = _VisualOutputs(build_net(ckpt, ckpt_path)).eval()
     cfg = module.net.cfg
     example = torch.zeros(2, cfg.channels, cfg.height, cfg.width)
     batch = torch.export.Dim("batch", min=1, max=64)
@@ -186,8 +186,9 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
     :class:`SeedEnsemble`); returns the parity error."""
     entry = ZOO[name]
-    ckpts = [load_checkpoint(runs_dir / f"fusion-{entry.fusion_name}.pt") for runs_dir in runs_dirs]
-    nets = [build_net(ckpt) for ckpt in ckpts]
+    paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
+    ckpts = [load_checkpoint(path) for path in paths]
+    nets = [build_net(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
     cfg = nets[0].cfg
     inputs = _fusion_inputs(cfg, batch=2)
     example = tuple(torch.from_numpy(v) for v in inputs.values())

@@ -158,18 +158,53 @@ def save_checkpoint(path: Path, **payload: Any) -> None:
     tmp.replace(path)  # never a half-written checkpoint
 
 
+class CheckpointError(ValueError):
+    """A checkpoint file that cannot be read back (truncated, corrupt, not a checkpoint): the user's file."""
+
+
+_CHECKPOINT_KEYS: Final = ("kind", "config", "state_dict", "step", "total_steps", "history", "train_config")
+
+
 def load_checkpoint(path: Path) -> dict[str, Any]:
-    return torch.load(path, map_location="cpu", weights_only=False)
+    """A checkpoint written by :func:`save_checkpoint`. A missing file raises FileNotFoundError; one that
+    is unreadable or lacks a checkpoint's fields raises CheckpointError naming the file."""
+    path = Path(path)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except FileNotFoundError:
+        raise
+    # torch reports a damaged file as OSError, RuntimeError, EOFError, an unpickling error, ...
+    except Exception as error:
+        raise CheckpointError(
+            f"{path} is not a readable checkpoint ({type(error).__name__}: {error}); it may be truncated "
+            "or corrupt: delete it and train again to replace it"
+        ) from error
+    missing = [k for k in _CHECKPOINT_KEYS if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path} is not an egoposevr checkpoint (it lacks {', '.join(missing)})")
+    return ckpt
 
 
-def build_net(ckpt: dict[str, Any]) -> torch.nn.Module:
-    """The net a checkpoint describes, with its weights, in eval mode."""
-    if ckpt["kind"] == "visual":
-        net: torch.nn.Module = KeypointNet(parse(VisualConfig, ckpt["config"]))
-    else:
-        net = FusionNet(parse(FusionConfig, ckpt["config"]))
-    net.load_state_dict(ckpt["state_dict"])
+def build_net(ckpt: dict[str, Any], source: Path | None = None) -> torch.nn.Module:
+    """The net a checkpoint describes, with its weights, in eval mode. CheckpointError (naming ``source``,
+    the file it came from) when the weights do not fit the net its config describes."""
+    try:
+        if ckpt["kind"] == "visual":
+            net: torch.nn.Module = KeypointNet(parse(VisualConfig, ckpt["config"]))
+        else:
+            net = FusionNet(parse(FusionConfig, ckpt["config"]))
+        net.load_state_dict(ckpt["state_dict"])
+    except (RuntimeError, ValueError, TypeError) as error:
+        where = f"{source}: " if source is not None else ""
+        raise CheckpointError(
+            f"{where}a {ckpt['kind']} checkpoint whose weights do not fit its config: {error}"
+        ) from error
     return net.eval()
+
+
+def load_net(path: Path) -> torch.nn.Module:
+    """:func:`build_net` of the checkpoint at ``path``."""
+    return build_net(load_checkpoint(path), path)
 
 
 def _finished(path: Path) -> bool:
@@ -207,9 +242,15 @@ def _run_steps(
     step, history, elapsed = 0, [], 0.0
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
-        net.load_state_dict(ckpt["state_dict"])
-        opt.load_state_dict(ckpt["optimizer"])
-        sched.load_state_dict(ckpt["scheduler"])
+        try:
+            net.load_state_dict(ckpt["state_dict"])
+            opt.load_state_dict(ckpt["optimizer"])
+            sched.load_state_dict(ckpt["scheduler"])
+        except (RuntimeError, ValueError, KeyError) as error:
+            raise CheckpointError(
+                f"{ckpt_path} cannot be resumed: its weights do not fit the net these flags train ({error}); "
+                "train into another --out, or delete it"
+            ) from error
         step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
     rng = np.random.default_rng([tc.seed, step])
     torch.manual_seed(tc.seed * 1_000_003 + step)
@@ -715,7 +756,7 @@ def load_teacher(
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         raise TeacherError(f"no teacher checkpoint: {', '.join(missing)}")
-    nets = [build_net(load_checkpoint(p)) for p in paths]
+    nets = [load_net(p) for p in paths]
     wanted = _TEACHER_MUST_MATCH + (("visual_window",) if student.uses_camera else ())
     wanted += ("contact_head",) if student.contact_head else ()
     for path, net in zip(paths, nets, strict=True):
@@ -734,7 +775,7 @@ def _stage_one(
 ) -> KeypointNet | ExportedEncoder:
     if encoders_dir is not None:
         return ExportedEncoder(encoders_dir / f"visual-{kind}.onnx", tc.threads)
-    return build_net(load_checkpoint(out_dir / f"visual-{kind}.pt")).to(tc.device)
+    return load_net(out_dir / f"visual-{kind}.pt").to(tc.device)
 
 
 def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
