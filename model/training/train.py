@@ -246,12 +246,12 @@ def _run_steps(
             net.load_state_dict(ckpt["state_dict"])
             opt.load_state_dict(ckpt["optimizer"])
             sched.load_state_dict(ckpt["scheduler"])
+            step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
         except (RuntimeError, ValueError, KeyError) as error:
             raise CheckpointError(
-                f"{ckpt_path} cannot be resumed: its weights do not fit the net these flags train ({error}); "
-                "train into another --out, or delete it"
+                f"{ckpt_path} cannot be resumed: its weights do not fit the net these flags train, or it lacks "
+                f"the optimiser's state ({type(error).__name__}: {error}); train into another --out, or delete it"
             ) from error
-        step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
     rng = np.random.default_rng([tc.seed, step])
     torch.manual_seed(tc.seed * 1_000_003 + step)
     net.train()
