@@ -189,7 +189,26 @@ def run_soak(args: argparse.Namespace) -> int:
     return 0 if verdict["passed"] else 1
 
 
+def check_recordings(paths: list[Path] | None) -> bool:
+    """Read the user's --recordings once before any server starts: False (said on stderr) when one cannot
+    be replayed; a recording cut short is benchmarked on its good part, with a warning."""
+    from ..clients.replay import Recording, ReplayError
+    from ..recordings.egrec import EgrecError
+
+    for path in paths or ():
+        try:
+            recording = Recording.load(path)
+        except (OSError, EgrecError, ReplayError) as exc:
+            print(f"egoposevr bench: {exc}", file=sys.stderr)
+            return False
+        if (warning := recording.cut_warning("replaying")) is not None:
+            print(f"egoposevr bench: {warning}", file=sys.stderr)
+    return True
+
+
 def run(args: argparse.Namespace) -> int:
+    if not check_recordings(args.recordings):
+        return 2
     if args.soak is not None:
         if args.soak <= 0 or args.soak_interval <= 0:
             print("egoposevr bench: --soak and --soak-interval must be > 0", file=sys.stderr)

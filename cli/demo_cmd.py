@@ -45,6 +45,8 @@ async def _demo(args: argparse.Namespace) -> int:
     from ..server.config import ServerConfig
 
     recording = Recording.load(_recording_path(args.recording))
+    if (warning := recording.cut_warning("replaying")) is not None:
+        print(f"egoposevr demo: {warning}", file=sys.stderr)
     print(
         "starting the server (its first start on a machine compiles the pose kernels: about 30 s)", flush=True
     )

@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="VIDEO.mp4")
     parser.add_argument("--fps", type=float, default=30.0)
     parser.add_argument("--size", default="640x480", metavar="WxH")
+    parser.add_argument(
+        "--strict", action="store_true", help="refuse a recording cut short (default: render its good part)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,7 +63,9 @@ def run(args: argparse.Namespace) -> int:
             if args.model not in files:
                 print(f"egoposevr render: no model {args.model!r}; have {', '.join(files)}", file=sys.stderr)
                 return 2
-            recording = Recording.load(args.recording)
+            recording = Recording.load(args.recording, strict=args.strict)
+            if (warning := recording.cut_warning("rendering")) is not None:
+                print(f"egoposevr render: {warning} (--strict refuses such files)", file=sys.stderr)
             frames = frames_from_recording(
                 recording, LoadedModel.load(files[args.model]), args.model, args.fps
             )

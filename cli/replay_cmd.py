@@ -52,9 +52,8 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, EgrecError, ReplayError) as exc:
         print(f"egoposevr replay: {exc}", file=sys.stderr)
         return 2
-    if recording.cut is not None:
-        print(f"egoposevr replay: warning: {args.recording} was {recording.cut.describe()}; replaying the "
-              f"{len(recording.messages)} messages before it (--strict refuses such files)", file=sys.stderr)  # fmt: skip
+    if (warning := recording.cut_warning("replaying")) is not None:
+        print(f"egoposevr replay: {warning} (--strict refuses such files)", file=sys.stderr)
     replayer = Replayer(
         recording, args.url, args.session, args.model, args.speed, args.loop, args.seconds, args.token
     )

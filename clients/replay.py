@@ -77,6 +77,16 @@ class Recording:
         entries = [_with_truth(m, truth) for m in messages]
         return cls(path, header, entries, hello, truth, cut if cut.happened else None)
 
+    def cut_warning(self, doing: str) -> str | None:
+        """For a recording read only up to a cut: what was lost, for a command that is ``doing`` (e.g.
+        "replaying") its good part; None for a whole recording."""
+        if self.cut is None:
+            return None
+        return (
+            f"warning: {self.path} was {self.cut.describe()}; {doing} the {len(self.messages)} messages "
+            "before it"
+        )
+
     @property
     def duration_us(self) -> int:
         return self.messages[-1][0] - self.messages[0][0]

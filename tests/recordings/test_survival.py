@@ -61,6 +61,31 @@ def test_replay_plays_the_good_part_with_a_warning_and_strict_refuses(tmp_path, 
     assert result["recording_cut"]["bytes_read"] < result["recording_cut"]["bytes_total"]
 
 
+def test_render_draws_the_good_part_with_a_warning_and_strict_refuses(tmp_path, capsys):
+    path = _cut(tmp_path, 0.2)
+    video = tmp_path / "cut.mp4"
+    assert main(["render", str(path), "--out", str(video), "--model", "hmd", "--strict"]) == 1
+    assert "truncated" in capsys.readouterr().err and not video.exists()
+    assert main(["render", str(path), "--out", str(video), "--model", "hmd", "--size", "64x48"]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "cut after record" in err and "rendering the" in err
+    assert video.stat().st_size > 0
+
+
+def test_bench_says_which_recording_it_cannot_replay_before_starting_a_server(tmp_path, capsys):
+    garbage = tmp_path / "garbage.egrec"
+    garbage.write_bytes(b"not a recording")
+    with mock.patch("egoposevr.clients.bench.serving") as serving:
+        assert main(["bench", "--recordings", str(garbage), "--seconds", "1"]) == 2
+    assert "garbage.egrec: not an .egrec file" in capsys.readouterr().err
+    serving.assert_not_called()
+    cut = _cut(tmp_path, 0.4)
+    with mock.patch("egoposevr.clients.bench.serving", side_effect=OSError("stop here")):
+        assert main(["bench", "--recordings", str(cut), "--seconds", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "cut.egrec was cut after record" in err and "stop here" in err
+
+
 class _FullDisk:
     """A file that takes ``room`` more bytes, writes part of the next chunk, then fails like a full disk."""
 
