@@ -187,7 +187,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 def build_net(ckpt: dict[str, Any], source: Path | None = None) -> torch.nn.Module:
     """The net a checkpoint describes, with its weights, in eval mode. CheckpointError (naming ``source``,
-    the file it came from) when the weights do not fit the net its config describes."""
+    the file it came from) when its config describes no net or its weights do not fit that net."""
     try:
         if ckpt["kind"] == "visual":
             net: torch.nn.Module = KeypointNet(parse(VisualConfig, ckpt["config"]))
@@ -197,7 +197,7 @@ def build_net(ckpt: dict[str, Any], source: Path | None = None) -> torch.nn.Modu
     except (RuntimeError, ValueError, TypeError) as error:
         where = f"{source}: " if source is not None else ""
         raise CheckpointError(
-            f"{where}a {ckpt['kind']} checkpoint whose weights do not fit its config: {error}"
+            f"{where}a {ckpt['kind']} checkpoint whose config and weights do not fit together: {error}"
         ) from error
     return net.eval()
 
