@@ -36,7 +36,7 @@ from ..runtime.frames import encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
-from ..skeleton import LOWER_BODY, UPPER_BODY, forward_kinematics
+from ..skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
 from .dataset import DatasetError, load_split
 from .plausibility import plausibility, summarize_plausibility
 
@@ -273,12 +273,24 @@ def evaluate(
     return results
 
 
+# Body parts of the keypoint report: the feet and knees are what the lower body's pose needs from the
+# camera, and the parts a downward camera sees least and smallest.
+KEYPOINT_PARTS: Final = {
+    "torso": (0, 1, 2, 3, 6, 9),
+    "knees": (4, 5),
+    "ankles, feet": (7, 8, 10, 11),
+    "arms": (18, 19, 20, 21),
+    "head, shoulders": (12, 13, 14, 15, 16, 17),
+}
+
+
 def keypoint_accuracy(
     data_dir: Path, split: str, models: dict[str, Path], limit: int | None = None
-) -> dict[str, dict[str, float]]:
+) -> dict[str, dict[str, Any]]:
     """{encoder: accuracy} of the visual encoders the given models use (each once), on a split: the keypoints
     it lifts to 3D in the camera frame against the truth, on joints in view and not occluded: median, mean and
-    90th percentile error (cm)."""
+    90th percentile error (cm), and under ``parts`` each of KEYPOINT_PARTS' median (cm) and how often its
+    joints are seen (share of frame × joint)."""
     seqs = load_split(data_dir, split, limit)
     encoders: dict[str, LoadedModel] = {}
     for path in models.values():
@@ -287,26 +299,45 @@ def keypoint_accuracy(
         model = LoadedModel.load(path)
         if model.info.visual_path is not None:
             encoders.setdefault(model.info.visual_path.stem, model)
-    out = {}
-    for name, model in encoders.items():
-        errors = []
-        for seq in seqs:
-            camera = seq["camera"]
-            for k in range(len(seq["cam_t_us"])):
-                seen = seq["visible"][k] & ~seq["occluded"][k]
-                if not seen.any():
-                    continue
-                rgb, depth = decode_rgbd(seq["rgb_jpeg"][k], seq["depth_png"][k])
-                frame = encode_frame(model, int(seq["cam_t_us"][k]), rgb, depth, camera["intrinsics"])
-                errors.append(np.linalg.norm(frame.kp_cam - seq["joints_cam_m"][k], axis=-1)[seen])
-        error_cm = 100 * np.concatenate(errors) if errors else np.zeros(0)
-        out[name] = {
-            "joints": int(error_cm.size),
-            "median_cm": float(np.median(error_cm)) if error_cm.size else float("nan"),
-            "mean_cm": float(error_cm.mean()) if error_cm.size else float("nan"),
-            "p90_cm": float(np.percentile(error_cm, 90)) if error_cm.size else float("nan"),
-        }
-    return out
+    return {name: _encoder_accuracy(model, seqs) for name, model in encoders.items()}
+
+
+def _encoder_accuracy(model: LoadedModel, seqs: list[dict[str, Any]]) -> dict[str, Any]:
+    """keypoint_accuracy's numbers for one encoder over sequences."""
+    errors, seen_masks = [], []  # per frame: (J,) cm with NaN where not seen, (J,) bool
+    for seq in seqs:
+        camera = seq["camera"]
+        for k in range(len(seq["cam_t_us"])):
+            seen = seq["visible"][k] & ~seq["occluded"][k]
+            seen_masks.append(seen)
+            if not seen.any():
+                errors.append(np.full(len(seen), np.nan))
+                continue
+            rgb, depth = decode_rgbd(seq["rgb_jpeg"][k], seq["depth_png"][k])
+            frame = encode_frame(model, int(seq["cam_t_us"][k]), rgb, depth, camera["intrinsics"])
+            error_cm = 100 * np.linalg.norm(frame.kp_cam - seq["joints_cam_m"][k], axis=-1)
+            errors.append(np.where(seen, error_cm, np.nan))
+    error_cm = np.array(errors).reshape(-1, NUM_JOINTS)  # (frames, J)
+    seen = np.array(seen_masks).reshape(-1, NUM_JOINTS)
+    parts = {
+        part: {"seen_share": float(seen[:, joints].mean()) if seen.size else 0.0}
+        | _error_stats(error_cm[:, joints])
+        for part, joints in KEYPOINT_PARTS.items()
+    }
+    return _error_stats(error_cm) | {"parts": parts}
+
+
+def _error_stats(error_cm: np.ndarray) -> dict[str, Any]:
+    """joints, median_cm, mean_cm, p90_cm of the seen (not NaN) entries of an error array (NaN if none)."""
+    values = error_cm[~np.isnan(error_cm)]
+    if not values.size:
+        return {"joints": 0, "median_cm": float("nan"), "mean_cm": float("nan"), "p90_cm": float("nan")}
+    return {
+        "joints": int(values.size),
+        "median_cm": float(np.median(values)),
+        "mean_cm": float(values.mean()),
+        "p90_cm": float(np.percentile(values, 90)),
+    }
 
 
 def category_table(
@@ -326,11 +357,21 @@ def category_table(
     return "\n".join(rows)
 
 
-def keypoint_table(accuracy: dict[str, dict[str, float]]) -> str:
-    rows = ["| encoder | joints | median cm | mean cm | p90 cm |", "|---|---:|---:|---:|---:|"]
+def keypoint_table(accuracy: dict[str, dict[str, Any]]) -> str:
+    """One row per encoder: every seen joint, then each body part's median (cm) and how often it is seen."""
+    parts = list(KEYPOINT_PARTS)
+    rows = [
+        "| encoder | joints | median cm | mean cm | p90 cm | "
+        + " | ".join(f"{p}: median cm (seen)" for p in parts)
+        + " |",
+        "|---|---:|---:|---:|---:|" + "---:|" * len(parts),
+    ]
     for name, a in accuracy.items():
+        by_part = " | ".join(
+            f"{a['parts'][p]['median_cm']:.2f} ({a['parts'][p]['seen_share']:.0%})" for p in parts
+        )
         rows.append(
-            f"| {name} | {a['joints']} | {a['median_cm']:.2f} | {a['mean_cm']:.2f} | {a['p90_cm']:.2f} |"
+            f"| {name} | {a['joints']} | {a['median_cm']:.2f} | {a['mean_cm']:.2f} | {a['p90_cm']:.2f} | {by_part} |"
         )
     return "\n".join(rows)
 

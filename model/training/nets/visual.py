@@ -1,9 +1,10 @@
 """The RGB-D visual encoder (paper §3.3): ResNet-style backbone + FPN -> per-joint heatmaps and depth maps
 -> 2D keypoints (soft-argmax) with a depth each, plus the visibility head ζ.
 
-It runs once per new camera frame, so it is the one convolutional cost per request: the default is small
-(80×64 input, ~40 M multiply-adds). Outputs stay camera-agnostic — normalised image coordinates and metres —
-and the runtime lifts them to 3D with each frame's own intrinsics, so any client resolution works.
+It runs once per new camera frame, so it is the one convolutional cost per request: the config's default is
+small (80×64 input, ~40 M multiply-adds), and the bundled encoders read 160×128 through a strided stem at
+about that cost. Outputs stay camera-agnostic — normalised image coordinates and metres — and the
+runtime lifts them to 3D with each frame's own intrinsics, so any client resolution works.
 
 Shape legend: ``B`` batch, ``C`` 3 (RGB) or 4 (RGB-D) channels, ``h``×``w`` input, ``J`` joints.
 """
@@ -40,8 +41,9 @@ class BasicBlock(nn.Module):
 class KeypointNet(nn.Module):
     """image (B, C, h, w) -> uv (B, J, 2) in [0, 1], depth_m (B, J), zeta (B, J) in [0, 1], logits (B, J, hh, hw).
 
-    Heatmaps live at stride 2; uv is their soft-argmax and depth the heatmap-weighted mean of a per-joint
-    depth map (integral regression: differentiable, sub-cell precise).
+    Heatmaps live at stride 2 of the backbone's input (stride 4 of the image with a stem); uv is their
+    soft-argmax and depth the heatmap-weighted mean of a per-joint depth map (integral regression:
+    differentiable, sub-cell precise).
     """
 
     def __init__(self, cfg: VisualConfig) -> None:

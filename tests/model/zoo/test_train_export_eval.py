@@ -648,6 +648,13 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny
     report = json.loads(out.read_text())
     assert set(report["keypoints"]) == {"visual-rgb", "visual-rgbd"}
     assert all(k["joints"] > 0 and 0 <= k["median_cm"] <= k["p90_cm"] for k in report["keypoints"].values())
+    for encoder in report["keypoints"].values():  # every body part's share and error, summing to the whole
+        parts = encoder["parts"]
+        assert set(parts) == {"torso", "knees", "ankles, feet", "arms", "head, shoulders"}
+        assert sum(p["joints"] for p in parts.values()) == encoder["joints"]
+        assert all(0 <= p["seen_share"] <= 1 for p in parts.values())
+        assert all(p["median_cm"] is None or p["median_cm"] >= 0 for p in parts.values())
+    assert "ankles, feet: median cm (seen)" in text
     categories = report["models"]["egoposevr"]["categories"]
     assert sum(c["sequences"] for c in categories.values()) == 1  # the val split's one kick
 
