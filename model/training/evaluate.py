@@ -36,7 +36,7 @@ from ..runtime.frames import encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
-from ..skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
+from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
 from .dataset import DatasetError, load_split
 from .plausibility import plausibility, summarize_plausibility
 
@@ -276,11 +276,14 @@ def evaluate(
 # Body parts of the keypoint report: the feet and knees are what the lower body's pose needs from the
 # camera, and the parts a downward camera sees least and smallest.
 KEYPOINT_PARTS: Final = {
-    "torso": (0, 1, 2, 3, 6, 9),
-    "knees": (4, 5),
-    "ankles, feet": (7, 8, 10, 11),
-    "arms": (18, 19, 20, 21),
-    "head, shoulders": (12, 13, 14, 15, 16, 17),
+    part: [JOINT_INDEX[name] for name in names]
+    for part, names in {
+        "torso": ("pelvis", "left_hip", "right_hip", "spine1", "spine2", "spine3"),
+        "knees": ("left_knee", "right_knee"),
+        "ankles, feet": ("left_ankle", "right_ankle", "left_foot", "right_foot"),
+        "arms": ("left_elbow", "right_elbow", "left_wrist", "right_wrist"),
+        "head, shoulders": ("neck", "left_collar", "right_collar", "head", "left_shoulder", "right_shoulder"),
+    }.items()
 }
 
 
