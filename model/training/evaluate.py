@@ -307,12 +307,11 @@ def keypoint_accuracy(
 
 def _encoder_accuracy(model: LoadedModel, seqs: list[dict[str, Any]]) -> dict[str, Any]:
     """keypoint_accuracy's numbers for one encoder over sequences."""
-    errors, seen_masks = [], []  # per frame: (J,) cm with NaN where not seen, (J,) bool
+    errors = []  # per frame: (J,) cm, NaN where the joint is not seen
     for seq in seqs:
         camera = seq["camera"]
         for k in range(len(seq["cam_t_us"])):
             seen = seq["visible"][k] & ~seq["occluded"][k]
-            seen_masks.append(seen)
             if not seen.any():
                 errors.append(np.full(len(seen), np.nan))
                 continue
@@ -321,7 +320,7 @@ def _encoder_accuracy(model: LoadedModel, seqs: list[dict[str, Any]]) -> dict[st
             error_cm = 100 * np.linalg.norm(frame.kp_cam - seq["joints_cam_m"][k], axis=-1)
             errors.append(np.where(seen, error_cm, np.nan))
     error_cm = np.array(errors).reshape(-1, NUM_JOINTS)  # (frames, J)
-    seen = np.array(seen_masks).reshape(-1, NUM_JOINTS)
+    seen = ~np.isnan(error_cm)
     parts = {
         part: {"seen_share": float(seen[:, joints].mean()) if seen.size else 0.0}
         | _error_stats(error_cm[:, joints])
