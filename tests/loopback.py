@@ -154,11 +154,11 @@ class Client:
     def poses(self) -> list[Message]:
         return [m for _, m in self.received if m.type == "pose"]
 
-    def wait_for(self, predicate: Any, timeout: float = 5.0) -> None:
+    def wait_for(self, predicate: Any, timeout: float = 5.0, poll_s: float = 0.01) -> None:
         deadline = time.monotonic() + timeout
         while not predicate():
             assert time.monotonic() < deadline, "timed out waiting"
-            time.sleep(0.01)
+            time.sleep(poll_s)
 
     def close(self) -> None:
         self.ws.close()

@@ -3,8 +3,6 @@ moves only the upper body, in a floor-level space and in a LOCAL one (no floor a
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from loopback import Client
@@ -17,9 +15,18 @@ from egoposevr.model.training.plausibility import FEET
 from egoposevr.protocol import Hmd
 
 
+def answered(client: Client, seq: int) -> bool:
+    """Whether the newest pose the client has received answers sample `seq` (or a later one)."""
+    poses = client.poses()
+    return bool(poses) and poses[-1].seq >= seq
+
+
 def served_feet(server, session: str, drop_m: float) -> np.ndarray:
     """Stream 6 s of a still-standing user (its whole stream lowered by drop_m) to egoposevr -> the served
-    foot joints (N, 2, 3) of the last two seconds."""
+    foot joints (N, 2, 3) of the last two seconds.
+
+    Lockstep: each sample waits for its pose, so none is dropped as stale (newest wins) however busy the
+    machine is, and the served stream, hence every bound below, does not depend on pacing."""
     rng = np.random.default_rng(0)
     track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
     poses = track.poses.copy()
@@ -30,10 +37,10 @@ def served_feet(server, session: str, drop_m: float) -> np.ndarray:
         for k, (t_us, p, valid) in enumerate(zip(track.t_us, poses, track.valid, strict=True)):
             headset.send(Hmd(seq=k, t_us=int(t_us), head=p[0].tolist(), left=p[1].tolist(),
                              right=p[2].tolist(), valid=[bool(v) for v in valid]))  # fmt: skip
-            time.sleep(0.003)  # paced: a burst over the pending limit would drop samples (newest wins)
+            headset.wait_for(lambda k=k: answered(headset, k), timeout=10, poll_s=0.001)
         last = len(track.t_us) - 1
-        headset.wait_for(lambda: any(m.seq == last for m in headset.poses()), timeout=30)
         late = [m for m in headset.poses() if m.seq >= last - 180]
+    assert [m.seq for m in late] == list(range(last - 180, last + 1))  # every sample answered, none dropped
     return np.array([np.asarray(m.joints).reshape(22, 3)[list(FEET)] for m in late])
 
 
