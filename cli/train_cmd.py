@@ -54,6 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="weight of the fusion nets' skating term (a truly planted foot's served slide, m); 0 off",
     )
     parser.add_argument(
+        "--served-rotation-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="weight of the fusion nets' rotation term as served (6D after Gram-Schmidt): no degenerate column; 0 off",
+    )
+    parser.add_argument(
         "--device",
         choices=("cpu", "cuda"),
         default=None,
@@ -110,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
             ("window", args.window),
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
+            ("served_rotation_weight", args.served_rotation_weight),
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
         )

@@ -58,7 +58,7 @@ from .augment import (
     retime_sequence,
 )
 from .dataset import decode_frames, load_splits, split_camera
-from .nets.fusion import FusionNet, SeedEnsemble, set_input_statistics
+from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
 from .plausibility import FEET, contacts
@@ -88,6 +88,11 @@ class TrainConfig:
     drop_frame_p: float = 0.05
     position_weight: float = 10.0  # L1 metres vs L1 6D
     rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
+    # L1 of each rotation as served (its 6D after Gram-Schmidt) against the truth's. The L1 of the raw 6D alone
+    # is flat between two modes of the truth, where a seed can settle with a column near zero, whose direction
+    # Gram-Schmidt then serves: a neck 120 degrees off (MODEL_CARD.md, "A neck that cannot settle twisted").
+    # 0: off (the bundled nets' recipe).
+    served_rotation_weight: float = 0.0
     device_validity: bool = True  # the nets read each device's tracking state after x_t (hmd.py)
     lost_hand_weight: float = 3.0  # position loss of a lost controller's wrist and elbow, against 1
     contact_head: bool = True  # the nets also predict each foot's contact (labels: plausibility.contacts)
@@ -661,12 +666,16 @@ def _fit_terms(
     weight: torch.Tensor,
     tc: TrainConfig,
 ) -> dict[str, torch.Tensor]:
-    """L1 of the 6D rotations, weighted L1 of the joints (m) and the contact's cross-entropy against
-    wanted = (rot6d (B, J, 6), joints (B, J, 3), contact (B, 2) probabilities or None)."""
+    """L1 of the 6D rotations (raw, and as served if ``tc.served_rotation_weight``), weighted L1 of the joints
+    (m) and the contact's cross-entropy against wanted = (rot6d (B, J, 6), joints (B, J, 3), contact (B, 2)
+    probabilities or None)."""
     target, joints, contact = wanted
     rot_loss = (sixd - target).abs().mean()
     pos_loss = ((pos - joints).abs().sum(-1) * weight).mean()
     losses = {"rot": rot_loss * tc.rotation_weight, "pos": pos_loss * tc.position_weight}
+    if tc.served_rotation_weight > 0:
+        served = (orthonormal_sixd(sixd) - target).abs().mean()
+        losses["rot_served"] = served * tc.served_rotation_weight
     if contact_logits is not None and contact is not None:
         bce = F.binary_cross_entropy_with_logits(contact_logits, contact)
         losses["contact"] = bce * tc.contact_weight

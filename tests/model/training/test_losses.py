@@ -1,12 +1,13 @@
 """The fusion nets' training terms, on tensors with known answers."""
 
+import dataclasses
 import math
 
 import pytest
 
 torch = pytest.importorskip("torch")
 from egoposevr.model.training.plausibility import FEET  # noqa: E402
-from egoposevr.model.training.train import skate_term  # noqa: E402
+from egoposevr.model.training.train import PRESETS, _fit_terms, skate_term  # noqa: E402
 
 
 def _yaw(deg: float) -> torch.Tensor:
@@ -27,3 +28,29 @@ def test_the_skate_term_counts_only_feet_down_at_both_samples_and_only_their_sli
     frames = torch.stack([torch.eye(3), torch.eye(3), _yaw(90.0), torch.eye(3)])
     assert skate_term(error, frames, down).item() == pytest.approx(0.0, abs=1e-7)
     assert skate_term(error, torch.eye(3).expand(4, 3, 3), down).item() == pytest.approx(0.06 / 2)
+
+
+def _rotation_terms(sixd: torch.Tensor, targets: torch.Tensor, served_weight: float) -> dict[str, float]:
+    """The rotation terms of one output sixd (6,) against every target (B, 6), as one joint of B windows."""
+    tc = dataclasses.replace(PRESETS["tiny"], served_rotation_weight=served_weight)
+    sixd_b = sixd.expand(len(targets), 1, 6)
+    zeros = torch.zeros(len(targets), 1, 3)
+    terms = _fit_terms(sixd_b, zeros, None, (targets[:, None], zeros, None), torch.ones(len(targets), 1), tc)
+    return {k: v.item() / (tc.rotation_weight if k == "rot" else served_weight) for k, v in terms.items()}
+
+
+def test_the_served_rotation_term_makes_a_column_that_collapsed_between_two_truths_cost_more_than_either():
+    # Half the windows' truth is the identity, half a half turn about z: the raw L1 is flat between them,
+    # so a first column near zero costs it no more than picking one truth, but Gram-Schmidt serves that
+    # column's direction, a rotation far from both.
+    targets = torch.tensor([[1.0, 0, 0, 0, 1, 0]] * 4 + [[-1.0, 0, 0, 0, -1, 0]] * 4)
+    one_truth = torch.tensor([1.0, 0, 0, 0, 1, 0])
+    collapsed = torch.tensor([0.02, 0.04, 0.0, 0.0, 0.0, 0.0])  # a1 near zero, a2 = 0 (the median of both)
+    picked, degenerate = _rotation_terms(one_truth, targets, 1.0), _rotation_terms(collapsed, targets, 1.0)
+    assert degenerate["rot"] <= picked["rot"] + 0.01  # the raw term cannot tell them apart
+    assert degenerate["rot_served"] > picked["rot_served"] + 0.1  # the served one can
+    assert picked["rot_served"] == pytest.approx(picked["rot"])  # a served-as-is output costs the same
+    assert "rot_served" not in _fit_terms(  # off by default: the bundled recipe
+        one_truth.expand(1, 1, 6), torch.zeros(1, 1, 3), None,
+        (targets[:1, None], torch.zeros(1, 1, 3), None), torch.ones(1, 1), PRESETS["tiny"],
+    )  # fmt: skip

@@ -65,6 +65,14 @@ def test_the_skating_term_trains_on_pairs_and_is_recorded(tiny_data, tmp_path):
     assert "skate" in ckpt["history"][-1] and "temporal" not in ckpt["history"][-1]
 
 
+def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_path):
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
+    assert main([*args, "--fusion-steps", "3", "--served-rotation-weight", "3", "--no-progress"]) == 0
+    ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
+    assert ckpt["train_config"]["served_rotation_weight"] == 3.0
+    assert ckpt["history"][-1]["rot_served"] > 0
+
+
 def test_the_hmd_window_is_a_training_choice_the_checkpoint_keeps(tiny_data, tmp_path, capsys):
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
     assert main([*args, "--fusion-steps", "2", "--window", "5", "--no-progress"]) == 0
