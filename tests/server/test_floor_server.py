@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 from loopback import Client
 
-from egoposevr.model.runtime.contact import ANCHOR_SPEED_M_S
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
 from egoposevr.model.synth.headset import simulate_headset
 from egoposevr.model.synth.procedural import generate
 from egoposevr.model.training.plausibility import FEET
 from egoposevr.protocol import Hmd
+
+STANDING_SKATING_BAR_M_S = 0.02  # issue 25: a standing user's served feet skate at most 2 cm/s
 
 
 def answered(client: Client, seq: int) -> bool:
@@ -53,11 +54,11 @@ def test_planted_feet_stay_on_the_floor_and_a_local_space_gets_the_sessions_own_
     local = served_feet(server, "floor-local", 1.6)  # y = 0 at the head: the feet hang far below it
     assert local[..., 1].max() < -0.5  # not pulled up to y = 0
     # With y = 0 at the head the body's height is unknown and the network's legs are a crouch whose pelvis
-    # wanders (about 15 cm over these 2 s). The feet stay planted on the floor the session estimated under
-    # them, and no sole goes below that floor. A planted foot's anchor settles towards the network's
-    # placements at most ANCHOR_SPEED_M_S in a steady stance, and KPO holds the foot within about 0.7 cm of
-    # its anchor here: a free foot would follow the wandering legs.
+    # wanders (about 15 cm over these 2 s): a free foot would follow it. A planted foot may creep (its anchor
+    # settles, and KPO reconciles it with legs of unknown length: about 0.75 cm/s here), but never faster
+    # than what issue 25 allows a standing user's feet, and no sole goes below the floor the session
+    # estimated under them.
     floor_y_m = local[..., 1].min()
-    settled_m = ANCHOR_SPEED_M_S * 2.0 + 0.01
-    assert min(np.ptp(local[:, k], axis=0).max() for k in range(2)) < settled_m
+    creep_m_s = min(np.ptp(local[:, k], axis=0).max() for k in range(2)) / 2.0  # the last 2 s
+    assert creep_m_s < STANDING_SKATING_BAR_M_S
     assert np.abs(local[:, np.argmin(np.ptp(local[..., 0], axis=0)), 1] - floor_y_m).max() < 0.02
