@@ -81,6 +81,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fusion nets: the mirrored copies also lose controllers outside a cone drawn from MIN-MAX degrees",
     )
     parser.add_argument(
+        "--hanging-loss",
+        type=float,
+        default=None,
+        metavar="M",
+        help="fusion nets: the mirrored copies also lose a controller whose wrist hangs more than M metres "
+        "under its shoulder",
+    )
+    parser.add_argument(
+        "--keypoint-error-gain",
+        type=float,
+        default=None,
+        metavar="G",
+        help="fusion nets: each keypoint's error against the truth scaled by G (> 1: as bad as unseen "
+        "people and rigs get; default 1)",
+    )
+    parser.add_argument(
         "--teachers",
         type=Path,
         nargs="+",
@@ -120,11 +136,18 @@ def run(args: argparse.Namespace) -> int:
             ("served_rotation_weight", args.served_rotation_weight),
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
+            ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
         )
         if value is not None
     }  # fmt: skip
     if args.tracking_cone and not 0.0 < args.tracking_cone[0] <= args.tracking_cone[1] <= 180.0:
         print("egoposevr train: --tracking-cone MIN MAX needs 0 < MIN <= MAX <= 180 degrees", file=sys.stderr)
+        return 2
+    if args.hanging_loss is not None and not 0.0 < args.hanging_loss < 2.0:
+        print("egoposevr train: --hanging-loss M needs 0 < M < 2 metres", file=sys.stderr)
+        return 2
+    if args.keypoint_error_gain is not None and not 0.0 <= args.keypoint_error_gain <= 10.0:
+        print("egoposevr train: --keypoint-error-gain G needs 0 <= G <= 10", file=sys.stderr)
         return 2
     if args.window is not None and args.window < 1:
         print("egoposevr train: --window T needs T >= 1 headset samples", file=sys.stderr)

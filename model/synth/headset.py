@@ -125,7 +125,7 @@ def device_poses(joints_m: np.ndarray, global_rot: np.ndarray, rig: HeadsetRig) 
     return poses
 
 
-def _grace(lost: np.ndarray, t_s: np.ndarray, grace_s: float) -> np.ndarray:
+def held_longer_than(lost: np.ndarray, t_s: np.ndarray, grace_s: float) -> np.ndarray:
     """(N,) bool: True where ``lost`` has lasted longer than grace_s (the runtime's inertial bridge)."""
     out = np.zeros_like(lost)
     start = None
@@ -149,7 +149,7 @@ def out_of_view(poses: np.ndarray, t_s: np.ndarray, rig: HeadsetRig) -> np.ndarr
         behind = apart < rig.occlusion_deg
         lost[:, 0] |= behind & (dist[:, 0] > dist[:, 1] + 0.05)
         lost[:, 1] |= behind & (dist[:, 1] > dist[:, 0] + 0.05)
-    return np.stack([_grace(lost[:, k], t_s, rig.tracking_grace_s) for k in range(2)], axis=1)
+    return np.stack([held_longer_than(lost[:, k], t_s, rig.tracking_grace_s) for k in range(2)], axis=1)
 
 
 def hold_last_tracked(device_poses: np.ndarray, valid: np.ndarray) -> np.ndarray:

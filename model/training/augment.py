@@ -7,6 +7,8 @@
 - :func:`retime_sequence`: the same motion played faster or slower (every clock scaled about its start).
 - :func:`narrow_tracking_cone`: the same session as a headset that tracks its controllers over a narrower
   cone would report it: more, and longer, controller losses of the kind inside-out tracking has.
+- :func:`lose_hanging_arms`: the same session as a headset that cannot see a hand hanging low at the side
+  would report it: a controller lost while its wrist hangs well under its shoulder (a walking, swinging arm).
 - :func:`crop_and_flip`: for the keypoint net, a batch of frames cropped (other aspect ratios and fields of
   view than the renders': 16:9 sensors, zoomed lenses) and/or mirrored, with labels and intrinsics to match.
 
@@ -22,7 +24,7 @@ import cv2
 import numpy as np
 
 from ..rig import TRACKED_JOINTS
-from ..synth.headset import HeadsetRig, hold_last_tracked, out_of_view
+from ..synth.headset import HeadsetRig, held_longer_than, hold_last_tracked, out_of_view
 
 # SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
 MIRROR_JOINTS: Final = np.array(
@@ -90,6 +92,30 @@ def narrow_tracking_cone(seq: dict[str, Any], cone_deg: float, grace_s: float = 
     out = dict(seq)
     out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
     out["key"] = f"{seq['key']}~cone{cone_deg:.0f}"
+    out["images_key"] = seq.get("images_key", seq["key"])
+    return out
+
+
+SHOULDERS: Final = (16, 17)  # SMPL-22 left, right shoulder: the joints a hanging wrist is measured from
+
+
+def lose_hanging_arms(seq: dict[str, Any], drop_m: float = 0.3, grace_s: float = 0.25) -> dict[str, Any]:
+    """The sequence as a headset that loses a controller whose hand hangs at the side would report it (a new
+    dict): a true wrist more than ``drop_m`` under its true shoulder (world y up) for longer than ``grace_s``
+    also loses its controller, which then reports its last tracked pose (synth.headset.hold_last_tracked).
+    Inside-out cameras look forward and down: a hand hanging at the side, or swinging behind the body in a
+    walk, is where they lose it. Losses the sequence already has are kept."""
+    poses = np.array(seq["hmd_poses"], dtype=np.float64)  # (N, 3, 7)
+    valid = np.array(seq["hmd_valid"], dtype=bool)  # (N, 3)
+    joints = np.asarray(seq["gt_joints_m"], dtype=np.float64)  # (N, J, 3)
+    t_s = (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
+    for device, wrist, shoulder in zip((1, 2), TRACKED_JOINTS[1:], SHOULDERS, strict=True):
+        hanging = joints[:, wrist, 1] < joints[:, shoulder, 1] - drop_m
+        valid[:, device] &= ~held_longer_than(hanging, t_s, grace_s)
+        poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
+    out = dict(seq)
+    out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
+    out["key"] = f"{seq['key']}~hanging"
     out["images_key"] = seq.get("images_key", seq["key"])
     return out
 

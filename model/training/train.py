@@ -52,6 +52,7 @@ from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
 from .augment import (
     crop_and_flip,
+    lose_hanging_arms,
     mirror_sequence,
     mirror_world_keypoints,
     narrow_tracking_cone,
@@ -114,6 +115,13 @@ class TrainConfig:
     # Stage 2: the mirrored copies also lose each controller outside a tracking cone drawn from this range,
     # degrees off the headset's forward axis (augment.narrow_tracking_cone); None: the losses as rendered.
     tracking_cone_deg: tuple[float, float] | None = None
+    # Stage 2: the mirrored copies also lose a controller whose true wrist hangs more than this many metres
+    # under its shoulder (augment.lose_hanging_arms: a hand at the side, a walking arm); None: off.
+    hanging_loss_m: float | None = None
+    # Stage 2: each camera-frame keypoint's error (the encoder's, against the truth, in the camera) is scaled
+    # by this before the nets see it. The encoder is better on its own training images than on anyone else's
+    # (MODEL_CARD.md): > 1 trains the nets on keypoints as bad as unseen people and rigs give. 1: as predicted.
+    keypoint_error_gain: float = 1.0
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
@@ -471,10 +479,16 @@ def frame_keypoints(
     camera: dict[str, Any],
     hmd_t_us: np.ndarray,
     head_pose: np.ndarray,
+    truth_cam_m: np.ndarray | None = None,
+    error_gain: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Stage-1 outputs of a sequence's frames -> world keypoints (K, J, 3) and Alg. 1 confidence (K, J),
-    exactly as the runtime computes them frame by frame (head pose = the nearest headset sample)."""
+    exactly as the runtime computes them frame by frame (head pose = the nearest headset sample). With
+    ``truth_cam_m`` (K, J, 3), the true joints in the camera, each keypoint's error against them is first
+    scaled by ``error_gain``: the same mistakes, larger."""
     cam = lift_keypoints(uv, depth_m, camera["intrinsics"], (camera["width"], camera["height"]))
+    if truth_cam_m is not None and error_gain != 1.0:
+        cam = truth_cam_m + error_gain * (cam - truth_cam_m)
     heads = head_pose[nearest_sample(frame_t_us, hmd_t_us)]
     world = camera_to_world(cam, heads, np.asarray(camera["cam_from_head"]).reshape(4, 4))
     vis_filter = VisibilityFilter()
@@ -521,6 +535,7 @@ def prepare_fusion_sequence(
         kp_world, conf = frame_keypoints(
             uv, depth_m, zeta, shot["cam_t_us"], shot["camera"], shot["hmd_t_us"],
             shot["hmd_poses"][:, 0].astype(np.float64),
+            np.asarray(shot["joints_cam_m"], dtype=np.float64), tc.keypoint_error_gain,
         )  # fmt: skip
         if shot is not seq:
             kp_world, conf = mirror_world_keypoints(kp_world, conf)
@@ -789,7 +804,7 @@ def _stage_one(
 
 def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
     """Stage 2's sequences: each as recorded and, with ``mirror_p`` > 0, mirrored at a random speed (and with
-    ``tracking_cone_deg``, tracked over a narrower cone)."""
+    ``tracking_cone_deg``, tracked over a narrower cone; with ``hanging_loss_m``, losing hanging hands)."""
     if tc.mirror_p <= 0:
         return list(seqs)
     speeds = np.random.default_rng([tc.seed, 11]).uniform(*tc.speed_range, len(seqs))
@@ -797,6 +812,8 @@ def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any
     if tc.tracking_cone_deg is not None:
         cones = np.random.default_rng([tc.seed, 13]).uniform(*tc.tracking_cone_deg, len(seqs))
         copies = [narrow_tracking_cone(c, deg) for c, deg in zip(copies, cones, strict=True)]
+    if tc.hanging_loss_m is not None:
+        copies = [lose_hanging_arms(c, tc.hanging_loss_m) for c in copies]
     return list(seqs) + copies
 
 

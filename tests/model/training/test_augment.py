@@ -12,6 +12,7 @@ from egoposevr.model.skeleton import NUM_JOINTS, forward_kinematics, rest_offset
 from egoposevr.model.training.augment import (
     MIRROR_JOINTS,
     crop_and_flip,
+    lose_hanging_arms,
     mirror_sequence,
     narrow_tracking_cone,
     retime_sequence,
@@ -94,6 +95,38 @@ def test_a_narrower_tracking_cone_loses_a_controller_once_its_hand_has_left_it_f
     )  # other HMD features, same frames
 
     unchanged = narrow_tracking_cone(seq, cone_deg=180.0)
+    np.testing.assert_array_equal(unchanged["hmd_valid"], valid)
+    np.testing.assert_array_equal(unchanged["hmd_poses"], seq["hmd_poses"])
+
+
+def test_a_hand_that_hangs_loses_its_controller_once_it_has_hung_for_the_grace() -> None:
+    n, rate_hz = 91, 90.0
+    t_us = np.round(np.arange(n) * 1e6 / rate_hz).astype(np.int64) + 2_000_000
+    joints_m = np.zeros((n, 22, 3))
+    joints_m[:, 16] = [0.2, 1.4, 0.0]  # left shoulder
+    joints_m[:, 17] = [-0.2, 1.4, 0.0]  # right shoulder
+    joints_m[:, 20] = [0.3, 1.4, 0.3]  # the left hand held out in front, then dropping to hang in 1 s
+    joints_m[:, 20, 1] = np.linspace(1.4, 0.8, n)
+    joints_m[:, 21] = [-0.3, 1.2, 0.3]  # the right one 0.2 m under its shoulder: not hanging
+    poses = np.zeros((n, 3, 7))
+    poses[..., 6] = 1.0
+    poses[:, 1:, :3] = joints_m[:, [20, 21]] + 0.01 * np.arange(n)[:, None, None]  # all distinct
+    valid = np.ones((n, 3), dtype=bool)
+    valid[10:15, 2] = False  # a loss the render already had
+    poses[10:15, 2] = poses[9, 2]
+    seq = {"key": "train/4", "hmd_t_us": t_us, "hmd_poses": poses.astype(np.float32), "hmd_valid": valid,
+           "gt_joints_m": joints_m}  # fmt: skip
+
+    hung = lose_hanging_arms(seq, drop_m=0.3, grace_s=0.25)
+    hanging_s = (t_us - t_us[np.argmax(joints_m[:, 20, 1] < 1.1)]) * 1e-6
+    np.testing.assert_array_equal(hung["hmd_valid"][:, 1], hanging_s <= 0.25)
+    np.testing.assert_array_equal(hung["hmd_valid"][:, [0, 2]], valid[:, [0, 2]])
+    last = np.flatnonzero(hung["hmd_valid"][:, 1])[-1]
+    assert last < n - 20 and (hung["hmd_poses"][last:, 1] == seq["hmd_poses"][last, 1]).all()
+    np.testing.assert_array_equal(hung["hmd_poses"][: last + 1], seq["hmd_poses"][: last + 1])
+    assert hung["key"] != seq["key"] and hung["images_key"] == "train/4"
+
+    unchanged = lose_hanging_arms(seq, drop_m=1.0)
     np.testing.assert_array_equal(unchanged["hmd_valid"], valid)
     np.testing.assert_array_equal(unchanged["hmd_poses"], seq["hmd_poses"])
 

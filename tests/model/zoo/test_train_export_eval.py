@@ -232,6 +232,39 @@ def test_a_narrower_tracking_cone_trains_the_mirrored_copies_on_more_lost_contro
     assert "--tracking-cone" in capsys.readouterr().err
 
 
+def test_hanging_hands_and_larger_keypoint_errors_are_training_options(tiny_data, tmp_path, capsys):
+    import dataclasses
+
+    from egoposevr.model.training.train import augmented
+
+    seqs = load_split(tiny_data, "train")
+    plain = augmented(seqs, dataclasses.replace(PRESETS["tiny"], mirror_p=0.5))
+    hung = augmented(seqs, dataclasses.replace(PRESETS["tiny"], mirror_p=0.5, hanging_loss_m=0.05))
+    n = len(seqs)
+    assert all(after is before for before, after in zip(plain[:n], hung[:n], strict=True))
+    assert np.mean([~s["hmd_valid"][:, 1:] for s in hung[n:]]) > np.mean(
+        [~s["hmd_valid"][:, 1:] for s in plain[n:]]
+    )
+
+    args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    flags = [
+        "--hanging-loss",
+        "0.3",
+        "--keypoint-error-gain",
+        "1.5",
+        "--visual-steps",
+        "2",
+        "--fusion-steps",
+        "2",
+    ]
+    assert main([*args, "--out", str(tmp_path), *flags]) == 0
+    recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
+    assert (recorded["hanging_loss_m"], recorded["keypoint_error_gain"]) == (0.3, 1.5)
+    for bad in (["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"]):
+        assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
+        assert bad[0] in capsys.readouterr().err
+
+
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
     more = tmp_path / "more"
     synth = ["synth", "--procedural", "1", "--families", "still_stand", "--seed", "6", "--out", str(more)]
