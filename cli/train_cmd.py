@@ -97,6 +97,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "people and rigs get; default 1)",
     )
     parser.add_argument(
+        "--arm-swap",
+        type=float,
+        default=None,
+        metavar="P",
+        help="fusion nets: a share P of the sequences also trains with another sequence's arm motion "
+        "(legs as they were, arm keypoints unseen)",
+    )
+    parser.add_argument(
         "--teachers",
         type=Path,
         nargs="+",
@@ -137,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
+            ("arm_swap_p", args.arm_swap),
         )
         if value is not None
     }  # fmt: skip
@@ -148,6 +157,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.keypoint_error_gain is not None and not 0.0 <= args.keypoint_error_gain <= 10.0:
         print("egoposevr train: --keypoint-error-gain G needs 0 <= G <= 10", file=sys.stderr)
+        return 2
+    if args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0:
+        print("egoposevr train: --arm-swap P needs 0 <= P <= 1", file=sys.stderr)
         return 2
     if args.window is not None and args.window < 1:
         print("egoposevr train: --window T needs T >= 1 headset samples", file=sys.stderr)

@@ -9,6 +9,9 @@
   cone would report it: more, and longer, controller losses of the kind inside-out tracking has.
 - :func:`lose_hanging_arms`: the same session as a headset that cannot see a hand hanging low at the side
   would report it: a controller lost while its wrist hangs well under its shoulder (a walking, swinging arm).
+- :func:`swap_arms`: one person's legs, torso and head with another person's arm motion: the arms move while
+  the legs do what they did (still legs stay still). The camera saw the first person's arms, so the copy's
+  arm keypoints are marked unseen (``arms_unseen``).
 - :func:`crop_and_flip`: for the keypoint net, a batch of frames cropped (other aspect ratios and fields of
   view than the renders': 16:9 sensors, zoomed lenses) and/or mirrored, with labels and intrinsics to match.
 
@@ -24,6 +27,8 @@ import cv2
 import numpy as np
 
 from ..rig import TRACKED_JOINTS
+from ..rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from ..skeleton import forward_kinematics, rest_offsets
 from ..synth.headset import HeadsetRig, held_longer_than, hold_last_tracked, out_of_view
 
 # SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
@@ -117,6 +122,67 @@ def lose_hanging_arms(seq: dict[str, Any], drop_m: float = 0.3, grace_s: float =
     out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
     out["key"] = f"{seq['key']}~hanging"
     out["images_key"] = seq.get("images_key", seq["key"])
+    return out
+
+
+# SMPL-22 collars, shoulders, elbows, wrists: the joints whose local rotations make an arm's motion, and the
+# keypoints a swapped-in arm makes wrong.
+ARM_JOINTS: Final = np.array([13, 14, 16, 17, 18, 19, 20, 21])
+
+
+def _grip(device_poses: np.ndarray, valid: np.ndarray, wrist_m: np.ndarray, wrist_rot: np.ndarray):
+    """How a controller sits on its wrist: its position (3,) in the wrist's frame (mean over tracked samples)
+    and its rotation (3, 3) against the wrist's (at the first tracked sample; the identity if never)."""
+    tracked = np.flatnonzero(valid)
+    if not len(tracked):
+        return np.zeros(3), np.eye(3)
+    rel = np.einsum("nji,nj->ni", wrist_rot[tracked], device_poses[tracked, :3] - wrist_m[tracked])
+    first = tracked[0]
+    turn = wrist_rot[first].T @ quat_xyzw_to_matrix(device_poses[first, 3:])
+    return rel.mean(0), turn
+
+
+def swap_arms(
+    seq: dict[str, Any], donor: dict[str, Any], start: int, cone_deg: float, grace_s: float = 0.25
+) -> dict[str, Any]:
+    """``seq``'s person with ``donor``'s arms (a new dict): the arm joints' local rotations (ARM_JOINTS) from
+    donor's samples ``start``, ``start + 1``, ... (wrapping), the rest as recorded. The joints are the forward
+    kinematics of that on ``seq``'s skeleton, the controllers sit on the new wrists as ``seq``'s sat on its
+    own (same grip), and a controller outside a tracking cone of ``cone_deg`` (after ``grace_s``) is lost,
+    reporting its last tracked pose, as the renders' rule has it. The images are ``seq``'s, whose arms are
+    not these: ``arms_unseen`` tells stage 2 to treat the arm keypoints as not seen."""
+    n = len(seq["hmd_t_us"])
+    local = quat_xyzw_to_matrix(np.asarray(seq["gt_local_quat"], dtype=np.float64))  # (N, J, 3, 3)
+    donor_local = quat_xyzw_to_matrix(np.asarray(donor["gt_local_quat"], dtype=np.float64))
+    picks = (start + np.arange(n)) % len(donor_local)
+    old_joints, old_glob = forward_kinematics(local, seq["gt_root_m"], rest_offsets(seq["bone_scale"]))
+    local[:, ARM_JOINTS] = donor_local[picks][:, ARM_JOINTS]
+    joints, glob = forward_kinematics(local, seq["gt_root_m"], rest_offsets(seq["bone_scale"]))
+    poses = np.array(seq["hmd_poses"], dtype=np.float64)  # (N, 3, 7)
+    valid = np.array(seq["hmd_valid"], dtype=bool)
+    for device in (1, 2):
+        wrist = TRACKED_JOINTS[device]
+        offset, turn = _grip(poses[:, device], valid[:, device], old_joints[:, wrist], old_glob[:, wrist])
+        # The tracking's own noise and drift, kept: where the controller was against where its grip puts it.
+        noise = (
+            poses[:, device, :3] - old_joints[:, wrist] - np.einsum("nij,j->ni", old_glob[:, wrist], offset)
+        )
+        noise[~valid[:, device]] = 0.0
+        poses[:, device, :3] = joints[:, wrist] + np.einsum("nij,j->ni", glob[:, wrist], offset) + noise
+        poses[:, device, 3:] = matrix_to_quat_xyzw(glob[:, wrist] @ turn)
+    t_s = (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
+    unseen = out_of_view(poses, t_s, HeadsetRig(tracking_cone_deg=cone_deg, tracking_grace_s=grace_s))
+    valid[:, 1:] = ~unseen
+    for device in (1, 2):
+        poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
+    out = dict(seq)
+    out["hmd_poses"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype)
+    out["hmd_valid"] = valid
+    out["gt_local_quat"] = matrix_to_quat_xyzw(local).astype(np.asarray(seq["gt_local_quat"]).dtype)
+    out["gt_joints_m"] = joints.astype(np.asarray(seq["gt_joints_m"]).dtype)
+    out["arms_unseen"] = True
+    out["images_key"] = seq.get("images_key", seq["key"])
+    out["key"] = f"{seq['key']}~arms:{donor['key']}@{start}"
     return out
 
 

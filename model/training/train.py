@@ -51,12 +51,14 @@ from ..runtime.loading import load_encoder
 from ..skeleton import HEAD, rest_offsets
 from ..zoo import ZOO
 from .augment import (
+    ARM_JOINTS,
     crop_and_flip,
     lose_hanging_arms,
     mirror_sequence,
     mirror_world_keypoints,
     narrow_tracking_cone,
     retime_sequence,
+    swap_arms,
 )
 from .dataset import decode_frames, load_splits, split_camera
 from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
@@ -122,6 +124,9 @@ class TrainConfig:
     # by this before the nets see it. The encoder is better on its own training images than on anyone else's
     # (MODEL_CARD.md): > 1 trains the nets on keypoints as bad as unseen people and rigs give. 1: as predicted.
     keypoint_error_gain: float = 1.0
+    # Stage 2: this share of the sequences also trains as a copy with another training sequence's arm motion
+    # (augment.swap_arms; its arm keypoints unseen): arms that move over legs that do what they did. 0: off.
+    arm_swap_p: float = 0.0
     limit_sequences: int | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
@@ -539,6 +544,8 @@ def prepare_fusion_sequence(
         )  # fmt: skip
         if shot is not seq:
             kp_world, conf = mirror_world_keypoints(kp_world, conf)
+        if seq.get("arms_unseen"):  # the images show another person's arms than the truth's
+            conf[:, ARM_JOINTS] = 0.0
     latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
     return FusionSequence(
         hmd=_cached(
@@ -804,9 +811,10 @@ def _stage_one(
 
 def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
     """Stage 2's sequences: each as recorded and, with ``mirror_p`` > 0, mirrored at a random speed (and with
-    ``tracking_cone_deg``, tracked over a narrower cone; with ``hanging_loss_m``, losing hanging hands)."""
+    ``tracking_cone_deg``, tracked over a narrower cone; with ``hanging_loss_m``, losing hanging hands), and
+    with ``arm_swap_p`` > 0 some again with another sequence's arms."""
     if tc.mirror_p <= 0:
-        return list(seqs)
+        return list(seqs) + arm_swaps(seqs, tc)
     speeds = np.random.default_rng([tc.seed, 11]).uniform(*tc.speed_range, len(seqs))
     copies = [mirror_sequence(retime_sequence(s, v)) for s, v in zip(seqs, speeds, strict=True)]
     if tc.tracking_cone_deg is not None:
@@ -814,7 +822,23 @@ def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any
         copies = [narrow_tracking_cone(c, deg) for c, deg in zip(copies, cones, strict=True)]
     if tc.hanging_loss_m is not None:
         copies = [lose_hanging_arms(c, tc.hanging_loss_m) for c in copies]
-    return list(seqs) + copies
+    return list(seqs) + copies + arm_swaps(seqs, tc)
+
+
+def arm_swaps(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
+    """``tc.arm_swap_p`` of the sequences again, each with a random other sequence's arms from a random
+    sample on, tracked over a cone drawn as the renders draw theirs (synth.variation)."""
+    if tc.arm_swap_p <= 0 or len(seqs) < 2:
+        return []
+    rng = np.random.default_rng([tc.seed, 17])
+    out = []
+    for i, seq in enumerate(seqs):
+        if rng.random() >= tc.arm_swap_p:
+            continue
+        donor = seqs[(i + int(rng.integers(1, len(seqs)))) % len(seqs)]
+        start = int(rng.integers(0, len(donor["hmd_t_us"])))
+        out.append(swap_arms(seq, donor, start, float(rng.uniform(75.0, 100.0))))
+    return out
 
 
 def _set_statistics(

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from egoposevr.model.inputs import lift_keypoints
 from egoposevr.model.rig import DEFAULT_OFFSETS_M, DEVICE_FROM_JOINT, TRACKED_JOINTS, joints_from_devices
-from egoposevr.model.skeleton import NUM_JOINTS, forward_kinematics, rest_offsets
+from egoposevr.model.skeleton import LOWER_BODY, NUM_JOINTS, forward_kinematics, rest_offsets
 from egoposevr.model.training.augment import (
     MIRROR_JOINTS,
     crop_and_flip,
@@ -16,6 +16,7 @@ from egoposevr.model.training.augment import (
     mirror_sequence,
     narrow_tracking_cone,
     retime_sequence,
+    swap_arms,
 )
 
 
@@ -129,6 +130,40 @@ def test_a_hand_that_hangs_loses_its_controller_once_it_has_hung_for_the_grace()
     unchanged = lose_hanging_arms(seq, drop_m=1.0)
     np.testing.assert_array_equal(unchanged["hmd_valid"], valid)
     np.testing.assert_array_equal(unchanged["hmd_poses"], seq["hmd_poses"])
+
+
+def test_swapped_arms_move_on_the_same_legs_and_carry_their_controllers() -> None:
+    person, donor = _sequence(np.random.default_rng(4), n=12), _sequence(np.random.default_rng(5), n=7)
+    donor["key"] = "val/1"
+    swapped = swap_arms(person, donor, start=3, cone_deg=180.0)
+
+    local = (
+        Rotation.from_quat(swapped["gt_local_quat"].reshape(-1, 4)).as_matrix().reshape(-1, NUM_JOINTS, 3, 3)
+    )
+    joints, _ = forward_kinematics(local, person["gt_root_m"], rest_offsets(person["bone_scale"]))
+    np.testing.assert_allclose(joints, swapped["gt_joints_m"], atol=1e-5)  # a body, on the person's bones
+    np.testing.assert_allclose(
+        swapped["gt_joints_m"][:, LOWER_BODY], person["gt_joints_m"][:, LOWER_BODY], atol=1e-6
+    )
+    donor_local = (
+        Rotation.from_quat(donor["gt_local_quat"].reshape(-1, 4)).as_matrix().reshape(-1, NUM_JOINTS, 3, 3)
+    )
+    np.testing.assert_allclose(local[:, 18], donor_local[(3 + np.arange(12)) % 7, 18], atol=1e-6)  # wrapping
+    tracked, _ = joints_from_devices(swapped["hmd_poses"].astype(np.float64))
+    np.testing.assert_allclose(
+        tracked[:, 1:], swapped["gt_joints_m"][:, [20, 21]], atol=1e-4
+    )  # on the new wrists
+    assert swapped["hmd_valid"][:, 1:].all()  # a cone of 180 degrees sees every controller
+    assert swapped["arms_unseen"] and swapped["images_key"] == "val/0" and swapped["key"] != person["key"]
+
+    itself = swap_arms(person, person, start=0, cone_deg=180.0)  # the same arms: the same controllers
+    seen = person["hmd_valid"][:, 1:]
+    np.testing.assert_allclose(
+        itself["hmd_poses"][:, 1:, :3][seen], person["hmd_poses"][:, 1:, :3][seen], atol=1e-5
+    )
+    narrow = swap_arms(person, donor, start=3, cone_deg=5.0, grace_s=0.0)
+    assert not narrow["hmd_valid"][1:, 1:].any()  # lost from the second sample (no grace)
+    np.testing.assert_array_equal(narrow["hmd_valid"][:, 0], person["hmd_valid"][:, 0])  # the headset's own
 
 
 @pytest.mark.parametrize(("crop_p", "flip_p"), [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])

@@ -232,7 +232,9 @@ def test_a_narrower_tracking_cone_trains_the_mirrored_copies_on_more_lost_contro
     assert "--tracking-cone" in capsys.readouterr().err
 
 
-def test_hanging_hands_and_larger_keypoint_errors_are_training_options(tiny_data, tmp_path, capsys):
+def test_hanging_hands_larger_keypoint_errors_and_swapped_arms_are_training_options(
+    tiny_data, tmp_path, capsys
+):
     import dataclasses
 
     from egoposevr.model.training.train import augmented
@@ -246,21 +248,20 @@ def test_hanging_hands_and_larger_keypoint_errors_are_training_options(tiny_data
         [~s["hmd_valid"][:, 1:] for s in plain[n:]]
     )
 
+    swapped = augmented(seqs, dataclasses.replace(PRESETS["tiny"], arm_swap_p=1.0))
+    assert len(swapped) == 2 * n and all(s["arms_unseen"] for s in swapped[n:])
+
     args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
-    flags = [
-        "--hanging-loss",
-        "0.3",
-        "--keypoint-error-gain",
-        "1.5",
-        "--visual-steps",
-        "2",
-        "--fusion-steps",
-        "2",
-    ]
-    assert main([*args, "--out", str(tmp_path), *flags]) == 0
+    options = ["--hanging-loss", "0.3", "--keypoint-error-gain", "1.5", "--arm-swap", "0.5"]
+    steps = ["--visual-steps", "2", "--fusion-steps", "2"]
+    assert main([*args, "--out", str(tmp_path), *options, *steps]) == 0
     recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
-    assert (recorded["hanging_loss_m"], recorded["keypoint_error_gain"]) == (0.3, 1.5)
-    for bad in (["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"]):
+    assert (recorded["hanging_loss_m"], recorded["keypoint_error_gain"], recorded["arm_swap_p"]) == (
+        0.3,
+        1.5,
+        0.5,
+    )
+    for bad in (["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"], ["--arm-swap", "2"]):
         assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
         assert bad[0] in capsys.readouterr().err
 
