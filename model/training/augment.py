@@ -80,6 +80,21 @@ def retime_sequence(seq: dict[str, Any], speed: float) -> dict[str, Any]:
     return out
 
 
+def _seconds(seq: dict[str, Any]) -> np.ndarray:
+    """(N,) each headset sample's time since the sequence's first, s."""
+    return (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
+
+
+def _retracked(seq: dict[str, Any], poses: np.ndarray, valid: np.ndarray, tag: str) -> dict[str, Any]:
+    """A new dict: ``seq`` with other device poses (N, 3, 7) and validity (N, 3), keyed ``<key>~<tag>``; its
+    images are still ``seq``'s (``images_key``)."""
+    out = dict(seq)
+    out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
+    out["key"] = f"{seq['key']}~{tag}"
+    out["images_key"] = seq.get("images_key", seq["key"])
+    return out
+
+
 def narrow_tracking_cone(seq: dict[str, Any], cone_deg: float, grace_s: float = 0.25) -> dict[str, Any]:
     """The sequence as a headset whose cameras track a controller only within ``cone_deg`` of its forward
     axis would report it (a new dict): a true wrist further off-axis than that for longer than ``grace_s``
@@ -89,16 +104,12 @@ def narrow_tracking_cone(seq: dict[str, Any], cone_deg: float, grace_s: float = 
     valid = np.array(seq["hmd_valid"], dtype=bool)  # (N, 3)
     at_wrists = poses.copy()  # the controllers where the true wrists are: what the cameras would have to see
     at_wrists[:, 1:, :3] = np.asarray(seq["gt_joints_m"], dtype=np.float64)[:, list(TRACKED_JOINTS[1:])]
-    t_s = (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
-    unseen = out_of_view(at_wrists, t_s, HeadsetRig(tracking_cone_deg=cone_deg, tracking_grace_s=grace_s))
+    rig = HeadsetRig(tracking_cone_deg=cone_deg, tracking_grace_s=grace_s)
+    unseen = out_of_view(at_wrists, _seconds(seq), rig)
     for device in (1, 2):
         valid[:, device] &= ~unseen[:, device - 1]
         poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
-    out = dict(seq)
-    out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
-    out["key"] = f"{seq['key']}~cone{cone_deg:.0f}"
-    out["images_key"] = seq.get("images_key", seq["key"])
-    return out
+    return _retracked(seq, poses, valid, f"cone{cone_deg:.0f}")
 
 
 SHOULDERS: Final = (16, 17)  # SMPL-22 left, right shoulder: the joints a hanging wrist is measured from
@@ -113,16 +124,11 @@ def lose_hanging_arms(seq: dict[str, Any], drop_m: float = 0.3, grace_s: float =
     poses = np.array(seq["hmd_poses"], dtype=np.float64)  # (N, 3, 7)
     valid = np.array(seq["hmd_valid"], dtype=bool)  # (N, 3)
     joints = np.asarray(seq["gt_joints_m"], dtype=np.float64)  # (N, J, 3)
-    t_s = (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
     for device, wrist, shoulder in zip((1, 2), TRACKED_JOINTS[1:], SHOULDERS, strict=True):
         hanging = joints[:, wrist, 1] < joints[:, shoulder, 1] - drop_m
-        valid[:, device] &= ~held_longer_than(hanging, t_s, grace_s)
+        valid[:, device] &= ~held_longer_than(hanging, _seconds(seq), grace_s)
         poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
-    out = dict(seq)
-    out["hmd_poses"], out["hmd_valid"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype), valid
-    out["key"] = f"{seq['key']}~hanging"
-    out["images_key"] = seq.get("images_key", seq["key"])
-    return out
+    return _retracked(seq, poses, valid, "hanging")
 
 
 # SMPL-22 collars, shoulders, elbows, wrists: the joints whose local rotations make an arm's motion, and the
@@ -170,19 +176,14 @@ def swap_arms(
         noise[~valid[:, device]] = 0.0
         poses[:, device, :3] = joints[:, wrist] + np.einsum("nij,j->ni", glob[:, wrist], offset) + noise
         poses[:, device, 3:] = matrix_to_quat_xyzw(glob[:, wrist] @ turn)
-    t_s = (np.asarray(seq["hmd_t_us"], dtype=np.int64) - int(seq["hmd_t_us"][0])) * 1e-6
-    unseen = out_of_view(poses, t_s, HeadsetRig(tracking_cone_deg=cone_deg, tracking_grace_s=grace_s))
-    valid[:, 1:] = ~unseen
+    rig = HeadsetRig(tracking_cone_deg=cone_deg, tracking_grace_s=grace_s)
+    valid[:, 1:] = ~out_of_view(poses, _seconds(seq), rig)
     for device in (1, 2):
         poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
-    out = dict(seq)
-    out["hmd_poses"] = poses.astype(np.asarray(seq["hmd_poses"]).dtype)
-    out["hmd_valid"] = valid
+    out = _retracked(seq, poses, valid, f"arms:{donor['key']}@{start}")
     out["gt_local_quat"] = matrix_to_quat_xyzw(local).astype(np.asarray(seq["gt_local_quat"]).dtype)
     out["gt_joints_m"] = joints.astype(np.asarray(seq["gt_joints_m"]).dtype)
     out["arms_unseen"] = True
-    out["images_key"] = seq.get("images_key", seq["key"])
-    out["key"] = f"{seq['key']}~arms:{donor['key']}@{start}"
     return out
 
 
