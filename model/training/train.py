@@ -537,10 +537,11 @@ def prepare_fusion_sequence(
             (visual.cfg.channels, seq.get("images_key", seq["key"])),
             lambda: predict_keypoints(visual, *decode_frames(shot, size)),
         )
+        gain = tc.keypoint_error_gain
+        truth_cam_m = None if gain == 1.0 else np.asarray(shot["joints_cam_m"], dtype=np.float64)
         kp_world, conf = frame_keypoints(
             uv, depth_m, zeta, shot["cam_t_us"], shot["camera"], shot["hmd_t_us"],
-            shot["hmd_poses"][:, 0].astype(np.float64),
-            np.asarray(shot["joints_cam_m"], dtype=np.float64), tc.keypoint_error_gain,
+            shot["hmd_poses"][:, 0].astype(np.float64), truth_cam_m, gain,
         )  # fmt: skip
         if shot is not seq:
             kp_world, conf = mirror_world_keypoints(kp_world, conf)
