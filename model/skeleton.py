@@ -28,6 +28,9 @@ PELVIS, HEAD, LEFT_WRIST, RIGHT_WRIST = 0, 15, 20, 21
 FOOT_JOINT_HEIGHT_M: Final = 0.035  # the foot joint (ball of the foot) above the floor when flat
 UPPER_BODY: Final = np.array([3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21])
 LOWER_BODY: Final = np.array([0, 1, 2, 4, 5, 7, 8, 10, 11])
+# Collars, shoulders, elbows, wrists: the joints whose local rotations make the arms' motion.
+ARM_JOINTS: Final = np.array([13, 14, 16, 17, 18, 19, 20, 21])
+SHOULDERS: Final = (16, 17)  # left, right
 
 
 def _depth_levels(parents: np.ndarray) -> tuple[np.ndarray, ...]:

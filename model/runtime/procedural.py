@@ -36,7 +36,15 @@ from ..config import FusionConfig, ModelMetadata
 from ..hmd import check_poses, ignore_untracked
 from ..inputs import heading_frame
 from ..rig import DEFAULT_OFFSETS_M, TRACKED_JOINTS, joints_from_devices
-from ..skeleton import FOOT_JOINT_HEIGHT_M, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
+from ..skeleton import (
+    ARM_JOINTS,
+    FOOT_JOINT_HEIGHT_M,
+    JOINT_NAMES,
+    NUM_JOINTS,
+    PARENTS,
+    forward_kinematics,
+    rest_offsets,
+)
 from . import kernels
 from .body import BodyCalibrator
 from .calibration import Calibration, body_measurements, canonical_poses
@@ -328,8 +336,7 @@ class ProceduralPipeline:
         for joint in (3, 6, 9):  # the spine between the pelvis and the neck, at its rest heights
             fraction = (rest_world[joint, 1] - rest_world[0, 1]) / (rest_world[12, 1] - rest_world[0, 1])
             joints[joint] = pelvis + fraction * (neck - pelvis)
-        for joint in (13, 14, 16, 17, 18, 19, 20, 21):  # collars and arms ride on spine3
-            joints[joint] = upright[joint] + (joints[9] - upright[9])
+        joints[ARM_JOINTS] = upright[ARM_JOINTS] + (joints[9] - upright[9])  # collars and arms ride on spine3
         joints[15] = head
         return joints
 

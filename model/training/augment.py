@@ -28,7 +28,7 @@ import numpy as np
 
 from ..rig import TRACKED_JOINTS
 from ..rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from ..skeleton import forward_kinematics, rest_offsets
+from ..skeleton import ARM_JOINTS, SHOULDERS, forward_kinematics, rest_offsets
 from ..synth.headset import HeadsetRig, held_longer_than, hold_last_tracked, out_of_view
 
 # SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
@@ -112,9 +112,6 @@ def narrow_tracking_cone(seq: dict[str, Any], cone_deg: float, grace_s: float = 
     return _retracked(seq, poses, valid, f"cone{cone_deg:.0f}")
 
 
-SHOULDERS: Final = (16, 17)  # SMPL-22 left, right shoulder: the joints a hanging wrist is measured from
-
-
 def lose_hanging_arms(seq: dict[str, Any], drop_m: float = 0.3, grace_s: float = 0.25) -> dict[str, Any]:
     """The sequence as a headset that loses a controller whose hand hangs at the side would report it (a new
     dict): a true wrist more than ``drop_m`` under its true shoulder (world y up) for longer than ``grace_s``
@@ -124,16 +121,12 @@ def lose_hanging_arms(seq: dict[str, Any], drop_m: float = 0.3, grace_s: float =
     poses = np.array(seq["hmd_poses"], dtype=np.float64)  # (N, 3, 7)
     valid = np.array(seq["hmd_valid"], dtype=bool)  # (N, 3)
     joints = np.asarray(seq["gt_joints_m"], dtype=np.float64)  # (N, J, 3)
+    t_s = _seconds(seq)
     for device, wrist, shoulder in zip((1, 2), TRACKED_JOINTS[1:], SHOULDERS, strict=True):
         hanging = joints[:, wrist, 1] < joints[:, shoulder, 1] - drop_m
-        valid[:, device] &= ~held_longer_than(hanging, _seconds(seq), grace_s)
+        valid[:, device] &= ~held_longer_than(hanging, t_s, grace_s)
         poses[:, device] = hold_last_tracked(poses[:, device], valid[:, device])
     return _retracked(seq, poses, valid, "hanging")
-
-
-# SMPL-22 collars, shoulders, elbows, wrists: the joints whose local rotations make an arm's motion, and the
-# keypoints a swapped-in arm makes wrong.
-ARM_JOINTS: Final = np.array([13, 14, 16, 17, 18, 19, 20, 21])
 
 
 def _grip(device_poses: np.ndarray, valid: np.ndarray, wrist_m: np.ndarray, wrist_rot: np.ndarray):

@@ -48,10 +48,9 @@ from ..inputs import (
 from ..rig import joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.loading import load_encoder
-from ..skeleton import HEAD, rest_offsets
+from ..skeleton import ARM_JOINTS, HEAD, rest_offsets
 from ..zoo import ZOO
 from .augment import (
-    ARM_JOINTS,
     crop_and_flip,
     lose_hanging_arms,
     mirror_sequence,
