@@ -13,11 +13,16 @@ nets: one graph, the members' rotations (made orthonormal) and contact probabili
 --add-batch-axis rewrites model files exported for batch 1 (before the server batched sessions) in place
 so that their fusion net takes a batch axis, checked against the original row by row.
 
+--reexport rewrites model files in place in today's graph form (the exporter's opset, the nets' current
+forward pass) from the weights they hold, without their checkpoints; metadata is kept, and the new graph
+must agree with the old one within 1e-4. The bundled models were last rewritten so (MODEL_CARD).
+
 Examples:
   egoposevr export --runs runs/cpu16 --out model/weights
   egoposevr export --runs runs/temporal --out runs/temporal-weights --model egoposevr --encoders model/weights
   egoposevr export --runs runs/lock runs/lock2 --out runs/pair-weights --model egoposevr --encoders model/weights
   egoposevr export --add-batch-axis model/weights/egoposevr.onnx model/weights/hmd.onnx
+  egoposevr export --reexport model/weights/hmd*.onnx model/weights/egoposevr*.onnx
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="copy the visual encoders from DIR (fusion nets trained with train --encoders)")  # fmt: skip
     parser.add_argument("--add-batch-axis", type=Path, nargs="+", metavar="ONNX",
                         help="give these fusion graphs a batch axis, in place (no --runs/--out)")  # fmt: skip
+    parser.add_argument("--reexport", type=Path, nargs="+", metavar="ONNX",
+                        help="rewrite these model files in today's graph form, in place (no --runs/--out)")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.add_batch_axis:
         return _add_batch_axis(args.add_batch_axis)
+    if args.reexport:
+        return _reexport(args.reexport)
     if args.runs is None or args.out is None:
         print("egoposevr export: --runs and --out are required", file=sys.stderr)
         return 2
@@ -76,4 +85,19 @@ def _add_batch_axis(paths: list[Path]) -> int:
             print(f"egoposevr export: {error}", file=sys.stderr)
             return 2
         print(f"{path}: batch axis; batch of 8 against rows one by one: max |difference| = {worst:.2e}")
+    return 0
+
+
+def _reexport(paths: list[Path]) -> int:
+    from ..model.training.export import reexport_model
+
+    for path in paths:
+        try:
+            worst = reexport_model(path)
+        except (ValueError, FileNotFoundError) as error:
+            print(f"egoposevr export: {error}", file=sys.stderr)
+            return 2
+        print(
+            f"{path}: re-exported; against the old graph (batches of 1 and 8): max |difference| = {worst:.2e}"
+        )
     return 0

@@ -23,6 +23,8 @@ import math
 
 import numpy as np
 
+from . import kernels
+
 
 def smoothing_factor(dt_s: float, cutoff_hz: np.ndarray | float) -> np.ndarray | float:
     """Exponential-smoothing weight α of a first-order low-pass with cutoff ``cutoff_hz`` over ``dt_s``."""
@@ -72,10 +74,12 @@ class OneEuroFilter:
             )
         dt_s = (int(t_us) - self._t_us) * 1e-6
         if dt_s > 0:
-            dx = (x - self._x_hat) / dt_s
-            self._dx_hat = self._dx_hat + smoothing_factor(dt_s, self.d_cutoff_hz) * (dx - self._dx_hat)
-            cutoff_hz = self.min_cutoff_hz + self.beta * np.abs(self._dx_hat)
-            self._x_hat = self._x_hat + smoothing_factor(dt_s, cutoff_hz) * (x - self._x_hat)
+            # x̂ += α(fc)·(x - x̂) with fc = min_cutoff + β·|dx̂|, dx̂ += α(d_cutoff)·((x - x̂)/dt - dx̂): the
+            # compiled step does exactly this (smoothing_factor's α), element by element, in place.
+            kernels.one_euro_step(
+                np.ascontiguousarray(x).reshape(-1), self._x_hat.reshape(-1), self._dx_hat.reshape(-1),
+                dt_s, float(self.min_cutoff_hz), float(self.beta), float(self.d_cutoff_hz),
+            )  # fmt: skip
             self._t_us = int(t_us)
         if fresh is not None:
             self._x_hat[fresh] = x[fresh]
@@ -88,7 +92,8 @@ class OneEuroFilter:
         return None if self._x_hat is None else self._x_hat.copy()
 
     def _start(self, t_us: int, x: np.ndarray) -> np.ndarray:
-        self._x_hat, self._dx_hat, self._t_us = x.copy(), np.zeros_like(x), int(t_us)
+        # C-ordered copies: the compiled step updates them in place through flat views.
+        self._x_hat, self._dx_hat, self._t_us = x.copy(order="C"), np.zeros(x.shape), int(t_us)
         return x.copy()
 
 

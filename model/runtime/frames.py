@@ -23,16 +23,17 @@ import numpy as np
 
 from ...protocol.errors import InputError
 from ..inputs import (
+    DEPTH_SCALE_M,
     VisibilityFilter,
     camera_to_world,
     lift_keypoints,
     nearest_sample,
-    network_input,
     resize_frame,
     visual_tokens,
     visual_window,
 )
 from ..skeleton import NUM_JOINTS
+from . import kernels
 from .loading import LoadedModel
 
 HEAD_HISTORY_S = 1.0  # headset poses kept to place frames that arrive late
@@ -90,10 +91,17 @@ def head_from_cam(model: LoadedModel, cam_from_head: np.ndarray | None) -> np.nd
     return np.linalg.inv(cam)
 
 
-def encoder_input(model: LoadedModel, rgb: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
-    """A decoded frame -> the encoder's input (C, h, w) float32."""
+def encoder_input(
+    model: LoadedModel, rgb: np.ndarray, depth_mm: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """A decoded frame -> the encoder's input (C, h, w) float32 (``inputs.network_input``'s numbers),
+    written into ``out`` when given."""
     vc = model.info.visual_config
-    return network_input(*resize_frame(rgb, depth_mm, vc.input_wh), vc.channels)
+    if out is None:
+        out = np.empty((vc.channels, vc.input_wh[1], vc.input_wh[0]), np.float32)
+    rgb_small, depth_small = resize_frame(rgb, depth_mm, vc.input_wh)
+    kernels.fill_network_input(rgb_small, depth_small, 1000.0 * DEPTH_SCALE_M, out)
+    return out
 
 
 def encode_frame(
@@ -119,7 +127,10 @@ def encode_frames(model: LoadedModel, frames: list[tuple[Any, ...]]) -> list[Enc
     if model.visual is None:
         raise ValueError(f"model {model.info.name} reads no camera")
     started = time.perf_counter()
-    images = np.stack([encoder_input(model, rgb, depth_mm) for _, rgb, depth_mm, _, _ in frames])
+    vc = model.info.visual_config
+    images = np.empty((len(frames), vc.channels, vc.input_wh[1], vc.input_wh[0]), np.float32)
+    for image, (_, rgb, depth_mm, _, _) in zip(images, frames, strict=True):
+        encoder_input(model, rgb, depth_mm, out=image)
     uv, depth_m, zeta = model.encode_frames(images)
     encoded = []
     for i, (t_us, rgb, _, intrinsics, cam_from_head) in enumerate(frames):

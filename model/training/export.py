@@ -20,18 +20,26 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from ..config import FORMAT_VERSION, CameraInfo, EncoderMetadata, ModelMetadata, parse, to_properties
+from ..config import (
+    FORMAT_VERSION,
+    CameraInfo,
+    EncoderMetadata,
+    ModelMetadata,
+    from_properties,
+    parse,
+    to_properties,
+)
 from ..hmd import hmd_input_dim
 from ..inputs import VISUAL_TOKEN_DIM
 from ..rig import DEFAULT_OFFSETS_M
 from ..runtime.body import regressor_path
 from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
-from .nets.fusion import ContactOutputs, SeedEnsemble
+from .nets.fusion import ContactOutputs, FusionNet, SeedEnsemble
 from .train import build_net, load_checkpoint
 
 PARITY_TOL = 1e-4
-OPSET = 18
+OPSET = 23  # the first with an Attention operator (onnxruntime >= 1.23 runs it)
 
 
 class _VisualOutputs(torch.nn.Module):
@@ -190,17 +198,12 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
     ckpts = [load_checkpoint(path) for path in paths]
     nets = [build_net(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
     cfg = nets[0].cfg
-    inputs = _fusion_inputs(cfg, batch=2)
-    example = tuple(torch.from_numpy(v) for v in inputs.values())
-    batch = torch.export.Dim("batch", min=1, max=64)  # the server batches sessions (server/scheduler.py)
-    outputs = ["rot6d", "contact"] if cfg.contact_head else ["rot6d"]
+    module = _served_module(nets)
     if len(nets) > 1:
-        module: torch.nn.Module = SeedEnsemble(nets).eval()
-        training = {"ensemble": [_training_record(ckpt) for ckpt in ckpts]}
+        training: dict[str, Any] = {"ensemble": [_training_record(ckpt) for ckpt in ckpts]}
     else:
-        module = ContactOutputs(nets[0]).eval() if cfg.contact_head else nets[0]
         training = _training_record(ckpts[0])
-    _export(module, example, out_path, (list(inputs), outputs), {name: {0: batch} for name in inputs})
+    _export_fusion(module, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
         inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
@@ -214,6 +217,92 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
               "left / right foot is on the floor",
     ))  # fmt: skip
     return max(_parity(module, out_path, _fusion_inputs(cfg, batch)) for batch in (1, 8))
+
+
+def _served_module(nets: list[FusionNet]) -> torch.nn.Module:
+    """The module a model file serves: several nets' :class:`SeedEnsemble`, or one net (with its contact
+    probabilities where it has a contact head)."""
+    if len(nets) > 1:
+        return SeedEnsemble(nets).eval()
+    return ContactOutputs(nets[0]).eval() if nets[0].cfg.contact_head else nets[0]
+
+
+def _export_fusion(module: torch.nn.Module, out_path: Path) -> None:
+    """The served fusion module -> an ONNX graph with a batch axis (no metadata yet)."""
+    cfg = module.cfg if hasattr(module, "cfg") else module.net.cfg
+    inputs = _fusion_inputs(cfg, batch=2)
+    example = tuple(torch.from_numpy(v) for v in inputs.values())
+    batch = torch.export.Dim("batch", min=1, max=64)  # the server batches sessions (server/scheduler.py)
+    outputs = ["rot6d", "contact"] if cfg.contact_head else ["rot6d"]
+    _export(module, example, out_path, (list(inputs), outputs), {name: {0: batch} for name in inputs})
+
+
+def reexport_model(path: Path) -> float:
+    """Rewrite a model file in today's graph form (the exporter's opset and the nets' current forward
+    pass), in place, from the weights it holds: no checkpoint is needed. Metadata is kept byte for byte.
+    Returns the largest difference between the new graph's outputs and the old one's (batches of 1 and 8);
+    raises ValueError when the file's weights do not fill the net its config describes, or when the two
+    graphs disagree by more than ``PARITY_TOL`` (the file is then left as it was)."""
+    original = onnx.load(str(path))
+    properties = {p.key.removeprefix("egoposevr."): p.value for p in original.metadata_props}
+    try:
+        metadata = from_properties(ModelMetadata, properties)
+    except ValueError as error:
+        raise ValueError(f"{path}: not an EgoPoseVR model file ({error})") from error
+    members = len(metadata.training.get("ensemble", [None]))
+    nets = [FusionNet(metadata.config).eval() for _ in range(members)]
+    module = _served_module(nets)
+    module.load_state_dict(_state_dict_from_graph(original, module, path))
+    rewritten = path.with_name(f".{path.name}.reexport")
+    try:
+        _export_fusion(module, rewritten)
+        model = onnx.load(str(rewritten))
+        model.metadata_props.extend(original.metadata_props)
+        onnx.save(model, str(rewritten))
+        worst = max(
+            _graphs_differ(original, model, _fusion_inputs(metadata.config, batch)) for batch in (1, 8)
+        )
+        if worst > PARITY_TOL:
+            raise ValueError(f"{path}: the re-exported graph differs from the original by {worst:.2e}")
+        rewritten.replace(path)
+    finally:
+        rewritten.unlink(missing_ok=True)
+    return worst
+
+
+def _state_dict_from_graph(
+    graph_model: onnx.ModelProto, module: torch.nn.Module, path: Path
+) -> dict[str, torch.Tensor]:
+    """The module's state dict read back from an exported graph's initializers. Most keep their torch
+    names; the exporter stores a Linear's weight transposed, unnamed, as the second input of the MatMul
+    whose output is added to the (named) bias."""
+    graph = graph_model.graph
+    arrays = {i.name: onnx.numpy_helper.to_array(i) for i in graph.initializer}
+    matmul_of = {n.output[0]: n for n in graph.node if n.op_type == "MatMul"}
+    transposed: dict[str, np.ndarray] = {}
+    for node in graph.node:
+        if node.op_type != "Add":
+            continue
+        bias = next((x for x in node.input if x.endswith(".bias") and x in arrays), None)
+        matmul = next((matmul_of[x] for x in node.input if x in matmul_of), None)
+        if bias is not None and matmul is not None and matmul.input[1] in arrays:
+            transposed[bias.removesuffix(".bias") + ".weight"] = arrays[matmul.input[1]].T
+    state = {}
+    for key, want in module.state_dict().items():
+        found = arrays[key] if key in arrays else transposed.get(key)
+        if found is None or tuple(found.shape) != tuple(want.shape):
+            raise ValueError(f"{path}: no weight for {key} {tuple(want.shape)} in the graph")
+        state[key] = torch.from_numpy(np.array(found, copy=True))  # writable, C order
+    return state
+
+
+def _graphs_differ(a: onnx.ModelProto, b: onnx.ModelProto, inputs: dict[str, np.ndarray]) -> float:
+    """Largest |a - b| over the two graphs' outputs on the same inputs."""
+    runs = [
+        ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, inputs)
+        for m in (a, b)
+    ]
+    return max(float(np.abs(x - y).max()) for x, y in zip(*runs, strict=True))
 
 
 def export_zoo(

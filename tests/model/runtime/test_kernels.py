@@ -112,3 +112,15 @@ def test_serving_never_compiles_after_warm_up():
 
 def _kernel_functions():
     return [(n, f) for n, f in vars(kernels).items() if hasattr(f, "signatures") and not n.startswith("_")]
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+def test_the_encoder_input_kernel_gives_network_inputs_numbers_bit_for_bit(channels):
+    from egoposevr.model.inputs import DEPTH_SCALE_M, network_input
+
+    rgb = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    depth = RNG.integers(0, 65536, (48, 64), dtype=np.uint16)
+    depth[::7, ::5] = 0  # holes stay 0
+    out = np.full((channels, 48, 64), np.nan, np.float32)
+    kernels.fill_network_input(rgb, depth, 1000.0 * DEPTH_SCALE_M, out)
+    np.testing.assert_array_equal(out, network_input(rgb, depth, channels))

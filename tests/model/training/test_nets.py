@@ -47,3 +47,22 @@ def test_a_fusion_net_with_tracking_state_reads_78_numbers_per_sample():
     assert out.shape == (2, 22, 6)
     with pytest.raises(RuntimeError):
         net(torch.randn(2, 10, FEATURE_DIM), torch.randn(2, 4, VISUAL_TOKEN_DIM))
+
+
+@pytest.mark.parametrize("cross", [False, True])
+def test_a_block_asked_for_its_newest_token_alone_gives_that_token_of_the_full_block(cross):
+    """The last frame block computes only the token that goes on (fusion.py); with keys and values from the
+    whole window it must be the full block's last row, for self- and cross-attention, forward and backward."""
+    from egoposevr.model.training.nets.fusion import Block
+
+    torch.manual_seed(0)
+    block = Block(dim=16, heads=4, dropout=0.0)
+    x = torch.randn(3, 9, 16, requires_grad=True)
+    context = torch.randn(3, 5, 16) if cross else None
+    full = block(x, context)[:, -1:]
+    newest = block(x, context, newest_only=True)
+    assert newest.shape == (3, 1, 16)
+    torch.testing.assert_close(newest, full, atol=1e-6, rtol=1e-5)
+    (grad_full,) = torch.autograd.grad(full.square().sum(), x)
+    (grad_newest,) = torch.autograd.grad(newest.square().sum(), x)
+    torch.testing.assert_close(grad_newest, grad_full, atol=1e-6, rtol=1e-5)  # earlier tokens still learn

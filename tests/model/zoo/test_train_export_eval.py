@@ -9,6 +9,7 @@ from egoposevr.cli.main import main
 from egoposevr.model.rig import joints_from_devices
 from egoposevr.model.rotations import geodesic_angle
 from egoposevr.model.runtime import hands
+from egoposevr.model.runtime.kpo import KpoWeights
 from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
@@ -179,7 +180,8 @@ def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, ca
     teachers = [tmp_path / "t1", tmp_path / "t2"]
     for seed, folder in enumerate(teachers, start=1):
         assert main([*train, "--out", str(folder), "--seed", str(seed), "--fusion-steps", "60"]) == 0
-    student = [*train, "--seed", "3", "--fusion-steps", "30", "--teachers", *map(str, teachers)]
+    # 60 steps: at 30 the gap ratio sat at 0.71-0.76 over four seeds, at 60 at 0.40-0.47 (2026-11-26)
+    student = [*train, "--seed", "3", "--fusion-steps", "60", "--teachers", *map(str, teachers)]
     for share in ("1", "0"):  # the same draws; only what the loss asks for differs
         assert main([*student, "--out", str(tmp_path / f"s{share}"), "--distill-weight", share]) == 0
 
@@ -397,6 +399,71 @@ def test_a_graph_whose_reshape_folds_the_batch_is_refused_a_batch_axis(tmp_path)
     with pytest.raises(ValueError, match="does not start with the batch"):
         add_batch_axis(path)
     assert path.read_bytes() == before
+
+
+def test_a_model_file_is_reexported_in_todays_graph_form_from_the_weights_it_holds(
+    tiny_data, tiny_runs, tiny_weights, tmp_path, monkeypatch, capsys
+):
+    """--reexport rewrites a model file without its checkpoints: the weights read back from the graph are
+    the checkpoints' own, each member's in its place; the new graph is today's form (opset 23, ONNX
+    Attention), answers as the old one did, and keeps the metadata byte for byte. An encoder is refused."""
+    import math
+
+    import onnx
+    import onnxruntime as ort
+    import torch
+
+    from egoposevr.model.training import export as exporting
+    from egoposevr.model.training.export import _fusion_inputs
+    from egoposevr.model.training.nets import fusion
+
+    seed1 = tmp_path / "seed1"
+    train = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    assert main([*train, "--out", str(seed1), "--seed", "1", "--fusion-steps", "3"]) == 0
+
+    def written_out_attention(self, x, context):  # the form of the graphs bundled before 2026-11-26
+        B, Lq, D = x.shape
+        Lk, hs = context.shape[1], D // self.heads
+        q = self.q(x).view(B, Lq, self.heads, hs).transpose(1, 2)
+        k = self.k(context).view(B, Lk, self.heads, hs).transpose(1, 2)
+        v = self.v(context).view(B, Lk, self.heads, hs).transpose(1, 2)
+        att = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(hs), dim=-1)
+        return self.out((att @ v).transpose(1, 2).reshape(B, Lq, D))
+
+    with monkeypatch.context() as old_form:
+        old_form.setattr(exporting, "OPSET", 18)
+        old_form.setattr(fusion.Attention, "forward", written_out_attention)
+        export = ["export", "--model", "hmd", "--encoders", str(tiny_weights), "--runs", str(tiny_runs)]
+        assert main([*export, str(seed1), "--out", str(tmp_path / "old")]) == 0
+    path = tmp_path / "old" / "hmd.onnx"
+    old = onnx.load(str(path))
+    assert old.opset_import[0].version == 18 and "Attention" not in {n.op_type for n in old.graph.node}
+
+    capsys.readouterr()
+    assert main(["export", "--reexport", str(path)]) == 0
+    worst = float(capsys.readouterr().out.rsplit("=", 1)[1])
+    new = onnx.load(str(path))
+    assert new.opset_import[0].version == 23 and "Attention" in {n.op_type for n in new.graph.node}
+    assert [(p.key, p.value) for p in new.metadata_props] == [(p.key, p.value) for p in old.metadata_props]
+    assert worst <= 1e-5
+    cfg = LoadedModel.load(path).info.config
+    for batch in (1, 5):
+        inputs = _fusion_inputs(cfg, batch, seed=batch)
+        got, want = (ort.InferenceSession(m.SerializeToString()).run(None, inputs) for m in (new, old))
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g, w, atol=1e-5)
+
+    nets = [build_net(load_checkpoint(run / "fusion-hmd.pt")) for run in (tiny_runs, seed1)]
+    module = exporting._served_module(nets)
+    read_back = exporting._state_dict_from_graph(new, exporting._served_module(nets), path)
+    for key, value in module.state_dict().items():  # members in order, weights untransposed
+        torch.testing.assert_close(read_back[key], value, atol=0, rtol=0)
+
+    encoder = tiny_weights / "visual-rgbd.onnx"
+    before = encoder.read_bytes()
+    assert main(["export", "--reexport", str(encoder)]) == 2
+    assert "not an EgoPoseVR model file" in capsys.readouterr().err
+    assert encoder.read_bytes() == before
 
 
 @pytest.fixture(scope="module")
@@ -621,11 +688,14 @@ def test_a_lost_controller_hands_its_wrist_back_to_the_network_without_a_jump(ti
     where tracking left it, not jump to wherever the (here untrained) network puts it."""
     seq, _ = val
     model = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+    # An untrained net's arm can sit far from every controller, where KPO's stiff torso cannot reach them
+    # (tracked or held); pinned targets test what this is about: the wrist's target across the hand-over.
+    pinned = KpoWeights(align=1e6)
 
     def wrist_track(hold_s: float) -> np.ndarray:
         monkeypatch.setattr(hands, "LOST_HAND_HOLD_S", hold_s)
         monkeypatch.setattr(hands, "LOST_HAND_FADE_S", 1e6)  # this network is far off: no fading here
-        pipeline, wrists = Pipeline(model), []
+        pipeline, wrists = Pipeline(model, kpo_weights=pinned), []
         for i in range(90):
             poses, valid = seq["hmd_poses"][min(i, 59)].copy(), np.ones(3, bool)
             if i >= 60:  # the left controller is lost: it repeats its last pose
