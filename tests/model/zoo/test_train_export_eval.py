@@ -464,6 +464,10 @@ def test_a_model_file_is_reexported_in_todays_graph_form_from_the_weights_it_hol
     assert main(["export", "--reexport", str(encoder)]) == 2
     assert "not an EgoPoseVR model file" in capsys.readouterr().err
     assert encoder.read_bytes() == before
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes(path.read_bytes()[:1000])
+    assert main(["export", "--reexport", str(truncated)]) == 2
+    assert "not an ONNX file" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")
