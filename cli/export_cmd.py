@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -51,9 +52,17 @@ def run(args: argparse.Namespace) -> int:
     from ..model.zoo import resolve
 
     if args.add_batch_axis:
-        return _add_batch_axis(args.add_batch_axis)
+        from ..model.training.export import add_batch_axis
+
+        return _rewrite_in_place(
+            args.add_batch_axis, add_batch_axis, "batch axis; batch of 8 against rows one by one"
+        )
     if args.reexport:
-        return _reexport(args.reexport)
+        from ..model.training.export import reexport_model
+
+        return _rewrite_in_place(
+            args.reexport, reexport_model, "re-exported; against the old graph (batches of 1 and 8)"
+        )
     if args.runs is None or args.out is None:
         print("egoposevr export: --runs and --out are required", file=sys.stderr)
         return 2
@@ -75,29 +84,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_batch_axis(paths: list[Path]) -> int:
-    from ..model.training.export import add_batch_axis
-
+def _rewrite_in_place(paths: list[Path], rewrite: Callable[[Path], float], done: str) -> int:
+    """Each file through ``rewrite`` (returns the largest difference it checked); stops at the first refusal."""
     for path in paths:
         try:
-            worst = add_batch_axis(path)
+            worst = rewrite(path)
         except (ValueError, FileNotFoundError) as error:
             print(f"egoposevr export: {error}", file=sys.stderr)
             return 2
-        print(f"{path}: batch axis; batch of 8 against rows one by one: max |difference| = {worst:.2e}")
-    return 0
-
-
-def _reexport(paths: list[Path]) -> int:
-    from ..model.training.export import reexport_model
-
-    for path in paths:
-        try:
-            worst = reexport_model(path)
-        except (ValueError, FileNotFoundError) as error:
-            print(f"egoposevr export: {error}", file=sys.stderr)
-            return 2
-        print(
-            f"{path}: re-exported; against the old graph (batches of 1 and 8): max |difference| = {worst:.2e}"
-        )
+        print(f"{path}: {done}: max |difference| = {worst:.2e}")
     return 0
