@@ -91,6 +91,12 @@ def head_from_cam(model: LoadedModel, cam_from_head: np.ndarray | None) -> np.nd
     return np.linalg.inv(cam)
 
 
+def _input_shape(model: LoadedModel) -> tuple[int, int, int]:
+    """The encoder's input (C, h, w)."""
+    vc = model.info.visual_config
+    return vc.channels, vc.input_wh[1], vc.input_wh[0]
+
+
 def encoder_input(
     model: LoadedModel, rgb: np.ndarray, depth_mm: np.ndarray, out: np.ndarray | None = None
 ) -> np.ndarray:
@@ -98,7 +104,7 @@ def encoder_input(
     written into ``out`` when given."""
     vc = model.info.visual_config
     if out is None:
-        out = np.empty((vc.channels, vc.input_wh[1], vc.input_wh[0]), np.float32)
+        out = np.empty(_input_shape(model), np.float32)
     rgb_small, depth_small = resize_frame(rgb, depth_mm, vc.input_wh)
     kernels.fill_network_input(rgb_small, depth_small, 1000.0 * DEPTH_SCALE_M, out)
     return out
@@ -127,8 +133,7 @@ def encode_frames(model: LoadedModel, frames: list[tuple[Any, ...]]) -> list[Enc
     if model.visual is None:
         raise ValueError(f"model {model.info.name} reads no camera")
     started = time.perf_counter()
-    vc = model.info.visual_config
-    images = np.empty((len(frames), vc.channels, vc.input_wh[1], vc.input_wh[0]), np.float32)
+    images = np.empty((len(frames), *_input_shape(model)), np.float32)
     for image, (_, rgb, depth_mm, _, _) in zip(images, frames, strict=True):
         encoder_input(model, rgb, depth_mm, out=image)
     uv, depth_m, zeta = model.encode_frames(images)

@@ -12,7 +12,7 @@ Shape legend: ``N`` headset samples, ``J`` = 22 joints; device order head, left,
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -28,6 +28,10 @@ from ..skeleton import (
     rest_offsets,
 )
 from .motion import Motion, sample_at
+
+# Per sequence, the renders draw the controllers' tracking cone (degrees off a controller's forward axis) from
+# this range (synth.variation); so does stage 2 for the copies it re-tracks (training.train.arm_swaps).
+TRACKING_CONE_DEG: Final = (75.0, 100.0)
 
 
 @dataclasses.dataclass(frozen=True)

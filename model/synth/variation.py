@@ -18,7 +18,7 @@ from typing import Any, Final
 import numpy as np
 
 from ..rig import HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GRIP_OFFSET_M
-from .headset import CameraModel, HeadsetRig
+from .headset import TRACKING_CONE_DEG, CameraModel, HeadsetRig
 from .render import (
     PATTERN_CARPET,
     PATTERN_CHECKER,
@@ -148,7 +148,7 @@ def random_headset(rng: np.random.Generator, head_offset_m: tuple[float, ...] = 
         dropouts_per_min=float(rng.uniform(0.5, 5.0)),
         view_tilt_deg=(float(rng.normal(0.0, 4.0)), float(rng.normal(0.0, 2.0))),
         grip_tilt_deg=tuple(float(a) for a in rng.normal(0.0, 10.0, 2)),
-        tracking_cone_deg=float(rng.uniform(75.0, 100.0)),
+        tracking_cone_deg=float(rng.uniform(*TRACKING_CONE_DEG)),
         occlusion_deg=float(rng.uniform(4.0, 10.0)),
         tracking_grace_s=float(rng.uniform(0.1, 0.5)),
     )

@@ -154,9 +154,10 @@ def swap_arms(
     local = quat_xyzw_to_matrix(np.asarray(seq["gt_local_quat"], dtype=np.float64))  # (N, J, 3, 3)
     donor_local = quat_xyzw_to_matrix(np.asarray(donor["gt_local_quat"], dtype=np.float64))
     picks = (start + np.arange(n)) % len(donor_local)
-    old_joints, old_glob = forward_kinematics(local, seq["gt_root_m"], rest_offsets(seq["bone_scale"]))
+    offsets = rest_offsets(seq["bone_scale"])
+    old_joints, old_glob = forward_kinematics(local, seq["gt_root_m"], offsets)
     local[:, ARM_JOINTS] = donor_local[picks][:, ARM_JOINTS]
-    joints, glob = forward_kinematics(local, seq["gt_root_m"], rest_offsets(seq["bone_scale"]))
+    joints, glob = forward_kinematics(local, seq["gt_root_m"], offsets)
     poses = np.array(seq["hmd_poses"], dtype=np.float64)  # (N, 3, 7)
     valid = np.array(seq["hmd_valid"], dtype=bool)
     for device in (1, 2):

@@ -49,6 +49,7 @@ from ..rig import joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.loading import load_encoder
 from ..skeleton import ARM_JOINTS, HEAD, rest_offsets
+from ..synth.headset import TRACKING_CONE_DEG
 from ..zoo import ZOO
 from .augment import (
     crop_and_flip,
@@ -827,7 +828,7 @@ def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any
 
 def arm_swaps(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
     """``tc.arm_swap_p`` of the sequences again, each with a random other sequence's arms from a random
-    sample on, tracked over a cone drawn as the renders draw theirs (synth.variation)."""
+    sample on, tracked over a cone drawn as the renders draw theirs (synth.headset.TRACKING_CONE_DEG)."""
     if tc.arm_swap_p <= 0 or len(seqs) < 2:
         return []
     rng = np.random.default_rng([tc.seed, 17])
@@ -837,7 +838,7 @@ def arm_swaps(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any
             continue
         donor = seqs[(i + int(rng.integers(1, len(seqs)))) % len(seqs)]
         start = int(rng.integers(0, len(donor["hmd_t_us"])))
-        out.append(swap_arms(seq, donor, start, float(rng.uniform(75.0, 100.0))))
+        out.append(swap_arms(seq, donor, start, float(rng.uniform(*TRACKING_CONE_DEG))))
     return out
 
 

@@ -455,7 +455,7 @@ def test_a_model_file_is_reexported_in_todays_graph_form_from_the_weights_it_hol
 
     nets = [build_net(load_checkpoint(run / "fusion-hmd.pt")) for run in (tiny_runs, seed1)]
     module = exporting._served_module(nets)
-    read_back = exporting._state_dict_from_graph(new, exporting._served_module(nets), path)
+    read_back = exporting._state_dict_from_graph(new, module, path)
     for key, value in module.state_dict().items():  # members in order, weights untransposed
         torch.testing.assert_close(read_back[key], value, atol=0, rtol=0)
 
