@@ -356,11 +356,14 @@ def rederive_rotations_one(
     multi: np.ndarray,
     multi_children: np.ndarray,
     leaves: np.ndarray,
+    walked: np.ndarray,
 ) -> np.ndarray:
     """kpo.rederive_rotations for one pose (it documents the method) -> local rotations (J, 3, 3).
 
     single (S,) joints with one child single_child (S,); multi (M,) joints with the children
-    multi_children (M, C) (-1 pads); leaves (E,) joints without children."""
+    multi_children (M, C) (-1 pads); leaves (E,) joints without children; walked (W,) indices into
+    single, each after its parent's: those joints start from their corrected parent and their own
+    predicted local rotation instead of their predicted global one."""
     glob = glob_pred.copy()
     for i in range(single.shape[0]):
         j, c = single[i], single_child[i]
@@ -378,6 +381,10 @@ def rederive_rotations_one(
             have[k] = glob_pred[j] @ offsets[c]
             want[k] = joints[c] - joints[j]
         glob[j] = _kabsch(have, want) @ glob_pred[j]
+    for i in walked:
+        j, c = single[i], single_child[i]
+        hung = glob[parents[j]] @ local_pred[j]
+        glob[j] = _swing(hung @ offsets[c], joints[c] - joints[j]) @ hung
     for j in leaves:
         glob[j] = glob[parents[j]] @ local_pred[j]
     local = np.empty_like(glob)
@@ -594,5 +601,5 @@ def _call_every_kernel() -> None:
     )  # fmt: skip
     rederive_rotations_one(
         eye, pos, offsets, glob, parents, np.array([0, 1]), np.array([1, 2]), none,
-        np.zeros((0, 3), dtype=np.int64), np.array([2]),
+        np.zeros((0, 3), dtype=np.int64), np.array([2]), np.array([1]),
     )  # fmt: skip

@@ -88,3 +88,35 @@ def test_rederivation_turns_a_bone_that_must_point_the_opposite_way():
     rotations = rederive_rotations(local, flipped, OFFSETS)
     replayed, _ = forward_kinematics(rotations, flipped[0], OFFSETS)
     np.testing.assert_allclose(replayed[19], flipped[19], atol=1e-6)
+
+
+def test_legs_turn_with_a_pelvis_that_kpo_turned():
+    """The whole body served turned 20° about the vertical from what the network put (planted feet and a
+    held stance turn the pelvis back this way): the legs' local rotations stay the network's, so the thighs'
+    twist turns with the pelvis instead of the hips' local rotations absorbing the turn."""
+    local, joints = random_pose(7)
+    turn = Rotation.from_euler("y", 20.0, degrees=True).as_matrix()
+    turned = (joints - joints[0]) @ turn.T + joints[0]
+    rotations = rederive_rotations(local, turned, OFFSETS)
+    np.testing.assert_allclose(rotations[0], turn @ local[0], atol=1e-6)
+    legs = [1, 2, 4, 5, 7, 8, 10, 11]
+    np.testing.assert_allclose(rotations[legs], local[legs], atol=1e-6)
+    replayed, _ = forward_kinematics(rotations, turned[0], OFFSETS)
+    np.testing.assert_allclose(replayed[legs], turned[legs], atol=1e-6)
+
+
+def test_a_leg_swung_at_the_hip_keeps_the_networks_knee_and_ankle():
+    """The left leg below the hip swung 25° about an axis across the thigh (KPO moved the knee to keep a
+    planted foot): the hip takes the whole swing, and the knee and ankle keep the network's local rotations,
+    each hung from its corrected parent, instead of the shortest turn onto their bones, which would twist them."""
+    local, joints = random_pose(11)
+    thigh = joints[4] - joints[1]
+    axis = np.cross(thigh, [0.3, 0.2, 1.0])
+    swing = Rotation.from_rotvec(np.radians(25.0) * axis / np.linalg.norm(axis)).as_matrix()
+    moved = joints.copy()
+    moved[[4, 7, 10]] = (joints[[4, 7, 10]] - joints[1]) @ swing.T + joints[1]
+    rotations = rederive_rotations(local, moved, OFFSETS)
+    np.testing.assert_allclose(rotations[[7, 10]], local[[7, 10]], atol=1e-6)  # ankle, foot
+    assert np.degrees(Rotation.from_matrix(rotations[4].T @ local[4]).magnitude()) < 1e-4  # knee
+    replayed, _ = forward_kinematics(rotations, moved[0], OFFSETS)
+    np.testing.assert_allclose(replayed[[4, 7, 10]], moved[[4, 7, 10]], atol=1e-6)
