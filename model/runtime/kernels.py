@@ -365,7 +365,11 @@ def rederive_rotations_one(
     single, each after its parent's: those joints start from their corrected parent and their own
     predicted local rotation instead of their predicted global one."""
     glob = glob_pred.copy()
+    later = np.zeros(single.shape[0], dtype=np.bool_)  # walked below, from their corrected parents
+    later[walked] = True
     for i in range(single.shape[0]):
+        if later[i]:
+            continue
         j, c = single[i], single_child[i]
         have = glob_pred[j] @ offsets[c]
         glob[j] = _swing(have, joints[c] - joints[j]) @ glob_pred[j]

@@ -141,9 +141,12 @@ def add_batch_axis(path: Path) -> float:
     return worst
 
 
+def _cpu_session(model: onnx.ModelProto) -> ort.InferenceSession:
+    return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+
+
 def _batched_against_single(single: onnx.ModelProto, batched: onnx.ModelProto, batch: int = 8) -> float:
-    one = ort.InferenceSession(single.SerializeToString(), providers=["CPUExecutionProvider"])
-    many = ort.InferenceSession(batched.SerializeToString(), providers=["CPUExecutionProvider"])
+    one, many = _cpu_session(single), _cpu_session(batched)
     rng = np.random.default_rng(0)
     feed = {i.name: rng.normal(size=(batch, *i.shape[1:])).astype(np.float32) for i in one.get_inputs()}
     rows = [one.run(None, {k: v[b : b + 1] for k, v in feed.items()})[0] for b in range(batch)]
@@ -304,9 +307,7 @@ def _state_dict_from_graph(
 
 def _graphs_differ(a: onnx.ModelProto, b: onnx.ModelProto, feeds: list[dict[str, np.ndarray]]) -> float:
     """Largest |a - b| over the two graphs' outputs, each feed given to both."""
-    one, other = (
-        ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]) for m in (a, b)
-    )
+    one, other = _cpu_session(a), _cpu_session(b)
     return max(
         float(np.abs(x - y).max())
         for feed in feeds
