@@ -57,6 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(model/runtime/stance.py): the runtime before the steady stance",
     )
     parser.add_argument(
+        "--no-leg-hold",
+        action="store_true",
+        help="the pelvis, hips and knees wander with the network while both feet are down and the headset "
+        "is quiet (model/runtime/stance.py, LegHold): the runtime before the leg hold",
+    )
+    parser.add_argument(
         "--providers",
         default="cpu",
         help="onnxruntime execution providers, most preferred first (as serve's)",
@@ -111,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
             calibrate=args.calibrate,
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
+            leg_hold=not args.no_leg_hold,
         )
         keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
     except (DatasetError, ModelError) as error:

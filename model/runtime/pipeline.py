@@ -4,7 +4,8 @@
     push_hmd(sample)   devices smoothed (filters.DevicePoseFilter) -> x_t into the HMD window -> heading frame
                        -> visual tokens from the cache (Alg. 1) -> fusion net -> FK anchored at the headset's
                        head joint -> One Euro on positions (two stages)
-                       -> KPO (if the model has it; lost controllers: hands.LostHandPolicy)
+                       -> KPO (if the model has it; lost controllers: hands.LostHandPolicy; planted feet:
+                          contact.FootContacts; still legs: stance.LegHold)
                        -> rotations re-derived from the positions -> PoseResult
 
 When the camera is missing (no frame yet, or none newer than ``MAX_FRAME_AGE_S``) the model runs with an
@@ -42,7 +43,7 @@ from .frames import (
 from .hands import LostHandPolicy
 from .kpo import KpoWeights, orient_leaves, rederive_rotations, solve_kpo
 from .loading import LoadedModel
-from .stance import SteadyStance
+from .stance import LegHold, SteadyStance
 
 # One Euro on joint positions (paper Eq. 8), two stages (filters.OneEuroCascade), and on the devices' poses
 # before anything reads them (filters.DevicePoseFilter): the jitter/lag trade chosen on the training split
@@ -89,10 +90,12 @@ class Pipeline:
         kpo_weights: KpoWeights | None = None,
         contacts: bool = True,
         steady_stance: bool = True,
+        leg_hold: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
         self.steady_stance = steady_stance  # with contacts: feet stay down while the head is still
+        self.leg_hold = leg_hold  # with contacts: pelvis, hips and knees stay while both feet are down
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -138,6 +141,7 @@ class Pipeline:
         self.cache.forget()
         self.position_filter.reset()
         self.feet, self.stance, self.hands = FootContacts(), SteadyStance(), LostHandPolicy()
+        self.legs = LegHold()
 
     @property
     def frames_encoded(self) -> int:
@@ -291,7 +295,13 @@ class Pipeline:
                 steady = self.steady_stance and self.stance.observe_head(t_us, tracked_pos[0], bool(valid[0]))
                 self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
                 self.stance.observe_feet(self.feet.planted)
+                if self.leg_hold:
+                    self.legs.targets(
+                        t_us, joints, tracked_pos[0], bool(valid[0]), self.feet.planted, targets, observed
+                    )
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
+            if self.contacts and self.leg_hold:
+                self.legs.served(joints)
             lap("kpo")
         local = rederive_rotations(local, joints, self.offsets, glob_pred)
         # The served joints are FK of the served rotations, so the two always agree exactly.

@@ -1,6 +1,7 @@
 """A steady stance: both feet planted and the headset barely moving. While it lasts, a planted foot steps
 only when the network lifts it (:mod:`.contact`), so a user who only moves the arms does not see the feet
-slide with the network's wandering guess of the legs.
+slide with the network's wandering guess of the legs; and (:class:`LegHold`) the pelvis, hips and knees stay
+where they were served instead of wandering with it.
 
 - **steady** while both feet are planted and the headset moved slower than ``QUIET_SPEED_M_S`` over the
   last ``QUIET_WINDOW_S``;
@@ -12,10 +13,15 @@ stays say nothing about the legs, and a step needs a weight shift that moves the
 leaves slowly stays steady: the feet of a slow squat or bend stay where they are too. The constants were
 chosen on the training split's sequences and procedural still-standing streams, never on a validation split
 (MODEL_CARD.md).
+
+:class:`LegHold` has a quicker gate of its own: both feet planted and the headset slower than
+``QUIET_SPEED_M_S`` over the last ``HOLD_WINDOW_S``. A still stretch is often a pause of a second or so
+between movements, and a hold that waited for the steady stance's 0.3 s of quiet held too little of it.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Final
 
 import numpy as np
@@ -25,6 +31,14 @@ from .filters import WindowSpeed
 QUIET_SPEED_M_S: Final = 0.10
 QUIET_WINDOW_S: Final = 0.3
 MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the stance
+HELD_JOINTS: Final = (0, 1, 2, 4, 5)  # pelvis, hips, knees: the ankles and feet are the planted feet's
+HOLD_WINDOW_S: Final = 0.1
+# A held joint moves towards the mean of the network's placements of it since the hold began, never faster than
+# this: the planted feet's anchors do the same (contact.ANCHOR_SPEED_M_S). 0.1 cm/s held a worse early guess
+# longer (MODEL_CARD.md, "Legs held while both feet are down").
+SETTLE_SPEED_M_S: Final = 0.0025
+RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
+_LET_GO_M: Final = 1e-3  # ... and below this the joints are the network's again
 
 
 class SteadyStance:
@@ -61,3 +75,88 @@ class SteadyStance:
         """Record the head; whether it moved slower than QUIET_SPEED_M_S over the last QUIET_WINDOW_S."""
         speed_m_s = self._head_speed.push(t_us, head_m)
         return self._head_speed.span_s >= 0.9 * QUIET_WINDOW_S and speed_m_s < QUIET_SPEED_M_S
+
+
+class LegHold:
+    """Per-session: while both feet are planted and the headset is quiet, the pelvis, hips and knees
+    (``HELD_JOINTS``) are KPO targets. Each sample: :meth:`targets` before KPO, :meth:`served` after it.
+
+    - **the hold begins** where those joints were served the sample before (a target at the network's guess
+      of this sample would jump, and fight the planted feet: MODEL_CARD.md), then moves towards the mean of
+      the network's placements since the hold began, at most ``SETTLE_SPEED_M_S``;
+    - **the hold ends** when a foot is let go, the headset moves faster than ``QUIET_SPEED_M_S`` over
+      ``HOLD_WINDOW_S`` or is lost: the targets are the network's joints plus the offset that the hold had
+      put on them, decaying with ``RELEASE_TAU_S``, so the legs glide back instead of jumping.
+    """
+
+    def __init__(self) -> None:
+        self._forget()
+
+    def _forget(self) -> None:
+        self._head_speed = WindowSpeed(HOLD_WINDOW_S)
+        self._last_us: int | None = None
+        self._served: np.ndarray | None = None  # (5, 3) the held joints as served last sample
+        self._held: np.ndarray | None = None  # (5, 3) the hold's targets while it lasts
+        self._placed_sum: np.ndarray | None = None  # (5, 3) the network's placements since the hold began
+        self._placed = 0
+        self._offset: np.ndarray | None = None  # (5, 3) held minus the network's, decaying after the hold
+
+    @property
+    def holding(self) -> bool:
+        return self._held is not None
+
+    def targets(
+        self,
+        t_us: int,
+        joints: np.ndarray,
+        head_m: np.ndarray,
+        head_valid: bool,
+        planted: tuple[bool, bool],
+        targets: np.ndarray,
+        observed: np.ndarray,
+    ) -> None:
+        """joints (J, 3) the network's for this sample; head_m (3,) the headset's head joint. Fills KPO's
+        targets (J, 3) and observed (J,) for the held joints while the hold lasts or fades."""
+        if self._last_us is not None and not 0 <= t_us - self._last_us <= MAX_GAP_S * 1e6:
+            self._forget()  # a long pause, or time going back: start afresh
+        dt_s = 0.0 if self._last_us is None else (t_us - self._last_us) * 1e-6
+        self._last_us = t_us
+        quiet = head_valid and self._head_speed.push(t_us, head_m) < QUIET_SPEED_M_S
+        network = joints[list(HELD_JOINTS)]
+        if quiet and all(planted) and self._served is not None:
+            target = self._hold(network, dt_s)
+        else:
+            target = self._let_go(network, dt_s)
+        if target is not None:
+            targets[list(HELD_JOINTS)] = target
+            observed[list(HELD_JOINTS)] = True
+
+    def served(self, joints: np.ndarray) -> None:
+        """The joints (J, 3) served this sample (after KPO): where a hold that begins next sample starts."""
+        self._served = joints[list(HELD_JOINTS)].copy()
+
+    def _hold(self, network: np.ndarray, dt_s: float) -> np.ndarray:
+        """This sample's held targets (5, 3): begun at the served joints, settling to the network's mean."""
+        self._offset = None
+        if self._held is None:
+            self._held, self._placed_sum, self._placed = self._served.copy(), network.copy(), 1
+            return self._held
+        self._placed_sum += network
+        self._placed += 1
+        step = self._placed_sum / self._placed - self._held
+        longest_m, most_m = float(np.linalg.norm(step, axis=1).max()), SETTLE_SPEED_M_S * dt_s
+        if longest_m > most_m:
+            step *= most_m / longest_m
+        self._held = self._held + step
+        return self._held
+
+    def _let_go(self, network: np.ndarray, dt_s: float) -> np.ndarray | None:
+        """After a hold: the network's joints plus the hold's offset, decaying; None once it is gone."""
+        if self._held is not None:
+            self._offset, self._held = self._held - network, None
+        if self._offset is not None:
+            self._offset = self._offset * math.exp(-dt_s / RELEASE_TAU_S)
+        if self._offset is None or np.abs(self._offset).max() < _LET_GO_M:
+            self._offset = None
+            return None
+        return network + self._offset

@@ -237,6 +237,7 @@ def evaluate(
     calibrate: bool = False,
     foot_contacts: bool = True,
     steady_stance: bool = True,
+    leg_hold: bool = True,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
     baseline); with ``by_category``,
@@ -245,7 +246,8 @@ def evaluate(
     (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig).
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
-    (runtime/stance.py)."""
+    (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
+    both feet are down (stance.LegHold)."""
     seqs = load_split(data_dir, split, limit)
     rigs = sequence_rigs(data_dir, split, seqs) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -255,7 +257,7 @@ def evaluate(
         model = (
             ProceduralModel() if path is None else LoadedModel.load(path, shared=shared, providers=providers)
         )
-        pipeline = pipeline_for(model, contacts=foot_contacts, steady_stance=steady_stance)
+        pipeline = pipeline_for(model, contacts=foot_contacts, steady_stance=steady_stance, leg_hold=leg_hold)
         errors = []
         for i, seq in enumerate(seqs):
             if calibrate:

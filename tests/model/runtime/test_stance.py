@@ -1,11 +1,22 @@
-"""A steady stance (runtime/stance.py) and what it changes for planted feet (runtime/contact.py): synthetic
-head and foot streams with known answers."""
+"""A steady stance (runtime/stance.py) and what it changes for planted feet (runtime/contact.py), and legs
+held while both feet are down (stance.LegHold): synthetic head, foot and leg streams with known answers, then
+the pipeline."""
 
 import numpy as np
 import pytest
 
 from egoposevr.model.runtime.contact import ANCHOR_SPEED_M_S, FEET, RELEASE_HEIGHT_M, FootContacts
-from egoposevr.model.runtime.stance import MAX_GAP_S, QUIET_SPEED_M_S, QUIET_WINDOW_S, SteadyStance
+from egoposevr.model.runtime.stance import (
+    HELD_JOINTS,
+    HOLD_WINDOW_S,
+    MAX_GAP_S,
+    QUIET_SPEED_M_S,
+    QUIET_WINDOW_S,
+    RELEASE_TAU_S,
+    SETTLE_SPEED_M_S,
+    LegHold,
+    SteadyStance,
+)
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
 
 STEP_US = 11_111  # 90 Hz
@@ -113,3 +124,108 @@ def test_a_steady_foot_settles_at_the_mean_of_the_networks_placements():
     assert np.linalg.norm(served[-1, [0, 2]] - truth[[0, 2]]) < 0.01  # settled
     speed_m_s = np.linalg.norm(np.diff(served, axis=0), axis=1) / (STEP_US * 1e-6)
     assert speed_m_s.max() <= ANCHOR_SPEED_M_S * 1.01
+
+
+HELD = list(HELD_JOINTS)
+
+
+def hold_legs(
+    hold: LegHold, network: list[np.ndarray], heads_m: list[np.ndarray], planted: list[tuple[bool, bool]]
+) -> list[np.ndarray | None]:
+    """Each sample's held targets (5, 3), or None where the legs are the network's. What is served is the
+    target where there is one, else the network's joints (KPO with nothing else pulling)."""
+    out = []
+    for i, joints in enumerate(network):
+        targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
+        hold.targets(i * STEP_US, joints, heads_m[i], True, planted[i], targets, observed)
+        assert observed[HELD].all() or not observed[HELD].any()
+        out.append(targets[HELD].copy() if observed[HELD].any() else None)
+        served = joints.copy()
+        served[HELD] = targets[HELD] if observed[HELD].any() else joints[HELD]
+        hold.served(served)
+    return out
+
+
+def wandering_legs(samples: int) -> list[np.ndarray]:
+    """A network that moves the pelvis, hips and knees 6 cm back and forth over 3 s while the feet stay."""
+    return [standing_joints() + np.array([0.06 * np.sin(i / 45), 0.0, 0.0]) * np.isin(range(22), HELD)[:, None]
+            for i in range(samples)]  # fmt: skip
+
+
+def test_legs_stay_where_they_were_served_while_both_feet_are_down_and_the_head_is_quiet():
+    network = wandering_legs(360)
+    held = hold_legs(LegHold(), network, [HEAD] * 360, [(True, True)] * 360)
+    assert held[0] is None  # nothing served yet to hold
+    assert np.allclose(held[1], network[0][HELD])  # begun where they were served, not at the new guess
+    path = np.array(held[1:])
+    speed_m_s = np.linalg.norm(np.diff(path, axis=0), axis=-1) / (STEP_US * 1e-6)
+    assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01  # settling, never wandering
+    assert np.abs(np.array(network)[:, HELD, 0]).max() > 0.05  # while the network's moved 6 cm
+
+
+def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_back():
+    quiet = int(2 * HOLD_WINDOW_S * 1e6 / STEP_US)
+    for end in ("head", "foot"):
+        network = wandering_legs(quiet + 120)
+        heads = [HEAD] * quiet + [HEAD + np.array([0.5 * i * STEP_US * 1e-6, 0.0, 0.0]) for i in range(120)]
+        planted = [(True, True)] * quiet + [(True, False)] * 120
+        if end == "head":
+            planted = [(True, True)] * len(network)
+        else:
+            heads = [HEAD] * len(network)
+        held = hold_legs(LegHold(), network, heads, planted)
+        served = np.array([h if h is not None else n[HELD] for h, n in zip(held, network, strict=True)])
+        gap_m = np.linalg.norm(served[quiet - 1] - network[quiet - 1][HELD], axis=-1).max()
+        assert gap_m > 0.02, end  # the hold had kept the legs 2+ cm from the network's
+        step_m = np.linalg.norm(np.diff(served, axis=0), axis=-1).max()
+        # No jump when the hold ends: a sample takes 1 - exp(-dt / tau) of the gap (17 % at 90 Hz), plus the
+        # network's own move (at most 1.3 mm a sample here).
+        assert step_m < (1.0 - np.exp(-STEP_US * 1e-6 / RELEASE_TAU_S)) * gap_m + 0.0015, end
+        gone = int(8 * RELEASE_TAU_S * 1e6 / STEP_US)
+        if end == "foot":
+            assert held[quiet + gone] is None, end  # the legs are the network's again
+        else:  # the head's speed is measured over HOLD_WINDOW_S: it ends the hold within that
+            assert held[quiet + int(HOLD_WINDOW_S * 1e6 / STEP_US) + gone] is None, end
+
+
+def test_a_long_pause_forgets_the_hold():
+    hold = LegHold()
+    network = wandering_legs(60)
+    hold_legs(hold, network[:30], [HEAD] * 30, [(True, True)] * 30)
+    assert hold.holding
+    targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
+    hold.targets(
+        int(30 * STEP_US + 2 * MAX_GAP_S * 1e6), network[30], HEAD, True, (True, True), targets, observed
+    )
+    assert not observed.any() and not hold.holding  # nothing served since the pause to hold
+
+
+def test_the_served_legs_of_a_user_who_only_moves_the_arms_wander_less_with_the_hold():
+    """The whole pipeline (bundled egoposevr) on a procedural user who stands still and moves only the upper
+    body: the leg leakage with the hold is well under the runtime's without it, and the served joints are
+    still FK of the rotations."""
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.training.plausibility import plausibility, summarize_plausibility
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(1)
+    track = simulate_headset(generate("still_stand", 8.0, 60.0, rng), 90.0, rng)
+    model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
+    leakage = {}
+    for hold in (True, False):
+        pipeline = Pipeline(model, leg_hold=hold)
+        results = [
+            pipeline.push_hmd(int(t), track.poses[i], track.valid[i]) for i, t in enumerate(track.t_us)
+        ]
+        joints = np.array([r.joints for r in results])
+        after = slice(90, None)  # once the height estimate has settled
+        measured = plausibility(joints[after], track.joints_m[after], track.t_us[after])
+        leakage[hold] = summarize_plausibility([measured])["leg_leakage_cm"]
+        last = results[-1]
+        fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.served_scale.scale))
+        assert np.allclose(fk, last.joints, atol=1e-6)
+    assert leakage[True] < 0.7 * leakage[False], leakage

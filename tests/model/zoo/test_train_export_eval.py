@@ -598,14 +598,18 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     )
 
 
-def test_eval_serves_the_runtime_before_the_steady_stance_on_request(tiny_data, tiny_weights, tmp_path):
+def test_eval_serves_the_runtime_before_the_steady_stance_or_the_leg_hold_on_request(
+    tiny_data, tiny_weights, tmp_path
+):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
     runs = {}
-    for flag in ([], ["--no-steady-stance"]):
-        out = tmp_path / f"eval{len(flag)}.json"
-        assert main([*args, "--models", "procedural,egoposevr", *flag, "--json", str(out)]) == 0
-        runs[len(flag)] = json.loads(out.read_text())["models"]
-    assert runs[0]["procedural"]["mpjpe_l_cm"] == runs[1]["procedural"]["mpjpe_l_cm"]  # it plants its own
+    for flag in ("", "--no-steady-stance", "--no-leg-hold"):
+        out = tmp_path / f"eval{flag}.json"
+        chosen = [flag] if flag else []
+        assert main([*args, "--models", "procedural,egoposevr", *chosen, "--json", str(out)]) == 0
+        runs[flag] = json.loads(out.read_text())["models"]
+    for flag in ("--no-steady-stance", "--no-leg-hold"):  # it plants its own feet and has no net to hold
+        assert runs[""]["procedural"]["mpjpe_l_cm"] == runs[flag]["procedural"]["mpjpe_l_cm"]
 
 
 def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
