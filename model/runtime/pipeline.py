@@ -296,9 +296,11 @@ class Pipeline:
                 self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
                 self.stance.observe_feet(self.feet.planted)
                 if self.leg_hold:
+                    network = joints
                     self.legs.targets(
-                        t_us, joints, tracked_pos[0], bool(valid[0]), self.feet.planted, targets, observed
-                    )
+                        t_us, joints, tracked_pos[0], bool(valid[0]), self.feet.planted, targets, observed,
+                        unheld=lambda: solve_kpo(network, targets, observed, self.kpo_weights),
+                    )  # fmt: skip
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)
             if self.contacts and self.leg_hold:
                 self.legs.served(joints)

@@ -22,6 +22,7 @@ between movements, and a hold that waited for the steady stance's 0.3 s of quiet
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Final
 
 import numpy as np
@@ -85,8 +86,11 @@ class LegHold:
       of this sample would jump, and fight the planted feet: MODEL_CARD.md), then moves towards the mean of
       the network's placements since the hold began, at most ``SETTLE_SPEED_M_S``;
     - **the hold ends** when a foot is let go, the headset moves faster than ``QUIET_SPEED_M_S`` over
-      ``HOLD_WINDOW_S`` or is lost: the targets are the network's joints plus the offset that the hold had
-      put on them, decaying with ``RELEASE_TAU_S``, so the legs glide back instead of jumping.
+      ``HOLD_WINDOW_S`` or is lost: the targets are where KPO would serve those joints without the hold
+      (``unheld``) plus the offset that the hold had put on them, decaying with ``RELEASE_TAU_S``, so the
+      legs glide back instead of jumping. (Not the network's joints plus the offset: KPO with a target on
+      the network's joint serves them there, and without one where the planted feet pull them, up to 2 cm
+      away, which was a jump when the fade ended.)
     """
 
     def __init__(self) -> None:
@@ -99,7 +103,7 @@ class LegHold:
         self._held: np.ndarray | None = None  # (5, 3) the hold's targets while it lasts
         self._placed_sum: np.ndarray | None = None  # (5, 3) the network's placements since the hold began
         self._placed = 0
-        self._offset: np.ndarray | None = None  # (5, 3) held minus the network's, decaying after the hold
+        self._offset: np.ndarray | None = None  # (5, 3) held minus unheld, decaying after the hold
 
     @property
     def holding(self) -> bool:
@@ -114,9 +118,13 @@ class LegHold:
         planted: tuple[bool, bool],
         targets: np.ndarray,
         observed: np.ndarray,
+        unheld: Callable[[], np.ndarray] | None = None,
     ) -> None:
         """joints (J, 3) the network's for this sample; head_m (3,) the headset's head joint. Fills KPO's
-        targets (J, 3) and observed (J,) for the held joints while the hold lasts or fades."""
+        targets (J, 3) and observed (J,) for the held joints while the hold lasts or fades. ``unheld()``
+        gives the joints (J, 3) KPO would serve with the targets as they are when this is called (the feet's
+        and the devices'): it is called only while the hold fades, before anything is written here; None
+        takes the network's joints instead (no KPO)."""
         if self._last_us is not None and not 0 <= t_us - self._last_us <= MAX_GAP_S * 1e6:
             self._forget()  # a long pause, or time going back: start afresh
         dt_s = 0.0 if self._last_us is None else (t_us - self._last_us) * 1e-6
@@ -126,7 +134,7 @@ class LegHold:
         if quiet and all(planted) and self._served is not None:
             target = self._hold(network, dt_s)
         else:
-            target = self._let_go(network, dt_s)
+            target = self._let_go(network, dt_s, unheld)
         if target is not None:
             targets[list(HELD_JOINTS)] = target
             observed[list(HELD_JOINTS)] = True
@@ -150,13 +158,18 @@ class LegHold:
         self._held = self._held + step
         return self._held
 
-    def _let_go(self, network: np.ndarray, dt_s: float) -> np.ndarray | None:
-        """After a hold: the network's joints plus the hold's offset, decaying; None once it is gone."""
+    def _let_go(
+        self, network: np.ndarray, dt_s: float, unheld: Callable[[], np.ndarray] | None
+    ) -> np.ndarray | None:
+        """After a hold: where the joints would be served without it, plus the hold's offset, decaying; None
+        once it is gone."""
+        if self._held is None and self._offset is None:
+            return None
+        free = network if unheld is None else unheld()[list(HELD_JOINTS)]
         if self._held is not None:
-            self._offset, self._held = self._held - network, None
-        if self._offset is not None:
-            self._offset = self._offset * math.exp(-dt_s / RELEASE_TAU_S)
-        if self._offset is None or np.abs(self._offset).max() < _LET_GO_M:
+            self._offset, self._held = self._held - free, None
+        self._offset = self._offset * math.exp(-dt_s / RELEASE_TAU_S)
+        if np.abs(self._offset).max() < _LET_GO_M:
             self._offset = None
             return None
-        return network + self._offset
+        return free + self._offset

@@ -130,18 +130,27 @@ HELD = list(HELD_JOINTS)
 
 
 def hold_legs(
-    hold: LegHold, network: list[np.ndarray], heads_m: list[np.ndarray], planted: list[tuple[bool, bool]]
+    hold: LegHold,
+    network: list[np.ndarray],
+    heads_m: list[np.ndarray],
+    planted: list[tuple[bool, bool]],
+    pull_m: np.ndarray | None = None,
 ) -> list[np.ndarray | None]:
-    """Each sample's held targets (5, 3), or None where the legs are the network's. What is served is the
-    target where there is one, else the network's joints (KPO with nothing else pulling)."""
+    """Each sample's held targets (5, 3), or None where the legs are served without the hold. What is served
+    is the target where there is one, else the network's joints moved by ``pull_m`` (3,): what KPO does to
+    them for the planted feet (None: nothing)."""
     out = []
     for i, joints in enumerate(network):
+        unheld = joints + (0.0 if pull_m is None else pull_m)
         targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
-        hold.targets(i * STEP_US, joints, heads_m[i], True, planted[i], targets, observed)
+        hold.targets(
+            i * STEP_US, joints, heads_m[i], True, planted[i], targets, observed, unheld=lambda u=unheld: u
+        )
         assert observed[HELD].all() or not observed[HELD].any()
         out.append(targets[HELD].copy() if observed[HELD].any() else None)
-        served = joints.copy()
-        served[HELD] = targets[HELD] if observed[HELD].any() else joints[HELD]
+        served = unheld.copy()
+        if observed[HELD].any():
+            served[HELD] = targets[HELD]
         hold.served(served)
     return out
 
@@ -186,6 +195,21 @@ def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_bac
             assert held[quiet + gone] is None, end  # the legs are the network's again
         else:  # the head's speed is measured over HOLD_WINDOW_S: it ends the hold within that
             assert held[quiet + int(HOLD_WINDOW_S * 1e6 / STEP_US) + gone] is None, end
+
+
+def test_the_legs_glide_to_where_kpo_would_serve_them_without_the_hold_and_do_not_jump_there():
+    """Without the hold, KPO serves the legs away from the network's guess (the planted feet pull them): the
+    fade ends there, not at the network's joints."""
+    quiet, pull_m = 90, np.array([0.0, -0.02, 0.015])
+    network = wandering_legs(quiet + 90)
+    planted = [(True, True)] * quiet + [(True, False)] * 90
+    held = hold_legs(LegHold(), network, [HEAD] * len(network), planted, pull_m)
+    served = np.array([h if h is not None else n[HELD] + pull_m for h, n in zip(held, network, strict=True)])
+    assert held[-1] is None and np.allclose(served[-1], network[-1][HELD] + pull_m)
+    end = quiet + next(i for i, h in enumerate(held[quiet:]) if h is None)  # the first sample without targets
+    assert end > quiet + 5  # it faded
+    step_m = np.linalg.norm(served[end] - served[end - 1], axis=-1).max()
+    assert step_m < 0.0025  # at most the network's own move (1.3 mm) and the last millimetre of the fade
 
 
 def test_a_long_pause_forgets_the_hold():
