@@ -296,7 +296,7 @@ class Pipeline:
                 self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
                 self.stance.observe_feet(self.feet.planted)
                 if self.leg_hold:
-                    network = joints
+                    network = joints  # the lambda's, bound now: `joints` becomes KPO's result below
                     self.legs.targets(
                         t_us, joints, tracked_pos[0], bool(valid[0]), self.feet.planted, targets, observed,
                         unheld=lambda: solve_kpo(network, targets, observed, self.kpo_weights),

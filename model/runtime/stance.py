@@ -39,7 +39,7 @@ HOLD_WINDOW_S: Final = 0.1
 # longer (MODEL_CARD.md, "Legs held while both feet are down").
 SETTLE_SPEED_M_S: Final = 0.0025
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
-_LET_GO_M: Final = 1e-3  # ... and below this the joints are the network's again
+_LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
 
 
 class SteadyStance:
@@ -107,6 +107,7 @@ class LegHold:
 
     @property
     def holding(self) -> bool:
+        """Whether the legs are held now (not while they glide back)."""
         return self._held is not None
 
     def targets(
