@@ -40,6 +40,13 @@ HOLD_WINDOW_S: Final = 0.1
 SETTLE_SPEED_M_S: Final = 0.0025
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
 _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
+_HELD: Final = np.array(HELD_JOINTS)
+
+
+def _stream_broke(last_us: int | None, t_us: int) -> bool:
+    """Whether a sample at t_us after one at last_us breaks the stream: a pause longer than MAX_GAP_S, or
+    time going back. Either forgets a stance or a hold."""
+    return last_us is not None and not 0 <= t_us - last_us <= MAX_GAP_S * 1e6
 
 
 class SteadyStance:
@@ -61,8 +68,8 @@ class SteadyStance:
 
     def observe_head(self, t_us: int, head_m: np.ndarray, head_valid: bool) -> bool:
         """The headset's head joint (3,) m this sample -> whether the stance is steady now."""
-        if self._last_us is not None and not 0 <= t_us - self._last_us <= MAX_GAP_S * 1e6:
-            self._forget()  # a long pause, or time going back: start afresh
+        if _stream_broke(self._last_us, t_us):
+            self._forget()
         self._last_us = t_us
         self._quiet = head_valid and self._head_quiet(t_us, head_m)
         return self.steady
@@ -126,23 +133,23 @@ class LegHold:
         gives the joints (J, 3) KPO would serve with the targets as they are when this is called (the feet's
         and the devices'): it is called only while the hold fades, before anything is written here; None
         takes the network's joints instead (no KPO)."""
-        if self._last_us is not None and not 0 <= t_us - self._last_us <= MAX_GAP_S * 1e6:
-            self._forget()  # a long pause, or time going back: start afresh
+        if _stream_broke(self._last_us, t_us):
+            self._forget()
         dt_s = 0.0 if self._last_us is None else (t_us - self._last_us) * 1e-6
         self._last_us = t_us
         quiet = head_valid and self._head_speed.push(t_us, head_m) < QUIET_SPEED_M_S
-        network = joints[list(HELD_JOINTS)]
+        network = joints[_HELD]
         if quiet and all(planted) and self._served is not None:
             target = self._hold(network, dt_s)
         else:
             target = self._let_go(network, dt_s, unheld)
         if target is not None:
-            targets[list(HELD_JOINTS)] = target
-            observed[list(HELD_JOINTS)] = True
+            targets[_HELD] = target
+            observed[_HELD] = True
 
     def served(self, joints: np.ndarray) -> None:
         """The joints (J, 3) served this sample (after KPO): where a hold that begins next sample starts."""
-        self._served = joints[list(HELD_JOINTS)].copy()
+        self._served = joints[_HELD]  # a copy (fancy indexing)
 
     def _hold(self, network: np.ndarray, dt_s: float) -> np.ndarray:
         """This sample's held targets (5, 3): begun at the served joints, settling to the network's mean."""
@@ -166,7 +173,7 @@ class LegHold:
         once it is gone."""
         if self._held is None and self._offset is None:
             return None
-        free = network if unheld is None else unheld()[list(HELD_JOINTS)]
+        free = network if unheld is None else unheld()[_HELD]
         if self._held is not None:
             self._offset, self._held = self._held - free, None
         self._offset = self._offset * math.exp(-dt_s / RELEASE_TAU_S)
