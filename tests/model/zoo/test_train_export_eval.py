@@ -406,7 +406,7 @@ def test_a_model_file_is_reexported_in_todays_graph_form_from_the_weights_it_hol
 ):
     """--reexport rewrites a model file without its checkpoints: the weights read back from the graph are
     the checkpoints' own, each member's in its place; the new graph is today's form (opset 23, ONNX
-    Attention), answers as the old one did, and keeps the metadata byte for byte. An encoder is refused."""
+    Attention reading and writing (B, L, D)), answers as the old one did, and keeps the metadata byte for byte. An encoder is refused."""
     import math
 
     import onnx
@@ -444,6 +444,10 @@ def test_a_model_file_is_reexported_in_todays_graph_form_from_the_weights_it_hol
     worst = float(capsys.readouterr().out.rsplit("=", 1)[1])
     new = onnx.load(str(path))
     assert new.opset_import[0].version == 23 and "Attention" in {n.op_type for n in new.graph.node}
+    attention = [n for n in new.graph.node if n.op_type == "Attention"]
+    made_by = {out: n.op_type for n in new.graph.node for out in n.output}
+    assert all({a.name for a in n.attribute} >= {"q_num_heads", "kv_num_heads"} for n in attention)
+    assert {made_by[i] for n in attention for i in n.input}.isdisjoint({"Transpose", "Reshape"})  # (B, L, D)
     assert [(p.key, p.value) for p in new.metadata_props] == [(p.key, p.value) for p in old.metadata_props]
     assert worst <= 1e-5
     cfg = LoadedModel.load(path).info.config
