@@ -406,7 +406,8 @@ def test_a_model_file_is_reexported_in_todays_graph_form_from_the_weights_it_hol
 ):
     """--reexport rewrites a model file without its checkpoints: the weights read back from the graph are
     the checkpoints' own, each member's in its place; the new graph is today's form (opset 23, ONNX
-    Attention reading and writing (B, L, D)), answers as the old one did, and keeps the metadata byte for byte. An encoder is refused."""
+    Attention reading and writing (B, L, D)), answers as the old one did, and keeps the metadata byte for
+    byte. An encoder is refused."""
     import math
 
     import onnx
