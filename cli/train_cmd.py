@@ -17,6 +17,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -119,6 +120,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="W",
         help="with --teachers: the share of each loss term taken against the teachers (default 0.5)",
     )
+    parser.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="fine-tune: each fusion net starts from the weights of DIR's exported <net>.onnx (e.g. the "
+        "bundled hmd-rgbd.onnx) instead of a random draw; its visual encoder must be the one it read",
+    )
+    parser.add_argument(
+        "--init-member",
+        type=int,
+        default=0,
+        metavar="K",
+        help="with --init-from: which net of a file that serves several (default 0)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -165,6 +181,11 @@ def run(args: argparse.Namespace) -> int:
         print("egoposevr train: --window T needs T >= 1 headset samples", file=sys.stderr)
         return 2
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
+    try:
+        initial = _initial_weights(names, args.init_from, args.init_member, config)
+    except ValueError as error:
+        print(f"egoposevr train: --init-from: {error}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
     try:
         paths = train_zoo(
@@ -176,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
             not args.no_progress,
             args.encoders,
             args.teachers,
+            initial,
         )
     except (DatasetError, ModelError, DeviceError, TeacherError, CheckpointError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)
@@ -184,3 +206,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name}: {path}")
     print(f"trained in {time.perf_counter() - started:.0f} s")
     return 0
+
+
+def _initial_weights(
+    names: list[str], models_dir: Path | None, member: int, config: Any
+) -> dict[str, Any] | None:
+    """--init-from: each named model's fusion net -> the weights it starts from (raises ValueError)."""
+    if models_dir is None:
+        return None
+    from ..model.training.export import initial_fusion_state
+    from ..model.training.train import fusion_config
+    from ..model.zoo import ZOO
+
+    fusions = dict.fromkeys(ZOO[name].fusion_name for name in names)
+    return {f: initial_fusion_state(models_dir, f, member, fusion_config(f, config)) for f in fusions}

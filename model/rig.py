@@ -23,8 +23,13 @@ from .skeleton import HEAD, LEFT_WRIST, RIGHT_WRIST
 # Device frame (x right, y up, -z forward) from the SMPL joint frame (x left, y up, +z forward): Ry(180°).
 DEVICE_FROM_JOINT: Final = np.diag([-1.0, 1.0, -1.0])
 TRACKED_JOINTS: Final = (HEAD, LEFT_WRIST, RIGHT_WRIST)
-# Offsets in the joint's frame, metres: the headset ahead of and above the head joint, grips in the palms.
-HEAD_OFFSET_M: Final = (0.0, 0.06, 0.11)
+# Offsets in the joint's frame, metres: the headset's view pose (between the eyes) ahead of and above the head
+# joint, grips in the palms. The head's is where the eyes of the synthesis engine's mesh bodies are (the mean
+# over data/bodies.npz's 64: 0.6 / 2.4 / 8.3 cm, sd 0.1 / 0.7 / 0.5 cm; x left out, as a mirrored body has
+# it on the other side). Until 2026-11-27 it was (0, 6, 11) cm, 4.6 cm from any of those bodies' eyes: every
+# served body hung that far from its head (MODEL_CARD.md). A model file carries the offsets it was trained
+# with (ModelMetadata.rig_offsets_m); the runtime reads those.
+HEAD_OFFSET_M: Final = (0.0, 0.024, 0.083)
 LEFT_GRIP_OFFSET_M: Final = (0.085, -0.015, 0.015)
 RIGHT_GRIP_OFFSET_M: Final = (-0.085, -0.015, 0.015)
 DEFAULT_OFFSETS_M: Final = np.array([HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GRIP_OFFSET_M])

@@ -38,7 +38,7 @@ from ..runtime.body import regressor_path
 from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
 from .nets.fusion import ContactOutputs, FusionNet, SeedEnsemble
-from .train import build_net, load_checkpoint
+from .train import InitialWeights, build_net, load_checkpoint
 
 PARITY_TOL = 1e-4
 OPSET = 23  # the first with an Attention operator (onnxruntime >= 1.23 runs it)
@@ -160,7 +160,7 @@ def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
         "seed": ckpt["train_config"]["seed"],
         "train_seconds": round(ckpt["train_seconds"], 1),
         "final_losses": ckpt["history"][-1] if ckpt["history"] else {},
-    } | ({"teachers": ckpt["teachers"]} if "teachers" in ckpt else {})
+    } | {key: ckpt[key] for key in ("teachers", "init") if key in ckpt}
 
 
 def export_visual(ckpt_path: Path, out_path: Path) -> float:
@@ -308,13 +308,10 @@ def _drop_unread(graph: onnx.GraphProto) -> None:
     graph.value_info.extend(shapes)
 
 
-def reexport_model(path: Path) -> float:
-    """Rewrite a model file in today's graph form (the exporter's opset and the nets' current forward
-    pass), in place, from the weights it holds: no checkpoint is needed. Metadata is kept byte for byte.
-    Returns the largest difference between the new graph's outputs and the old one's (batches of 1 and 8;
-    1 alone for a graph exported for batch 1, which comes back with a batch axis);
-    raises ValueError when the file's weights do not fill the net its config describes, or when the two
-    graphs disagree by more than ``PARITY_TOL`` (the file is then left as it was)."""
+def load_served_nets(path: Path) -> tuple[onnx.ModelProto, ModelMetadata, list[FusionNet]]:
+    """A model file's graph, its metadata and its fusion nets (one, or each member of its ensemble) holding
+    the weights it holds; raises ValueError for a file that is not an EgoPoseVR model or whose weights do
+    not fill the nets its config describes."""
     try:
         original = onnx.load(str(path))
     except (OSError, DecodeError) as error:  # missing, truncated, or not ONNX at all
@@ -328,6 +325,34 @@ def reexport_model(path: Path) -> float:
     nets = [FusionNet(metadata.config).eval() for _ in range(members)]
     module = _served_module(nets)
     module.load_state_dict(_state_dict_from_graph(original, module, path))
+    return original, metadata, nets
+
+
+def initial_fusion_state(
+    models_dir: Path, fusion_name: str, member: int, cfg: FusionConfig
+) -> InitialWeights:
+    """Where ``egoposevr train --init-from`` starts the fusion net ``fusion_name``: the weights of
+    ``models_dir/<fusion_name>.onnx`` (its ``member``-th net when it serves several). Raises ValueError
+    when the file is not there or not a model, when it serves fewer nets, or when its nets are configured
+    otherwise than ``cfg`` (the flags of this run)."""
+    path = models_dir / f"{fusion_name}.onnx"
+    _, metadata, nets = load_served_nets(path)
+    if not 0 <= member < len(nets):
+        raise ValueError(f"{path} serves {len(nets)} net(s): no member {member}")
+    if metadata.config != cfg:
+        raise ValueError(f"{path}: its net is configured otherwise than this run's flags make it")
+    return InitialWeights(str(path), member, nets[member].state_dict())
+
+
+def reexport_model(path: Path) -> float:
+    """Rewrite a model file in today's graph form (the exporter's opset and the nets' current forward
+    pass), in place, from the weights it holds: no checkpoint is needed. Metadata is kept byte for byte.
+    Returns the largest difference between the new graph's outputs and the old one's (batches of 1 and 8;
+    1 alone for a graph exported for batch 1, which comes back with a batch axis);
+    raises ValueError when the file's weights do not fill the net its config describes, or when the two
+    graphs disagree by more than ``PARITY_TOL`` (the file is then left as it was)."""
+    original, metadata, nets = load_served_nets(path)
+    module = _served_module(nets)
     rewritten = path.with_name(f".{path.name}.reexport")
     try:
         _export_fusion(module, metadata.config, rewritten)

@@ -733,10 +733,13 @@ def train_fusion(
     cache: dict[Any, Any] | None = None,
     encoders_dir: Path | None = None,
     teacher: Teacher | None = None,
+    initial: InitialWeights | None = None,
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
     checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teacher``
-    (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output."""
+    (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output. With
+    ``initial`` the net starts from those weights (its input statistics included) instead of a random
+    draw: a fine-tune, with this run's own warmup and schedule."""
     path = out_dir / f"fusion-{name}.pt"
     if resume and _finished(path):
         return path
@@ -752,15 +755,29 @@ def train_fusion(
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
+    if initial is not None:
+        net.load_state_dict(initial.state_dict)
     net.to(tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": {"dir": _dirs_field(data_dirs), "sequences": len(seqs),
                      "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
+    if initial is not None:
+        meta["init"] = {"from": initial.source, "member": initial.member}
     loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None)
     _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress)
     return path
+
+
+@dataclasses.dataclass(frozen=True)
+class InitialWeights:
+    """Where a fusion net starts instead of a random draw (``egoposevr train --init-from``): the weights of
+    one net of an exported model file (export.initial_fusion_state)."""
+
+    source: str  # the model file
+    member: int  # which of its nets
+    state_dict: dict[str, torch.Tensor]
 
 
 class TeacherError(ValueError):
@@ -894,10 +911,12 @@ def train_zoo(
     progress: bool = True,
     encoders_dir: Path | None = None,
     teachers: Sequence[Path] = (),
+    initial: dict[str, InitialWeights] | None = None,
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
     ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained; with
-    ``teachers`` each fusion net also learns the mean output of those runs folders' nets of its kind."""
+    ``teachers`` each fusion net also learns the mean output of those runs folders' nets of its kind;
+    ``initial`` maps a fusion net's name to the weights it starts from."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -916,6 +935,7 @@ def train_zoo(
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
-            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f]
-        )
+            f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f],
+            (initial or {}).get(f),
+        )  # fmt: skip
     return paths

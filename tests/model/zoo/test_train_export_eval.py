@@ -169,6 +169,43 @@ def test_seeds_export_as_one_graph_that_serves_their_mean(
     assert "--encoders" in capsys.readouterr().err  # members must share the encoders they were trained on
 
 
+def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    import torch
+
+    from egoposevr.model.training.export import load_served_nets
+
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--encoders", str(tiny_weights), "--fusion-steps", "1", "--seed", "5"]
+    assert main([*train, "--out", str(tmp_path / "ft"), "--init-from", str(tiny_weights)]) == 0
+    assert main([*train, "--out", str(tmp_path / "fresh")]) == 0
+    _, _, (bundled,) = load_served_nets(tiny_weights / "hmd-rgbd.onnx")
+    start = bundled.state_dict()
+    ckpt = load_checkpoint(tmp_path / "ft" / "fusion-hmd-rgbd.pt")
+    assert ckpt["init"] == {"from": str(tiny_weights / "hmd-rgbd.onnx"), "member": 0}
+    fresh = load_checkpoint(tmp_path / "fresh" / "fusion-hmd-rgbd.pt")["state_dict"]
+
+    def gap(state: dict[str, torch.Tensor]) -> float:
+        return max(float((state[k].float() - v.float()).abs().max()) for k, v in start.items())
+
+    assert gap(ckpt["state_dict"]) < 1e-3 < gap(fresh)  # one small step away from the file's weights
+    out = tmp_path / "ft-weights"
+    export = ["export", "--runs", str(tmp_path / "ft"), "--out", str(out), "--model", "hmd-rgbd"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    assert LoadedModel.load(out / "hmd-rgbd.onnx").info.metadata.training["init"]["member"] == 0
+
+    capsys.readouterr()
+    for flags, said in (
+        (["--init-member", "1"], "no member 1"),  # the tiny zoo's file serves one net
+        (["--window", "5"], "configured otherwise"),
+    ):
+        assert main([*train, "--out", str(tmp_path / "x"), "--init-from", str(tiny_weights), *flags]) == 2
+        assert said in capsys.readouterr().err
+    assert main([*train, "--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "none")]) == 2
+    assert "not an ONNX file" in capsys.readouterr().err
+
+
 def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, capsys):
     import dataclasses
 
