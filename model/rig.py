@@ -33,6 +33,12 @@ HEAD_OFFSET_M: Final = (0.0, 0.024, 0.083)
 LEFT_GRIP_OFFSET_M: Final = (0.085, -0.015, 0.015)
 RIGHT_GRIP_OFFSET_M: Final = (-0.085, -0.015, 0.015)
 DEFAULT_OFFSETS_M: Final = np.array([HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GRIP_OFFSET_M])
+# The point the runtime's stillness gates watch (runtime.stance: the steady stance and the leg hold), as an
+# offset like HEAD_OFFSET_M: 6 cm under and 11 cm behind the view pose, 2.7 cm behind and 3.6 cm under the
+# head joint, towards the top of the neck, where nodding and turning the head move it less than the head
+# joint. It is where the head joint was taken to be until 2026-11-27, and the gates' thresholds were chosen
+# watching it; watching the head joint instead made still legs step (MODEL_CARD.md, rule 8).
+STILLNESS_OFFSET_M: Final = (0.0, 0.06, 0.11)
 
 
 def joints_from_devices(
@@ -48,3 +54,9 @@ def joints_from_devices(
     joint_rot = quat_xyzw_to_matrix(poses[..., 3:]) @ DEVICE_FROM_JOINT.T
     joint_pos = poses[..., :3] - np.einsum("...ij,...j->...i", joint_rot, offsets_m)
     return joint_pos, joint_rot
+
+
+def stillness_point(head_m: np.ndarray, head_rot: np.ndarray, head_offset_m: np.ndarray) -> np.ndarray:
+    """The point the stillness gates watch (3,), from the head joint head_m (3,) and its global rotation
+    head_rot (3, 3) that :func:`joints_from_devices` found with the head offset head_offset_m (3,)."""
+    return head_m + head_rot @ (np.asarray(head_offset_m, dtype=np.float64) - STILLNESS_OFFSET_M)

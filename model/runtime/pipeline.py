@@ -24,7 +24,7 @@ import numpy as np
 
 from ..hmd import HmdFeatureExtractor, TrackingState, check_poses, ignore_untracked
 from ..inputs import canonicalize_hmd, heading_frame
-from ..rig import TRACKED_JOINTS, joints_from_devices
+from ..rig import TRACKED_JOINTS, joints_from_devices, stillness_point
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels
 from .body import BodyCalibrator, ServedScale
@@ -265,6 +265,14 @@ class Pipeline:
             t_us, valid, tracked_pos, rot, camera, timing, self.model, inputs, tracked_rot=tracked_rot
         )
 
+    def _stillness_point(self, pending: PendingPose) -> np.ndarray:
+        """Where the stillness gates watch the head (rig.STILLNESS_OFFSET_M), (3,)."""
+        if pending.tracked_rot is None:
+            return pending.tracked_pos[0]
+        return stillness_point(
+            pending.tracked_pos[0], pending.tracked_rot[0], self.model.info.rig_offsets_m[0]
+        )
+
     def finish_hmd(self, pending: PendingPose, sixd: np.ndarray) -> PoseResult:
         """The rest of :meth:`push_hmd` from the fusion net's output sixd (J, 6): FK, filter, KPO,
         rotations."""
@@ -292,13 +300,14 @@ class Pipeline:
             if self.contacts:
                 bones = self.bone_scale if self.fixed_body else self.served_scale.scale
                 leg_scale = float(bones[_LEG_BONES].mean())
-                steady = self.steady_stance and self.stance.observe_head(t_us, tracked_pos[0], bool(valid[0]))
+                still_m = self._stillness_point(pending)
+                steady = self.steady_stance and self.stance.observe_head(t_us, still_m, bool(valid[0]))
                 self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
                 self.stance.observe_feet(self.feet.planted)
                 if self.leg_hold:
                     network = joints  # the lambda's, bound now: `joints` becomes KPO's result below
                     self.legs.targets(
-                        t_us, joints, tracked_pos[0], bool(valid[0]), self.feet.planted, targets, observed,
+                        t_us, joints, still_m, bool(valid[0]), self.feet.planted, targets, observed,
                         unheld=lambda: solve_kpo(network, targets, observed, self.kpo_weights),
                     )  # fmt: skip
             joints = solve_kpo(joints, targets, observed, self.kpo_weights)

@@ -253,3 +253,31 @@ def test_the_served_legs_of_a_user_who_only_moves_the_arms_wander_less_with_the_
         fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.served_scale.scale))
         assert np.allclose(fk, last.joints, atol=1e-6)
     assert leakage[True] < 0.7 * leakage[False], leakage
+
+
+def test_the_stillness_gates_watch_one_point_of_the_headset_whatever_head_offset_a_model_has():
+    from scipy.spatial.transform import Rotation
+
+    from egoposevr.model.rig import (
+        DEFAULT_OFFSETS_M,
+        STILLNESS_OFFSET_M,
+        joints_from_devices,
+        stillness_point,
+    )
+
+    rng = np.random.default_rng(3)
+    poses = np.zeros((3, 7))
+    poses[:, :3] = rng.normal(0.0, 1.0, (3, 3))
+    poses[:, 3:] = Rotation.random(3, random_state=4).as_quat()
+    other = DEFAULT_OFFSETS_M.copy()
+    other[0] = (0.01, 0.09, 0.05)
+    points = []
+    for offsets in (DEFAULT_OFFSETS_M, other):
+        head_m, head_rot = joints_from_devices(poses, offsets)
+        points.append(stillness_point(head_m[0], head_rot[0], offsets[0]))
+    np.testing.assert_allclose(points[0], points[1], atol=1e-12)
+    # a model whose head offset is the stillness one (those trained before 2026-11-27) watches its head joint
+    still_offsets = DEFAULT_OFFSETS_M.copy()
+    still_offsets[0] = STILLNESS_OFFSET_M
+    head_m, head_rot = joints_from_devices(poses, still_offsets)
+    np.testing.assert_allclose(stillness_point(head_m[0], head_rot[0], still_offsets[0]), head_m[0])
