@@ -17,7 +17,10 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..model.training.train import InitialWeights, TrainConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -126,7 +129,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="fine-tune: each fusion net starts from the weights of DIR's exported <net>.onnx (e.g. the "
-        "bundled hmd-rgbd.onnx) instead of a random draw; its visual encoder must be the one it read",
+        "bundled hmd-rgbd.onnx) instead of a random draw; give it the keypoints it learnt from "
+        "(--encoders with the encoder it was trained on)",
     )
     parser.add_argument(
         "--init-member",
@@ -209,8 +213,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _initial_weights(
-    names: list[str], models_dir: Path | None, member: int, config: Any
-) -> dict[str, Any] | None:
+    names: list[str], models_dir: Path | None, member: int, config: TrainConfig
+) -> dict[str, InitialWeights] | None:
     """--init-from: each named model's fusion net -> the weights it starts from (raises ValueError)."""
     if models_dir is None:
         return None
