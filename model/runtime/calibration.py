@@ -72,6 +72,10 @@ class Calibration:
     corrections: np.ndarray
     arm_scale: float | None = None
     arm_span_m: float | None = None  # wrist to wrist with the arms out, through the shoulders
+    # The height of the head offset (rig_offsets_m[0][1]) that head_height_m was measured with: a model whose
+    # file puts the head joint elsewhere under the headset takes the head height it would have measured
+    # (body_measurements). None: taken to be the applying model's.
+    head_offset_y_m: float | None = None
 
     @property
     def height_scale(self) -> float:
@@ -94,9 +98,19 @@ def canonical_poses(poses: np.ndarray, calibration: Calibration | None) -> np.nd
     return out
 
 
-def body_measurements(calibration: Calibration | None) -> tuple[float | None, float | None]:
-    """(head height m, arm scale) for :meth:`BodyCalibrator.calibrate`; (None, None) without a calibration."""
-    return (None, None) if calibration is None else (calibration.head_height_m, calibration.arm_scale)
+def body_measurements(
+    calibration: Calibration | None, head_offset_m: np.ndarray
+) -> tuple[float | None, float | None]:
+    """(head height m, arm scale) for :meth:`BodyCalibrator.calibrate` of a model whose head offset is
+    head_offset_m (3,); (None, None) without a calibration. The calibration outlives a model switch, and
+    models differ in where under the headset they put the head joint: measured level, the head joint is the
+    offset's height under the view pose, so the head height moves by the two offsets' difference."""
+    if calibration is None:
+        return None, None
+    head_height_m = calibration.head_height_m
+    if calibration.head_offset_y_m is not None:
+        head_height_m += calibration.head_offset_y_m - float(head_offset_m[1])
+    return head_height_m, calibration.arm_scale
 
 
 class CalibrationCollector:
@@ -146,11 +160,14 @@ def measure(pose: CalibrationPose, samples: np.ndarray, rig_offsets_m: np.ndarra
     _check_height(head_height_m)
     corrections = np.stack([np.eye(3)] * 3)
     corrections[0] = head_turn.T @ DEVICE_FROM_JOINT
+    offset_y_m = float(rig_offsets_m[0][1])
     if pose == "stand":
-        return Calibration(pose, head_height_m, corrections)
+        return Calibration(pose, head_height_m, corrections, head_offset_y_m=offset_y_m)
     arms = _measure_arms(mean, head_pos[0], heading, height_scale(head_height_m), rig_offsets_m)
     corrections[1:] = arms["corrections"]
-    return Calibration(pose, head_height_m, corrections, arms["arm_scale"], arms["arm_span_m"])
+    return Calibration(
+        pose, head_height_m, corrections, arms["arm_scale"], arms["arm_span_m"], head_offset_y_m=offset_y_m
+    )
 
 
 def _still_mean(samples: np.ndarray, devices: tuple[int, ...]) -> np.ndarray:

@@ -114,7 +114,7 @@ class Pipeline:
 
     def _apply_calibration(self) -> None:
         """The body takes the calibration's measures; the served skeleton follows from the next sample."""
-        self.body.calibrate(*body_measurements(self.calibration))
+        self.body.calibrate(*body_measurements(self.calibration, self.model.info.rig_offsets_m[0]))
 
     def reset(self) -> None:
         """Forget the stream (a new session, a model switch, a long pause); a calibration stays."""

@@ -148,7 +148,7 @@ class ProceduralPipeline:
     def calibrate(self, calibration: Calibration | None) -> None:
         """As :meth:`Pipeline.calibrate <egoposevr.model.runtime.pipeline.Pipeline.calibrate>`."""
         self.calibration = calibration
-        self.body.calibrate(*body_measurements(calibration))
+        self.body.calibrate(*body_measurements(calibration, self.model.info.rig_offsets_m[0]))
         if not self.fixed_body:
             self._set_offsets(rest_offsets(self.body.bone_scale))
 

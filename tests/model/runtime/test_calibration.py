@@ -164,3 +164,24 @@ def test_procedural_pipeline_serves_the_calibrated_wrists_and_keeps_them_across_
         errors[name] = np.linalg.norm(served[[20, 21]] - joints[[20, 21]], axis=-1).max() * 100
     # The procedural body serves the head 1.7 cm off this pose's (its own torso solve); the wrists follow.
     assert errors["calibrated"] < 2.0 < 4.0 < errors["raw"]
+
+
+def test_a_calibration_gives_a_model_with_another_head_offset_the_head_height_it_would_measure() -> None:
+    from egoposevr.model.rig import DEFAULT_OFFSETS_M
+    from egoposevr.model.runtime.calibration import body_measurements
+
+    lower = DEFAULT_OFFSETS_M.copy()
+    lower[0] = (0.0, 0.06, 0.11)  # a model whose head joint sits 3.6 cm further under the headset
+    t_us, poses, valid = holding(ODD_USER)
+    calibrations = {}
+    for name, offsets in (("default", DEFAULT_OFFSETS_M), ("lower", lower)):
+        collector = CalibrationCollector("tpose", seconds=2.0, rig_offsets_m=offsets)
+        calibrations[name] = next(
+            c for c in (collector.push(*sample) for sample in zip(t_us, poses, valid, strict=True)) if c
+        )
+    assert calibrations["default"].head_height_m - calibrations["lower"].head_height_m == pytest.approx(
+        0.06 - DEFAULT_OFFSETS_M[0][1], abs=1e-6
+    )  # each measured its own head joint
+    for offsets in (DEFAULT_OFFSETS_M, lower):  # after a model switch, each model gets its own head joint
+        heights = [body_measurements(c, offsets[0])[0] for c in calibrations.values()]
+        assert heights[0] == pytest.approx(heights[1], abs=1e-6)
