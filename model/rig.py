@@ -39,6 +39,7 @@ DEFAULT_OFFSETS_M: Final = np.array([HEAD_OFFSET_M, LEFT_GRIP_OFFSET_M, RIGHT_GR
 # joint. It is where the head joint was taken to be until 2026-11-27, and the gates' thresholds were chosen
 # watching it; watching the head joint instead made still legs step (MODEL_CARD.md, rule 8).
 STILLNESS_OFFSET_M: Final = (0.0, 0.06, 0.11)
+_STILLNESS_OFFSET: Final = np.array(STILLNESS_OFFSET_M)  # stillness_point runs every sample
 
 
 def joints_from_devices(
@@ -59,4 +60,4 @@ def joints_from_devices(
 def stillness_point(head_m: np.ndarray, head_rot: np.ndarray, head_offset_m: np.ndarray) -> np.ndarray:
     """The point the stillness gates watch (3,), from the head joint head_m (3,) and its global rotation
     head_rot (3, 3) that :func:`joints_from_devices` found with the head offset head_offset_m (3,)."""
-    return head_m + head_rot @ (np.asarray(head_offset_m, dtype=np.float64) - STILLNESS_OFFSET_M)
+    return head_m + head_rot @ (head_offset_m - _STILLNESS_OFFSET)

@@ -117,10 +117,13 @@ class ModelInfo:
         """The camera the encoder was trained with."""
         return self.encoder.camera if self.encoder else None
 
-    @property
+    @functools.cached_property
     def rig_offsets_m(self) -> np.ndarray:
-        """(3, 3) device -> joint offsets, rows head / left / right."""
-        return np.asarray(self.metadata.rig_offsets_m, dtype=np.float64)
+        """(3, 3) device -> joint offsets, rows head / left / right; read-only (the pipeline reads it every
+        sample, so it is made once)."""
+        offsets = np.array(self.metadata.rig_offsets_m, dtype=np.float64)
+        offsets.flags.writeable = False
+        return offsets
 
 
 def load_encoder(
