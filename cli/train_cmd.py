@@ -220,7 +220,8 @@ def _initial_weights(
         return None
     from ..model.training.export import initial_fusion_state
     from ..model.training.train import fusion_config
-    from ..model.zoo import ZOO
+    from ..model.zoo import fusion_names
 
-    fusions = dict.fromkeys(ZOO[name].fusion_name for name in names)
-    return {f: initial_fusion_state(models_dir, f, member, fusion_config(f, config)) for f in fusions}
+    return {
+        f: initial_fusion_state(models_dir, f, member, fusion_config(f, config)) for f in fusion_names(names)
+    }

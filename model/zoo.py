@@ -62,3 +62,8 @@ def resolve(names: str) -> list[str]:
     if unknown:
         raise ValueError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(ZOO)}")
     return [n for n in ZOO if n in wanted]
+
+
+def fusion_names(names: list[str]) -> list[str]:
+    """The fusion nets the named models run, each once, in the names' order (models may share one)."""
+    return list(dict.fromkeys(ZOO[n].fusion_name for n in names))

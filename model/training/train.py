@@ -50,7 +50,7 @@ from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.loading import load_encoder
 from ..skeleton import ARM_JOINTS, HEAD, rest_offsets
 from ..synth.headset import TRACKING_CONE_DEG
-from ..zoo import ZOO
+from ..zoo import ZOO, fusion_names
 from .augment import (
     crop_and_flip,
     lose_hanging_arms,
@@ -921,7 +921,7 @@ def train_zoo(
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
         torch.set_num_threads(tc.threads)
-    fusions = list(dict.fromkeys(ZOO[n].fusion_name for n in names))
+    fusions = fusion_names(names)
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
     # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
     taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
