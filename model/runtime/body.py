@@ -12,7 +12,9 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sour
    including the arms, collars, neck and head the camera never sees. Proportions come in families (the
    retargeted CMU bodies against the scaled SMPL ones), and the hips and lower spine the camera sees tell
    them apart: the regressor finds the families in its training bodies (k-means), tells them apart with a
-   linear discriminant and has one ridge expert per family.
+   linear discriminant and has one ridge expert per family. It records how far under the headset the head
+   joints it was fitted on were (models with different head offsets share an encoder), and a calibrator
+   converts its own head height to that before asking it.
 4. **A calibration** (:meth:`BodyCalibrator.calibrate`, runtime/calibration.py), when the session asked for
    one: its standing head height replaces the running one and its arms replace the estimated ones.
 
@@ -40,6 +42,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from ..rig import STILLNESS_OFFSET_M
 from ..skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOINTS_M, rest_offsets
 
 # The head joint of the mean SMPL body standing straight, above the floor (left foot joint at 3.5 cm).
@@ -71,6 +74,9 @@ SERVED_SCALE_RATE_PER_S: Final = 0.5
 SERVED_SCALE_MAX_STEP_S: Final = 0.1  # a longer pause between samples counts as this long
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
 REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -> visual-rgbd.body.json
+# The head offset's height (rig.HEAD_OFFSET_M[1]) of the head joints a regressor file without one was fitted
+# on: every model's until 2026-11-27, which rig keeps as the stillness gates' point.
+LEGACY_REGRESSOR_HEAD_OFFSET_Y_M: Final = STILLNESS_OFFSET_M[1]
 _REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
 _SIGHTED: Final = np.array(SIGHTED_BONES)
 _SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
@@ -104,6 +110,9 @@ class BodyRegressor:
     weights: np.ndarray  # (K, F, J - 1): each family's expert, bones 1..J-1
     discriminant: np.ndarray  # (K, F + 1): each family's linear score on the features, then its offset
     encoder_sha256: str
+    # How far under the view pose the head joints whose heights it was fitted on were (the fitting model's
+    # rig offset). An encoder serves models with different head offsets, and h must mean what it meant then.
+    head_offset_y_m: float = LEGACY_REGRESSOR_HEAD_OFFSET_Y_M
     record: dict[str, Any] = field(default_factory=dict)  # what it was fitted on and how well it did
 
     def features(self, scale_h: float, measured: dict[int, float]) -> np.ndarray:
@@ -133,12 +142,14 @@ class BodyRegressor:
         measured: list[dict[int, float]],
         true_scale: np.ndarray,
         encoder_sha256: str,
+        head_offset_y_m: float,
         ridge: float = 1.0,
         row_weight: np.ndarray | None = None,
         families: int = FAMILIES,
         feature_bones: tuple[int, ...] = SIGHTED_BONES,
     ) -> BodyRegressor:
-        """Fit over N rows: scales_h (N,), measured N dicts, true_scale (N, J), row_weight (N,) (default 1).
+        """Fit over N rows: scales_h (N,), measured N dicts, true_scale (N, J), row_weight (N,) (default 1);
+        the height scales are of head joints head_offset_y_m under the view pose.
 
         Families are found, not given: k-means on the rows' true proportions (log scale relative to the
         height scale). Then a weighted ridge expert per family (intercept not penalised) and a linear
@@ -155,15 +166,15 @@ class BodyRegressor:
             [_ridge(x[label == k], y[label == k], w[label == k], ridge) for k in range(families)]
         )
         record = {"ridge": ridge, "rows": len(x), "families": np.bincount(label, minlength=families).tolist()}
-        return cls(
-            tuple(feature_bones), weights, _discriminant(x, label, w, families), encoder_sha256, record
-        )
+        discriminant = _discriminant(x, label, w, families)
+        return cls(tuple(feature_bones), weights, discriminant, encoder_sha256, head_offset_y_m, record)
 
     def save(self, path: Path) -> None:
         doc = {
             "kind": REGRESSOR_KIND,
             "version": 2,
             "encoder_sha256": self.encoder_sha256,
+            "head_offset_y_m": self.head_offset_y_m,
             "feature_bones": list(self.feature_bones),
             "weights": self.weights.round(6).tolist(),
             "discriminant": self.discriminant.round(6).tolist(),
@@ -196,7 +207,11 @@ class BodyRegressor:
                 raise ValueError(f"discriminant {discriminant.shape} for weights {weights.shape}")
             if not (np.isfinite(weights).all() and np.isfinite(discriminant).all()):
                 raise ValueError("weights are not finite")
-            return cls(bones, weights, discriminant, str(doc["encoder_sha256"]), dict(doc.get("record", {})))
+            offset_y_m = float(doc.get("head_offset_y_m", LEGACY_REGRESSOR_HEAD_OFFSET_Y_M))
+            if not abs(offset_y_m) < 0.5:
+                raise ValueError(f"head_offset_y_m {offset_y_m}")
+            sha = str(doc["encoder_sha256"])
+            return cls(bones, weights, discriminant, sha, offset_y_m, dict(doc.get("record", {})))
         except (OSError, KeyError, TypeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
             raise ValueError(f"{path}: not a body regressor ({exc})") from exc
 
@@ -269,8 +284,17 @@ class BodyCalibrator:
     """Running body-scale estimate: ``push`` per headset sample, ``push_visual`` per camera frame;
     ``bone_scale`` (J,) changes only when one of them returns True."""
 
-    def __init__(self, regressor: BodyRegressor | None = None) -> None:
+    def __init__(self, regressor: BodyRegressor | None = None, head_offset_y_m: float | None = None) -> None:
+        """head_offset_y_m: how far under the view pose the pushed head joints are (the model's rig offset);
+        None when it is the regressor's own."""
         self.regressor = regressor
+        # What the regressor's height scale needs added to the heights pushed here to mean what it did when
+        # it was fitted: the head joint is the offset's height under the view pose.
+        self._regressor_lift_m = (
+            0.0
+            if regressor is None or head_offset_y_m is None
+            else head_offset_y_m - regressor.head_offset_y_m
+        )
         self.highest_head_m = 0.0
         self.bone_scale = np.ones(NUM_JOINTS)
         self._sightings = {j: deque(maxlen=VISUAL_WINDOW) for j in SIGHTED_BONES}
@@ -326,14 +350,19 @@ class BodyCalibrator:
         """bone_scale from what is known: the regressor once the camera measured anything (it was fitted on
         measured bodies only), else the height scale with the measured leg bones in place (left and right
         averaged, so the body stays symmetric where only one side was seen); a calibration's arms win."""
-        scale_h = self.height_scale
         if self.regressor is not None and self.measured:
-            scale = self.regressor.predict(scale_h, self.measured)
+            scale = self.regressor.predict(self._regressor_height_scale(), self.measured)
         else:
-            scale = self._height_and_legs(scale_h)
+            scale = self._height_and_legs(self.height_scale)
         if self.arm_scale is not None:
             scale[list(ARM_BONES)] = self.arm_scale
         self.bone_scale = scale
+
+    def _regressor_height_scale(self) -> float:
+        """The height scale as the regressor's fitting model would have measured it."""
+        if self.highest_head_m <= 0:
+            return self.height_scale
+        return height_scale(self.highest_head_m + self._regressor_lift_m)
 
     def _height_and_legs(self, scale_h: float) -> np.ndarray:
         scale = np.full(NUM_JOINTS, scale_h)

@@ -120,7 +120,7 @@ class Pipeline:
         """Forget the stream (a new session, a model switch, a long pause); a calibration stays."""
         self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
-        self.body = BodyCalibrator(self.model.info.body_regressor)
+        self.body = BodyCalibrator(self.model.info.body_regressor, float(self.model.info.rig_offsets_m[0, 1]))
         self.served_scale = ServedScale()
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)

@@ -101,6 +101,7 @@ def fit_encoder(
         [r[1] for r in rows],
         np.array([r[2] for r in rows]),
         file_sha256(model.info.visual_path),
+        float(model.info.rig_offsets_m[0, 1]),
         ridge,
         np.array([r[3] for r in rows]),
     )

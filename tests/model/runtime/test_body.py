@@ -108,7 +108,7 @@ def family_rows(n: int) -> tuple[np.ndarray, list[dict[int, float]], np.ndarray]
 
 
 def test_the_regressor_tells_the_families_apart_by_the_bones_the_camera_sees():
-    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", ridge=0.1)
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", head_offset_y_m=0.024, ridge=0.1)
     wide = {1: 1.05 * 1.5, 2: 1.05 * 1.5, 4: 1.05, 5: 1.05}
     np.testing.assert_allclose(regressor.predict(1.05, wide)[[12, 15]], 1.05 * 1.6, rtol=0.03)
     narrow = {1: 0.95, 2: 0.95, 4: 0.95, 5: 0.95}
@@ -117,7 +117,7 @@ def test_the_regressor_tells_the_families_apart_by_the_bones_the_camera_sees():
 
 
 def test_a_calibrator_with_a_regressor_keeps_the_height_scale_until_the_camera_measures():
-    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", ridge=0.1)
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", head_offset_y_m=0.024, ridge=0.1)
     body = BodyCalibrator(regressor)
     body.push(head_at(1.05 * STANDING_HEAD_HEIGHT_M), ALL)
     np.testing.assert_allclose(body.bone_scale, 1.05)
@@ -130,21 +130,53 @@ def test_a_calibrator_with_a_regressor_keeps_the_height_scale_until_the_camera_m
 
 
 def test_a_regressor_survives_a_round_trip_and_a_corrupt_file_is_refused(tmp_path):
-    regressor = BodyRegressor.fit(*family_rows(20), encoder_sha256="abc")
+    regressor = BodyRegressor.fit(*family_rows(20), encoder_sha256="abc", head_offset_y_m=0.024)
     path = tmp_path / "visual-rgbd.body.json"
     regressor.save(path)
     loaded = BodyRegressor.load(path)
     assert loaded.encoder_sha256 == "abc" and loaded.feature_bones == regressor.feature_bones
+    assert loaded.head_offset_y_m == 0.024
     np.testing.assert_allclose(loaded.weights, regressor.weights, atol=1e-6)
     doc = json.loads(path.read_text())
     for broken in (
         "{not json",
         json.dumps({**doc, "weights": [[1.0]]}),
         json.dumps({**doc, "kind": "other"}),
+        json.dumps({**doc, "head_offset_y_m": "high"}),
+        json.dumps({**doc, "head_offset_y_m": float("nan")}),
     ):
         path.write_text(broken)
         with pytest.raises(ValueError, match="not a body regressor"):
             BodyRegressor.load(path)
+
+
+def test_a_regressor_gives_a_model_with_another_head_offset_the_bones_it_gives_its_own():
+    """One encoder's regressor serves models that put the head joint at different heights under the headset;
+    the same wearer must get the same bones from each."""
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", head_offset_y_m=0.06, ridge=0.1)
+    keypoints, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(1.05 * WIDE_HIPS)
+    )
+    view_y_m = 1.05 * STANDING_HEAD_HEIGHT_M + 0.06  # one headset height
+    bones = []
+    for offset_y_m in (0.06, 0.024):
+        body = BodyCalibrator(regressor, head_offset_y_m=offset_y_m)
+        body.push(head_at(view_y_m - offset_y_m), ALL)
+        assert body.height_scale == pytest.approx((view_y_m - offset_y_m) / STANDING_HEAD_HEIGHT_M)
+        for _ in range(MIN_VISUAL_SAMPLES):
+            body.push_visual(keypoints, np.ones(22, dtype=bool))
+        bones.append(body.bone_scale)
+    np.testing.assert_allclose(bones[1], bones[0], rtol=1e-12)
+    np.testing.assert_allclose(bones[0][[1, 12, 15]], 1.05 * WIDE_HIPS[[1, 12, 15]], rtol=0.03)
+
+
+def test_a_regressor_file_from_before_head_offsets_were_recorded_was_fitted_at_the_old_offset(tmp_path):
+    path = tmp_path / "visual-rgbd.body.json"
+    BodyRegressor.fit(*family_rows(20), encoder_sha256="abc", head_offset_y_m=0.024).save(path)
+    doc = json.loads(path.read_text())
+    del doc["head_offset_y_m"]
+    path.write_text(json.dumps(doc))
+    assert BodyRegressor.load(path).head_offset_y_m == 0.06
 
 
 def test_height_scale_is_one_before_any_sample_and_clipped_after():
@@ -161,14 +193,16 @@ def test_a_long_session_refreshes_the_medians_every_tenth_sighting_not_every_fra
 
 def test_one_body_in_the_training_rows_makes_one_family():
     scales_h, measured, truth = family_rows(2)
-    regressor = BodyRegressor.fit(scales_h[:1].repeat(5), measured[:1] * 5, truth[:1].repeat(5, 0), "x")
+    regressor = BodyRegressor.fit(
+        scales_h[:1].repeat(5), measured[:1] * 5, truth[:1].repeat(5, 0), "x", 0.024
+    )
     assert regressor.weights.shape[0] == 1
     np.testing.assert_allclose(regressor.family_probabilities(1.0, measured[0]), [1.0])
 
 
 def test_a_measurement_somewhat_off_stays_with_its_family():
     """A camera that measures the hips 10 % long must not get a body halfway to the wide-hipped family."""
-    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", ridge=0.1)
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", head_offset_y_m=0.024, ridge=0.1)
     off = {1: 1.1, 2: 1.1, 4: 1.0, 5: 1.0}  # a mean body, hips measured 10 % long
     assert regressor.family_probabilities(1.0, off).max() > 0.99
     np.testing.assert_allclose(regressor.predict(1.0, off)[[12, 15]], 1.0, atol=0.05)
