@@ -45,7 +45,7 @@ ZOO: Final = {
         ZooEntry("hmd-rgbd-concat", "ablation: fusion by concatenation", "rgbd", {"fusion": "concat"}),
         ZooEntry(
             "egoposevr-lite",
-            "the full system on one net taught by egoposevr's three: a third of its fusion cost",
+            "the full system on one net taught by egoposevr's ensemble: less fusion work per sample",
             "rgbd",
             {},
             True,

@@ -83,3 +83,12 @@ def test_every_bundled_model_reads_into_the_types():
         info = LoadedModel.load(path).info
         assert info.name == name and isinstance(info.config, FusionConfig)
         assert (info.visual_config is None) == (info.camera is None) == (info.encoder is None)
+
+
+def test_every_bundled_model_describes_itself_as_the_zoo_does():
+    """Clients list models by the description in their files; the zoo's text is kept true as nets change."""
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.zoo import ZOO
+
+    for name, path in model_files().items():
+        assert LoadedModel.load(path).info.description == ZOO[name].description, name
