@@ -11,7 +11,8 @@ from the true motion, model/training/evaluate.py says how); --keypoints the visu
 on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet, arms, head and
 shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose calibration (PROTOCOL.md
 §4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
-evaluated like any split.
+evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the
+people `train --hold-out K/N` left out).
 
 Example:
   egoposevr eval --data data/dev --split val --json eval.json
@@ -31,6 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", default="all", help="comma-separated model names (default all)")
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
+    parser.add_argument(
+        "--fold", default=None, metavar="K/N",
+        help="only the split's subjects of fold K of N: with --split train, the ones `train --hold-out K/N` "
+        "left out",
+    )  # fmt: skip
     parser.add_argument(
         "--by-category", action="store_true", help="also MPJPE per motion category (read from the truth)"
     )
@@ -74,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError, ProviderError, resolve_providers
     from ..model.runtime.procedural import NAME as PROCEDURAL
-    from ..model.training.dataset import DatasetError
+    from ..model.training.dataset import DatasetError, Fold
     from ..model.training.evaluate import (
         category_table,
         evaluate,
@@ -100,6 +106,12 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
 
+    try:
+        fold = Fold.parse(args.fold) if args.fold is not None else None
+    except ValueError as error:
+        print(f"egoposevr eval: --fold: {error}", file=sys.stderr)
+        return 2
+
     def progress(name: str, done: int, total: int) -> None:
         if not args.no_progress:
             print(f"\r{name}: {done}/{total} sequences", end="" if done < total else "\n", file=sys.stderr)
@@ -118,8 +130,11 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
+            fold=fold,
         )
-        keypoints = keypoint_accuracy(args.data, args.split, chosen, args.limit) if args.keypoints else None
+        keypoints = (
+            keypoint_accuracy(args.data, args.split, chosen, args.limit, fold) if args.keypoints else None
+        )
     except (DatasetError, ModelError) as error:
         print(f"egoposevr eval: {error}", file=sys.stderr)
         return 2
@@ -138,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))
     if args.json:
-        report = {"split": args.split, "models": results} | ({"keypoints": keypoints} if keypoints else {})
+        report = {"split": args.split} | ({"fold": str(fold)} if fold else {}) | {"models": results}
+        report |= {"keypoints": keypoints} if keypoints else {}
         args.json.write_text(json.dumps(_without_nan(report), indent=2) + "\n")
     return 0
 

@@ -5,6 +5,9 @@ when --data names more than one) and writes checkpoints to --out:
 visual-rgb.pt, visual-rgbd.pt and fusion-<model>.pt. Models that share parts share checkpoints
 (`egoposevr` is `hmd-rgbd` + KPO). Checkpoints store their config; --resume continues where a run stopped.
 Then `egoposevr export` turns them into the ONNX models the runtime serves.
+--hold-out K/N leaves the train split's subjects of fold K of N out (whole people, by duration; every
+conversion of one capture together), so a training choice can be judged on people the nets never saw with
+`egoposevr eval --split train --fold K/N`, without looking at val or test.
 
 Example (the bundled weights; MODEL_CARD.md has the full recipe):
   egoposevr train --data data/dev --model all --out runs/cpu16 --preset cpu --seed 0 --fusion-steps 16000
@@ -139,6 +142,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="K",
         help="with --init-from: which net of a file that serves several (default 0)",
     )
+    parser.add_argument(
+        "--hold-out", default=None, metavar="K/N",
+        help="leave the train split's subjects of fold K of N out (whole subjects, by duration), to judge a "
+        "training choice on them with `eval --split train --fold K/N` instead of on val or test",
+    )  # fmt: skip
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -181,6 +189,14 @@ def run(args: argparse.Namespace) -> int:
     if args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0:
         print("egoposevr train: --arm-swap P needs 0 <= P <= 1", file=sys.stderr)
         return 2
+    if args.hold_out is not None:
+        from ..model.training.dataset import Fold
+
+        try:
+            overrides["hold_out"] = str(Fold.parse(args.hold_out))
+        except ValueError as error:
+            print(f"egoposevr train: --hold-out: {error}", file=sys.stderr)
+            return 2
     if args.window is not None and args.window < 1:
         print("egoposevr train: --window T needs T >= 1 headset samples", file=sys.stderr)
         return 2

@@ -6,7 +6,9 @@ index them. Shape legend: ``N`` headset samples, ``K`` camera frames, ``J`` = 22
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 import zipfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -15,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..inputs import decode_rgbd, resize_frame
+from ..synth.library import split_subjects
 
 HMD_KEYS = ("hmd_t_us", "hmd_poses", "hmd_valid", "gt_local_quat", "gt_root_m", "gt_joints_m")
 CAMERA_KEYS = ("cam_t_us", "cam_head_pose", "joints_cam_m", "joints_uv_px", "visible", "occluded")
@@ -92,14 +95,73 @@ def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> li
     return seqs
 
 
+@dataclasses.dataclass(frozen=True)
+class Fold:
+    """Fold ``index`` of ``count`` of a split's subjects: the ones ``train --hold-out`` leaves out and ``eval
+    --fold`` serves, so that a training choice can be judged on people the nets never saw without looking
+    at val or test. Subjects go to folds whole and by duration (synth.library.split_subjects, as splits
+    are made), each dataset's split on its own, so the same data gives the same folds wherever it is read."""
+
+    index: int
+    count: int
+
+    def __post_init__(self) -> None:
+        if not (self.count >= 2 and 0 <= self.index < self.count):
+            raise ValueError(f"a fold is K/N with N >= 2 and 0 <= K < N, got {self.index}/{self.count}")
+
+    @classmethod
+    def parse(cls, text: str) -> Fold:
+        """``"K/N"`` -> Fold; ValueError for anything else."""
+        match = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", text)
+        if not match:
+            raise ValueError(f"a fold is K/N (fold K of N, from 0), got {text!r}")
+        return cls(int(match[1]), int(match[2]))
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"
+
+
+_CMU_TRIAL = re.compile(r"(\d+)_\d+")
+
+
+def sequence_subject(seq: dict[str, Any]) -> str:
+    """The person a sequence's motion was captured from: CMU subject SS for trial SS_TT in any of the
+    database's conversions (``cmu:01_02``, ``cmu-daz:01_02`` -> ``cmu:01``); otherwise the sequence itself
+    (procedural motion has no performer: each sequence is its own)."""
+    kind, _, clip = str(seq["source"]).partition(":")
+    trial = _CMU_TRIAL.fullmatch(clip)
+    if kind.startswith("cmu") and trial:
+        return f"cmu:{trial[1]}"
+    return f"{seq['source']}/{seq['name']}"
+
+
+def fold_members(seqs: Sequence[dict[str, Any]], fold: Fold) -> np.ndarray:
+    """(len(seqs),) bool: whether each sequence's subject is in the fold. ``seqs`` is one dataset's whole
+    split: which fold a subject falls in depends on every subject's duration."""
+    seconds: dict[str, float] = {}
+    for seq in seqs:
+        t_us = np.asarray(seq["hmd_t_us"])
+        subject = sequence_subject(seq)
+        seconds[subject] = seconds.get(subject, 0.0) + (float(t_us[-1] - t_us[0]) / 1e6 if len(t_us) else 0.0)
+    shares = tuple((str(k), 1.0 / fold.count) for k in range(fold.count))
+    folds = split_subjects(seconds, shares)
+    return np.array([folds[sequence_subject(s)] == str(fold.index) for s in seqs], dtype=bool)
+
+
 def load_splits(
-    data_dirs: Sequence[str | Path], split: str, limit: int | None = None
+    data_dirs: Sequence[str | Path], split: str, limit: int | None = None, hold_out: Fold | None = None
 ) -> list[dict[str, Any]]:
-    """:func:`load_split` of several datasets, one after the other, at most ``limit`` in all. Keys stay
-    unique: the second and later datasets' are prefixed with their folder."""
+    """:func:`load_split` of several datasets, one after the other, at most ``limit`` in all, without the
+    subjects of ``hold_out`` (each dataset's own fold). Keys stay unique: the second and later datasets'
+    are prefixed with their folder."""
     seqs: list[dict[str, Any]] = []
     for k, data_dir in enumerate(data_dirs):
-        more = load_split(data_dir, split, None if limit is None else limit - len(seqs))
+        if hold_out is None:
+            more = load_split(data_dir, split, None if limit is None else limit - len(seqs))
+        else:  # the folds need the whole split
+            more = load_split(data_dir, split)
+            more = [s for s, held in zip(more, fold_members(more, hold_out), strict=True) if not held]
+            more = more if limit is None else more[: limit - len(seqs)]
         for seq in more if k else []:
             seq["key"] = f"{data_dir}:{seq['key']}"
         seqs += more

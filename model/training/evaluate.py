@@ -37,7 +37,7 @@ from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
-from .dataset import DatasetError, load_split
+from .dataset import DatasetError, Fold, fold_members, load_split
 from .plausibility import plausibility, summarize_plausibility
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
@@ -214,16 +214,19 @@ def calibrate_like_a_user(pipeline: Any, seq: dict[str, Any], headset: dict[str,
     raise AssertionError("the T-pose was shorter than the calibration")  # tpose_samples lasts longer
 
 
-def sequence_rigs(data_dir: Path, split: str, seqs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each sequence's headset draw from the manifest, in the split's order (names repeat: one capture in
-    several conversions); raises DatasetError when the manifest has no rigs (no --rig-pool) or disagrees."""
+def sequence_rigs(
+    data_dir: Path, split: str, seqs: list[dict[str, Any]], indices: np.ndarray | None = None
+) -> list[dict[str, Any]]:
+    """Each sequence's headset draw from the manifest; ``indices`` (n,) are the sequences' places in the
+    split (default 0..n-1; names repeat: one capture in several conversions). Raises DatasetError when the
+    manifest has no rigs (no --rig-pool) or disagrees."""
     manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
-    sources = manifest["splits"][split].get("sources", [])[: len(seqs)]
-    if len(sources) < len(seqs) or any(
-        "rig" not in src or src["name"] != seq["name"] for src, seq in zip(sources, seqs, strict=False)
-    ):
+    sources = manifest["splits"][split].get("sources", [])
+    places = np.arange(len(seqs)) if indices is None else np.asarray(indices)
+    picked = [sources[i] if i < len(sources) else {} for i in places]
+    if any("rig" not in src or src.get("name") != seq["name"] for src, seq in zip(picked, seqs, strict=True)):
         raise DatasetError(f"{data_dir}: --calibrate needs each sequence's rig in manifest.json (--rig-pool)")
-    return [src["rig"]["headset"] for src in sources]
+    return [src["rig"]["headset"] for src in picked]
 
 
 def evaluate(
@@ -238,9 +241,10 @@ def evaluate(
     foot_contacts: bool = True,
     steady_stance: bool = True,
     leg_hold: bool = True,
+    fold: Fold | None = None,
 ) -> dict[str, dict[str, Any]]:
-    """{model name: metrics} over a split for each model file given as {name: path} (None: the procedural
-    baseline); with ``by_category``,
+    """{model name: metrics} over a split (with ``fold``, only its subjects': dataset.Fold) for each model
+    file given as {name: path} (None: the procedural baseline); with ``by_category``,
     each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}.
     With ``calibrate`` every sequence is served after the T-pose calibration its rig and body would give
     (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig).
@@ -248,8 +252,8 @@ def evaluate(
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
     both feet are down (stance.LegHold)."""
-    seqs = load_split(data_dir, split, limit)
-    rigs = sequence_rigs(data_dir, split, seqs) if calibrate else []
+    seqs, indices = split_sequences(data_dir, split, limit, fold)
+    rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
@@ -289,14 +293,29 @@ KEYPOINT_PARTS: Final = {
 }
 
 
+def split_sequences(
+    data_dir: Path, split: str, limit: int | None = None, fold: Fold | None = None
+) -> tuple[list[dict[str, Any]], np.ndarray]:
+    """The split's sequences (at most ``limit``; with ``fold`` only its subjects') and their indices in
+    the split (n,)."""
+    if fold is None:
+        seqs = load_split(data_dir, split, limit)
+        return seqs, np.arange(len(seqs))
+    seqs = load_split(data_dir, split)
+    chosen = np.flatnonzero(fold_members(seqs, fold))[:limit]
+    if not len(chosen):
+        raise DatasetError(f"{data_dir}: split {split!r} has no sequence in fold {fold}")
+    return [seqs[i] for i in chosen], chosen
+
+
 def keypoint_accuracy(
-    data_dir: Path, split: str, models: dict[str, Path], limit: int | None = None
+    data_dir: Path, split: str, models: dict[str, Path], limit: int | None = None, fold: Fold | None = None
 ) -> dict[str, dict[str, Any]]:
     """{encoder: accuracy} of the visual encoders the given models use (each once), on a split: the keypoints
     it lifts to 3D in the camera frame against the truth, on joints in view and not occluded: median, mean and
     90th percentile error (cm), and under ``parts`` each of KEYPOINT_PARTS' median (cm) and how often its
     joints are seen (share of frame × joint)."""
-    seqs = load_split(data_dir, split, limit)
+    seqs, _ = split_sequences(data_dir, split, limit, fold)
     encoders: dict[str, LoadedModel] = {}
     for path in models.values():
         if path is None:  # the procedural baseline reads no camera

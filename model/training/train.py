@@ -60,7 +60,7 @@ from .augment import (
     retime_sequence,
     swap_arms,
 )
-from .dataset import decode_frames, load_splits, split_camera
+from .dataset import DatasetError, Fold, decode_frames, load_splits, split_camera
 from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
@@ -128,6 +128,9 @@ class TrainConfig:
     # (augment.swap_arms; its arm keypoints unseen): arms that move over legs that do what they did. 0: off.
     arm_swap_p: float = 0.0
     limit_sequences: int | None = None
+    # "K/N": the train split's subjects of fold K of N are left out (dataset.Fold), for choices judged on
+    # them (``eval --split train --fold K/N``) instead of on val or test. None: every subject trains.
+    hold_out: str | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
 
@@ -225,12 +228,25 @@ def load_net(path: Path) -> torch.nn.Module:
     return build_net(load_checkpoint(path), path)
 
 
-def _finished(path: Path) -> bool:
-    """A checkpoint exists and reached its planned number of steps (resume skips it)."""
+def _finished(path: Path, tc: TrainConfig) -> bool:
+    """A checkpoint exists and reached its planned number of steps (resume skips it); CheckpointError when
+    it was trained without the subjects ``tc`` leaves out, or with others."""
     if not path.exists():
         return False
     ckpt = load_checkpoint(path)
+    _check_same_hold_out(ckpt, path, tc)
     return ckpt["step"] >= ckpt["total_steps"]
+
+
+def _check_same_hold_out(ckpt: dict[str, Any], path: Path, tc: TrainConfig) -> None:
+    """A run resumes on the data it started on: its fold left out (``--hold-out``) must be this one."""
+    data = ckpt.get("data")
+    held_then = data.get("held_out_fold") if isinstance(data, dict) else None
+    if held_then != tc.hold_out:
+        raise CheckpointError(
+            f"{path} was trained with --hold-out {held_then or 'none'}, not {tc.hold_out or 'none'}: "
+            "its data would change under it; train into another --out"
+        )
 
 
 def _schedule(tc: TrainConfig, total: int) -> Callable[[int], float]:
@@ -262,6 +278,7 @@ def _run_steps(
     step, history, elapsed = 0, [], 0.0
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
+        _check_same_hold_out(ckpt, ckpt_path, tc)
         try:
             net.load_state_dict(ckpt["state_dict"])
             opt.load_state_dict(ckpt["optimizer"])
@@ -410,17 +427,17 @@ def train_visual(
 ) -> Path:
     """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``."""
     path = out_dir / f"visual-{kind}.pt"
-    if resume and _finished(path):
+    if resume and _finished(path, tc):
         return path
     torch.manual_seed(tc.seed)
     cfg = visual_config(kind, tc)
     net = KeypointNet(cfg).to(tc.device)
     data_dirs = dataset_dirs(data)
     camera = split_camera(data_dirs[0], "train")  # the encoder's default camera: the first dataset's
-    seqs = seqs if seqs is not None else load_splits(data_dirs, "train", tc.limit_sequences)
+    seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
     frames = load_visual_data(seqs, (cfg.width, cfg.height))
     meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
-            "data": {"dir": _dirs_field(data_dirs), "frames": len(frames.rgb), "sequences": len(seqs)}}  # fmt: skip
+            "data": _data_field(data_dirs, tc, frames=len(frames.rgb), sequences=len(seqs))}  # fmt: skip
     _run_steps(net, visual_loss_fn(net, frames, tc), path, tc.visual_steps, tc, meta, resume, progress)
     return path
 
@@ -741,7 +758,7 @@ def train_fusion(
     ``initial`` the net starts from those weights (its input statistics included) instead of a random
     draw: a fine-tune, with this run's own warmup and schedule."""
     path = out_dir / f"fusion-{name}.pt"
-    if resume and _finished(path):
+    if resume and _finished(path, tc):
         return path
     entry = ZOO[name]
     visual: KeypointNet | ExportedEncoder | None = None
@@ -751,7 +768,7 @@ def train_fusion(
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     data_dirs = dataset_dirs(data)
-    seqs = seqs if seqs is not None else load_splits(data_dirs, "train", tc.limit_sequences)
+    seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
@@ -759,8 +776,8 @@ def train_fusion(
         net.load_state_dict(initial.state_dict)
     net.to(tc.device)
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
-            "data": {"dir": _dirs_field(data_dirs), "sequences": len(seqs),
-                     "hmd_samples": int(sum(len(p.t_us) for p in prepared))}}  # fmt: skip
+            "data": _data_field(data_dirs, tc, sequences=len(seqs),
+                                hmd_samples=int(sum(len(p.t_us) for p in prepared)))}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
     if initial is not None:
@@ -881,6 +898,21 @@ def dataset_dirs(data: Path | Sequence[Path]) -> tuple[Path, ...]:
     return (Path(data),) if isinstance(data, str | Path) else tuple(Path(d) for d in data)
 
 
+def training_sequences(data_dirs: tuple[Path, ...], tc: TrainConfig) -> list[dict[str, Any]]:
+    """The train split of every dataset, without ``tc.hold_out``'s subjects, at most ``tc.limit_sequences``."""
+    hold_out = Fold.parse(tc.hold_out) if tc.hold_out else None
+    seqs = load_splits(data_dirs, "train", tc.limit_sequences, hold_out)
+    if not seqs:
+        raise DatasetError(f"no train sequence is left to train on without fold {hold_out}")
+    return seqs
+
+
+def _data_field(data_dirs: tuple[Path, ...], tc: TrainConfig, **counts: int) -> dict[str, Any]:
+    """A checkpoint's ``data`` record: the folders, the fold left out (when one is), the counts."""
+    held = {"held_out_fold": tc.hold_out} if tc.hold_out else {}
+    return {"dir": _dirs_field(data_dirs), **held, **counts}
+
+
 def _dirs_field(data_dirs: tuple[Path, ...]) -> str | list[str]:
     """The checkpoint's record of its data: one folder as before, several as a list."""
     return str(data_dirs[0]) if len(data_dirs) == 1 else [str(d) for d in data_dirs]
@@ -926,7 +958,7 @@ def train_zoo(
     # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
     taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
     data_dirs = dataset_dirs(data)
-    seqs = load_splits(data_dirs, "train", tc.limit_sequences)
+    seqs = training_sequences(data_dirs, tc)
     paths = {}
     if encoders_dir is None:
         paths = {

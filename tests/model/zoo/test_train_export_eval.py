@@ -15,7 +15,7 @@ from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
-from egoposevr.model.training.dataset import load_split, load_splits, split_camera
+from egoposevr.model.training.dataset import Fold, fold_members, load_split, load_splits, split_camera
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
 from egoposevr.model.training.train import PRESETS, build_net, load_checkpoint, prepare_fusion_sequence
 from egoposevr.model.weights import model_files
@@ -320,6 +320,32 @@ def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
     assert main([*args, "--out", str(out), "--fusion-steps", "2", "--encoders", str(tiny_weights)]) == 0
     data = load_checkpoint(out / "fusion-hmd-rgbd.pt")["data"]
     assert data["dir"] == [str(tiny_data), str(more)] and data["sequences"] == len(both)
+
+
+def test_a_held_out_fold_trains_without_its_subjects_and_eval_serves_only_them(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    held = fold_members(load_split(tiny_data, "train"), Fold(0, 2))
+    assert 0 < held.sum() < len(held)
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    out = tmp_path / "runs"
+    assert main([*args, "--out", str(out), "--fusion-steps", "2", "--hold-out", "0/2"]) == 0
+    data = load_checkpoint(out / "fusion-hmd.pt")["data"]
+    assert data["held_out_fold"] == "0/2" and data["sequences"] == len(held) - held.sum()
+    for other in (["--hold-out", "1/2"], []):  # a finished run, resumed on other data
+        assert main([*args, "--out", str(out), "--fusion-steps", "2", "--resume", *other]) == 2
+        assert "trained with --hold-out 0/2" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "x"), "--hold-out", "2/2"]) == 2
+    assert "--hold-out" in capsys.readouterr().err
+
+    report = tmp_path / "fold.json"
+    evaluate = ["eval", "--data", str(tiny_data), "--split", "train", "--models-dir", str(tiny_weights)]
+    evaluate += ["--models", "hmd", "--by-category", "--no-progress"]
+    assert main([*evaluate, "--fold", "0/2", "--json", str(report)]) == 0
+    served = json.loads(report.read_text())
+    assert served["fold"] == "0/2"
+    assert sum(c["sequences"] for c in served["models"]["hmd"]["categories"].values()) == held.sum()
+    assert main([*evaluate, "--fold", "0-2"]) == 2 and "--fold" in capsys.readouterr().err
 
 
 def test_training_on_a_device_this_torch_lacks_is_a_clear_error(tiny_data, tmp_path, capsys):
