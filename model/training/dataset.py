@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..inputs import decode_rgbd, resize_frame
-from ..synth.library import split_subjects
+from ..synth.library import CMU_TRIAL, split_subjects
 
 HMD_KEYS = ("hmd_t_us", "hmd_poses", "hmd_valid", "gt_local_quat", "gt_root_m", "gt_joints_m")
 CAMERA_KEYS = ("cam_t_us", "cam_head_pose", "joints_cam_m", "joints_uv_px", "visible", "occluded")
@@ -121,17 +121,14 @@ class Fold:
         return f"{self.index}/{self.count}"
 
 
-_CMU_TRIAL = re.compile(r"(\d+)_\d+")
-
-
 def sequence_subject(seq: dict[str, Any]) -> str:
-    """The person a sequence's motion was captured from: CMU subject SS for trial SS_TT in any of the
-    database's conversions (``cmu:01_02``, ``cmu-daz:01_02`` -> ``cmu:01``); otherwise the sequence itself
-    (procedural motion has no performer: each sequence is its own)."""
+    """The person a sequence's motion was captured from, named as the motion library names subjects: CMU
+    subject SS for trial SS_TT in any of the database's conversions (``cmu:1_02``, ``cmu-daz:01_02`` ->
+    ``cmu-01``); otherwise the sequence itself (procedural motion has no performer: each is its own)."""
     kind, _, clip = str(seq["source"]).partition(":")
-    trial = _CMU_TRIAL.fullmatch(clip)
+    trial = CMU_TRIAL.match(clip)
     if kind.startswith("cmu") and trial:
-        return f"cmu:{trial[1]}"
+        return f"cmu-{int(trial[1]):02d}"
     return f"{seq['source']}/{seq['name']}"
 
 
