@@ -135,14 +135,24 @@ def sequence_subject(seq: dict[str, Any]) -> str:
 def fold_members(seqs: Sequence[dict[str, Any]], fold: Fold) -> np.ndarray:
     """(len(seqs),) bool: whether each sequence's subject is in the fold. ``seqs`` is one dataset's whole
     split: which fold a subject falls in depends on every subject's duration."""
+    subjects = [sequence_subject(s) for s in seqs]
     seconds: dict[str, float] = {}
-    for seq in seqs:
+    for seq, subject in zip(seqs, subjects, strict=True):
         t_us = np.asarray(seq["hmd_t_us"])
-        subject = sequence_subject(seq)
         seconds[subject] = seconds.get(subject, 0.0) + (float(t_us[-1] - t_us[0]) / 1e6 if len(t_us) else 0.0)
     shares = tuple((str(k), 1.0 / fold.count) for k in range(fold.count))
     folds = split_subjects(seconds, shares)
-    return np.array([folds[sequence_subject(s)] == str(fold.index) for s in seqs], dtype=bool)
+    return np.array([folds[subject] == str(fold.index) for subject in subjects], dtype=bool)
+
+
+def load_fold(
+    data_dir: str | Path, split: str, fold: Fold, held: bool, limit: int | None = None
+) -> tuple[list[dict[str, Any]], np.ndarray]:
+    """The split's sequences whose subjects are in the fold (``held``) or outside it, at most ``limit``, and
+    their places in the split (n,). The whole split is read: the folds depend on every subject."""
+    seqs = load_split(data_dir, split)
+    places = np.flatnonzero(fold_members(seqs, fold) == held)[:limit]
+    return [seqs[i] for i in places], places
 
 
 def load_splits(
@@ -155,10 +165,10 @@ def load_splits(
     for k, data_dir in enumerate(data_dirs):
         if hold_out is None:
             more = load_split(data_dir, split, None if limit is None else limit - len(seqs))
-        else:  # the folds need the whole split
-            more = load_split(data_dir, split)
-            more = [s for s, held in zip(more, fold_members(more, hold_out), strict=True) if not held]
-            more = more if limit is None else more[: limit - len(seqs)]
+        else:
+            more, _ = load_fold(
+                data_dir, split, hold_out, False, None if limit is None else limit - len(seqs)
+            )
         for seq in more if k else []:
             seq["key"] = f"{data_dir}:{seq['key']}"
         seqs += more

@@ -37,7 +37,7 @@ from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
-from .dataset import DatasetError, Fold, fold_members, load_split
+from .dataset import DatasetError, Fold, load_fold, load_split
 from .plausibility import plausibility, summarize_plausibility
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
@@ -301,11 +301,10 @@ def split_sequences(
     if fold is None:
         seqs = load_split(data_dir, split, limit)
         return seqs, np.arange(len(seqs))
-    seqs = load_split(data_dir, split)
-    chosen = np.flatnonzero(fold_members(seqs, fold))[:limit]
-    if not len(chosen):
+    seqs, places = load_fold(data_dir, split, fold, True, limit)
+    if not seqs:
         raise DatasetError(f"{data_dir}: split {split!r} has no sequence in fold {fold}")
-    return [seqs[i] for i in chosen], chosen
+    return seqs, places
 
 
 def keypoint_accuracy(

@@ -278,7 +278,6 @@ def _run_steps(
     step, history, elapsed = 0, [], 0.0
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
-        _check_same_hold_out(ckpt, ckpt_path, tc)
         try:
             net.load_state_dict(ckpt["state_dict"])
             opt.load_state_dict(ckpt["optimizer"])
