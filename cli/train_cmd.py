@@ -61,6 +61,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="weight of the fusion nets' skating term (a truly planted foot's served slide, m); 0 off",
     )
     parser.add_argument(
+        "--contact-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="weight of the fusion nets' contact output's cross-entropy (default 1)",
+    )
+    parser.add_argument(
+        "--dropout",
+        type=float,
+        default=None,
+        metavar="P",
+        help="the fusion nets' dropout in attention and feed-forward layers (default 0.1)",
+    )
+    parser.add_argument(
         "--served-rotation-weight",
         type=float,
         default=None,
@@ -170,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
             ("window", args.window),
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("served_rotation_weight", args.served_rotation_weight),
+            ("contact_weight", args.contact_weight), ("dropout", args.dropout),
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
@@ -185,6 +200,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.keypoint_error_gain is not None and not 0.0 <= args.keypoint_error_gain <= 10.0:
         print("egoposevr train: --keypoint-error-gain G needs 0 <= G <= 10", file=sys.stderr)
+        return 2
+    if args.dropout is not None and not 0.0 <= args.dropout < 1.0:
+        print("egoposevr train: --dropout P needs 0 <= P < 1", file=sys.stderr)
+        return 2
+    if args.contact_weight is not None and args.contact_weight < 0.0:
+        print("egoposevr train: --contact-weight W needs W >= 0", file=sys.stderr)
         return 2
     if args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0:
         print("egoposevr train: --arm-swap P needs 0 <= P <= 1", file=sys.stderr)

@@ -85,6 +85,7 @@ class TrainConfig:
     visual_window: int = 8
     d_model: int = 64
     joint_dim: int = 32
+    dropout: float = 0.1  # the fusion nets' (FusionConfig.dropout): attention and feed-forward layers
     heatmap_sigma_cells: float = 1.0
     camera_latency_ms: tuple[float, float] = (10.0, 50.0)  # capture -> arrival, drawn per sequence
     drop_camera_p: float = 0.1  # whole visual window missing: teaches the HMD-only fallback
@@ -166,6 +167,7 @@ def fusion_config(name: str, tc: TrainConfig) -> FusionConfig:
     base = {"window": tc.window, "visual_window": tc.visual_window, "d_model": tc.d_model}
     base |= {
         "joint_dim": tc.joint_dim,
+        "dropout": tc.dropout,
         "device_validity": tc.device_validity,
         "contact_head": tc.contact_head,
     }
