@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="weight of the fusion nets' skating term (a truly planted foot's served slide, m); 0 off",
     )
     parser.add_argument(
+        "--weight-decay", type=float, default=None, metavar="D", help="AdamW's weight decay (default 0.01)"
+    )
+    parser.add_argument(
         "--contact-weight",
         type=float,
         default=None,
@@ -185,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("served_rotation_weight", args.served_rotation_weight),
             ("contact_weight", args.contact_weight), ("dropout", args.dropout),
+            ("weight_decay", args.weight_decay),
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
@@ -203,6 +207,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.dropout is not None and not 0.0 <= args.dropout < 1.0:
         print("egoposevr train: --dropout P needs 0 <= P < 1", file=sys.stderr)
+        return 2
+    if args.weight_decay is not None and not 0.0 <= args.weight_decay < 1.0:
+        print("egoposevr train: --weight-decay D needs 0 <= D < 1", file=sys.stderr)
         return 2
     if args.contact_weight is not None and args.contact_weight < 0.0:
         print("egoposevr train: --contact-weight W needs W >= 0", file=sys.stderr)

@@ -74,18 +74,25 @@ def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_
     assert ckpt["history"][-1]["rot_served"] > 0
 
 
-def test_dropout_and_the_contact_weight_are_flags_the_net_and_checkpoint_keep(tiny_data, tmp_path, capsys):
+def test_dropout_weight_decay_and_the_contact_weight_are_flags_the_net_and_checkpoint_keep(
+    tiny_data, tmp_path, capsys
+):
     import torch
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
-    flags = ["--fusion-steps", "2", "--dropout", "0.3", "--contact-weight", "4", "--no-progress"]
-    assert main([*args, *flags]) == 0
+    flags = ["--fusion-steps", "2", "--dropout", "0.3", "--contact-weight", "4", "--weight-decay", "0.1"]
+    assert main([*args, *flags, "--no-progress"]) == 0
     ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
+    assert ckpt["optimizer"]["param_groups"][0]["weight_decay"] == 0.1
     assert ckpt["config"]["dropout"] == 0.3 and ckpt["train_config"]["dropout"] == 0.3
     assert ckpt["train_config"]["contact_weight"] == 4.0
     drops = {m.p for m in build_net(ckpt).modules() if isinstance(m, torch.nn.Dropout)}
     assert drops == {0.3}
-    for bad, says in (("--dropout", "--dropout P needs"), ("--contact-weight", "--contact-weight W needs")):
+    for bad, says in (
+        ("--dropout", "--dropout P needs"),
+        ("--contact-weight", "--contact-weight W needs"),
+        ("--weight-decay", "--weight-decay D needs"),
+    ):
         assert main([*args, bad, "-1", "--no-progress"]) == 2
         assert says in capsys.readouterr().err
 
