@@ -283,6 +283,8 @@ def _run_steps(
         try:
             net.load_state_dict(ckpt["state_dict"])
             opt.load_state_dict(ckpt["optimizer"])
+            for group in opt.param_groups:  # the saved state carries the decay it began with; the flags rule
+                group["weight_decay"] = tc.weight_decay
             sched.load_state_dict(ckpt["scheduler"])
             step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
         except (RuntimeError, ValueError, KeyError) as error:

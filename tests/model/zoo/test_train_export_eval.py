@@ -88,6 +88,13 @@ def test_dropout_weight_decay_and_the_contact_weight_are_flags_the_net_and_check
     assert ckpt["train_config"]["contact_weight"] == 4.0
     drops = {m.p for m in build_net(ckpt).modules() if isinstance(m, torch.nn.Dropout)}
     assert drops == {0.3}
+    ckpt["step"] = 1  # cut short, so that --resume goes on with it
+    torch.save(ckpt, tmp_path / "fusion-hmd.pt")
+    resumed = ["--fusion-steps", "2", "--weight-decay", "0.2", "--resume", "--no-progress"]
+    assert main([*args, *resumed]) == 0  # a resumed run decays as its command says, and records that
+    ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
+    assert ckpt["step"] == 2 and ckpt["train_config"]["weight_decay"] == 0.2
+    assert ckpt["optimizer"]["param_groups"][0]["weight_decay"] == 0.2
     for bad, says in (
         ("--dropout", "--dropout P needs"),
         ("--contact-weight", "--contact-weight W needs"),
