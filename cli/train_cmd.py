@@ -43,46 +43,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fusion-steps", type=int, default=None, metavar="N")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="use at most N train sequences")
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="torch threads")
-    parser.add_argument(
+    _number(
+        parser,
         "--temporal-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of the fusion nets' temporal term (the error's change between consecutive samples); 0 off",
+        "W",
+        "weight of the fusion nets' temporal term (the error's change between consecutive samples); 0 off",
     )
     parser.add_argument(
         "--window", type=int, default=None, metavar="T", help="fusion nets' HMD window, headset samples"
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--skate-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of the fusion nets' skating term (a truly planted foot's served slide, m); 0 off",
+        "W",
+        "weight of the fusion nets' skating term (a truly planted foot's served slide, m); 0 off",
     )
-    parser.add_argument(
-        "--weight-decay", type=float, default=None, metavar="D", help="AdamW's weight decay (default 0.01)"
-    )
-    parser.add_argument(
+    _number(parser, "--weight-decay", "D", "AdamW's weight decay (default 0.01)")
+    _number(
+        parser,
         "--contact-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of the fusion nets' contact output's cross-entropy (default 1)",
+        "W",
+        "weight of the fusion nets' contact output's cross-entropy (default 1)",
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--dropout",
-        type=float,
-        default=None,
-        metavar="P",
-        help="the fusion nets' dropout in attention and feed-forward layers (default 0.1)",
+        "P",
+        "the fusion nets' dropout in attention and feed-forward layers (default 0.1)",
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--served-rotation-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of the fusion nets' rotation term as served (6D after Gram-Schmidt): no degenerate column; 0 off",
+        "W",
+        "weight of the fusion nets' rotation term as served (6D after Gram-Schmidt): no degenerate column; 0 off",
     )
     parser.add_argument(
         "--device",
@@ -104,28 +97,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar=("MIN", "MAX"),
         help="fusion nets: the mirrored copies also lose controllers outside a cone drawn from MIN-MAX degrees",
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--hanging-loss",
-        type=float,
-        default=None,
-        metavar="M",
-        help="fusion nets: the mirrored copies also lose a controller whose wrist hangs more than M metres "
+        "M",
+        "fusion nets: the mirrored copies also lose a controller whose wrist hangs more than M metres "
         "under its shoulder",
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--keypoint-error-gain",
-        type=float,
-        default=None,
-        metavar="G",
-        help="fusion nets: each keypoint's error against the truth scaled by G (> 1: as bad as unseen "
+        "G",
+        "fusion nets: each keypoint's error against the truth scaled by G (> 1: as bad as unseen "
         "people and rigs get; default 1)",
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--arm-swap",
-        type=float,
-        default=None,
-        metavar="P",
-        help="fusion nets: a share P of the sequences also trains with another sequence's arm motion "
+        "P",
+        "fusion nets: a share P of the sequences also trains with another sequence's arm motion "
         "(legs as they were, arm keypoints unseen)",
     )
     parser.add_argument(
@@ -136,12 +126,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="distil: each fusion net also learns the mean output of these runs folders' nets of its kind",
     )
-    parser.add_argument(
+    _number(
+        parser,
         "--distill-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="with --teachers: the share of each loss term taken against the teachers (default 0.5)",
+        "W",
+        "with --teachers: the share of each loss term taken against the teachers (default 0.5)",
     )
     parser.add_argument(
         "--init-from",
@@ -166,6 +155,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
+
+
+def _number(parser: argparse.ArgumentParser, flag: str, metavar: str, help_text: str) -> None:
+    """A float option that overrides the preset's value when given (None: the preset's)."""
+    parser.add_argument(flag, type=float, default=None, metavar=metavar, help=help_text)
 
 
 def run(args: argparse.Namespace) -> int:
