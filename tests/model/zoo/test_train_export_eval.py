@@ -85,7 +85,7 @@ def test_dropout_weight_decay_and_the_contact_weight_are_flags_the_net_and_check
     ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
     assert ckpt["optimizer"]["param_groups"][0]["weight_decay"] == 0.1
     assert ckpt["config"]["dropout"] == 0.3 and ckpt["train_config"]["dropout"] == 0.3
-    assert ckpt["train_config"]["contact_weight"] == 4.0
+    assert ckpt["train_config"]["contact_weight"] == 4.0 and ckpt["history"][-1]["contact"] > 0
     drops = {m.p for m in build_net(ckpt).modules() if isinstance(m, torch.nn.Dropout)}
     assert drops == {0.3}
     ckpt["step"] = 1  # cut short, so that --resume goes on with it
@@ -95,6 +95,9 @@ def test_dropout_weight_decay_and_the_contact_weight_are_flags_the_net_and_check
     ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
     assert ckpt["step"] == 2 and ckpt["train_config"]["weight_decay"] == 0.2
     assert ckpt["optimizer"]["param_groups"][0]["weight_decay"] == 0.2
+    unweighted = ["--out", str(tmp_path / "c0"), "--fusion-steps", "2", "--contact-weight", "0"]
+    assert main([*args, *unweighted, "--no-progress"]) == 0  # the weight scales the contact loss itself
+    assert load_checkpoint(tmp_path / "c0" / "fusion-hmd.pt")["history"][-1]["contact"] == 0.0
     for bad, says in (
         ("--dropout", "--dropout P needs"),
         ("--contact-weight", "--contact-weight W needs"),
