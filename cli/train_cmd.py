@@ -190,26 +190,9 @@ def run(args: argparse.Namespace) -> int:
         )
         if value is not None
     }  # fmt: skip
-    if args.tracking_cone and not 0.0 < args.tracking_cone[0] <= args.tracking_cone[1] <= 180.0:
-        print("egoposevr train: --tracking-cone MIN MAX needs 0 < MIN <= MAX <= 180 degrees", file=sys.stderr)
-        return 2
-    if args.hanging_loss is not None and not 0.0 < args.hanging_loss < 2.0:
-        print("egoposevr train: --hanging-loss M needs 0 < M < 2 metres", file=sys.stderr)
-        return 2
-    if args.keypoint_error_gain is not None and not 0.0 <= args.keypoint_error_gain <= 10.0:
-        print("egoposevr train: --keypoint-error-gain G needs 0 <= G <= 10", file=sys.stderr)
-        return 2
-    if args.dropout is not None and not 0.0 <= args.dropout < 1.0:
-        print("egoposevr train: --dropout P needs 0 <= P < 1", file=sys.stderr)
-        return 2
-    if args.weight_decay is not None and not 0.0 <= args.weight_decay < 1.0:
-        print("egoposevr train: --weight-decay D needs 0 <= D < 1", file=sys.stderr)
-        return 2
-    if args.contact_weight is not None and args.contact_weight < 0.0:
-        print("egoposevr train: --contact-weight W needs W >= 0", file=sys.stderr)
-        return 2
-    if args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0:
-        print("egoposevr train: --arm-swap P needs 0 <= P <= 1", file=sys.stderr)
+    refusal = _out_of_range(args)
+    if refusal is not None:
+        print(f"egoposevr train: {refusal}", file=sys.stderr)
         return 2
     if args.hold_out is not None:
         from ..model.training.dataset import Fold
@@ -219,9 +202,6 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as error:
             print(f"egoposevr train: --hold-out: {error}", file=sys.stderr)
             return 2
-    if args.window is not None and args.window < 1:
-        print("egoposevr train: --window T needs T >= 1 headset samples", file=sys.stderr)
-        return 2
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
     try:
         initial = _initial_weights(names, args.init_from, args.init_member, config)
@@ -248,6 +228,23 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name}: {path}")
     print(f"trained in {time.perf_counter() - started:.0f} s")
     return 0
+
+
+def _out_of_range(args: argparse.Namespace) -> str | None:
+    """The first option given outside its range, as the line that says what it needs; None when none is."""
+    cone = args.tracking_cone
+    checks = (
+        (cone and not 0.0 < cone[0] <= cone[1] <= 180.0, "--tracking-cone MIN MAX needs 0 < MIN <= MAX <= 180 degrees"),
+        (args.hanging_loss is not None and not 0.0 < args.hanging_loss < 2.0, "--hanging-loss M needs 0 < M < 2 metres"),
+        (args.keypoint_error_gain is not None and not 0.0 <= args.keypoint_error_gain <= 10.0,
+         "--keypoint-error-gain G needs 0 <= G <= 10"),
+        (args.dropout is not None and not 0.0 <= args.dropout < 1.0, "--dropout P needs 0 <= P < 1"),
+        (args.weight_decay is not None and not 0.0 <= args.weight_decay < 1.0, "--weight-decay D needs 0 <= D < 1"),
+        (args.contact_weight is not None and args.contact_weight < 0.0, "--contact-weight W needs W >= 0"),
+        (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
+        (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
+    )  # fmt: skip
+    return next((needs for bad, needs in checks if bad), None)
 
 
 def _initial_weights(

@@ -215,15 +215,14 @@ def calibrate_like_a_user(pipeline: Any, seq: dict[str, Any], headset: dict[str,
 
 
 def sequence_rigs(
-    data_dir: Path, split: str, seqs: list[dict[str, Any]], indices: np.ndarray | None = None
+    data_dir: Path, split: str, seqs: list[dict[str, Any]], indices: np.ndarray
 ) -> list[dict[str, Any]]:
     """Each sequence's headset draw from the manifest; ``indices`` (n,) are the sequences' places in the
-    split (default 0..n-1; names repeat: one capture in several conversions). Raises DatasetError when the
-    manifest has no rigs (no --rig-pool) or disagrees."""
+    split (names repeat: one capture in several conversions). Raises DatasetError when the manifest has no
+    rigs (no --rig-pool) or disagrees."""
     manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
     sources = manifest["splits"][split].get("sources", [])
-    places = np.arange(len(seqs)) if indices is None else np.asarray(indices)
-    picked = [sources[i] if i < len(sources) else {} for i in places]
+    picked = [sources[i] if i < len(sources) else {} for i in indices]
     if any("rig" not in src or src.get("name") != seq["name"] for src, seq in zip(picked, seqs, strict=True)):
         raise DatasetError(f"{data_dir}: --calibrate needs each sequence's rig in manifest.json (--rig-pool)")
     return [src["rig"]["headset"] for src in picked]
