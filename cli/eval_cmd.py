@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         keypoint_table,
         markdown_table,
         plausibility_table,
+        split_sequences,
     )
     from ..model.weights import WEIGHTS_DIR, model_files
 
@@ -118,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         chosen = {m: available[m] for m in wanted}
+        loaded = split_sequences(args.data, args.split, args.limit, fold)  # read once for both reports
         results = evaluate(
             args.data,
             args.split,
@@ -131,9 +133,12 @@ def run(args: argparse.Namespace) -> int:
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
             fold=fold,
+            loaded=loaded,
         )
         keypoints = (
-            keypoint_accuracy(args.data, args.split, chosen, args.limit, fold) if args.keypoints else None
+            keypoint_accuracy(args.data, args.split, chosen, args.limit, fold, loaded)
+            if args.keypoints
+            else None
         )
     except (DatasetError, ModelError) as error:
         print(f"egoposevr eval: {error}", file=sys.stderr)

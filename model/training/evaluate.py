@@ -241,6 +241,7 @@ def evaluate(
     steady_stance: bool = True,
     leg_hold: bool = True,
     fold: Fold | None = None,
+    loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split (with ``fold``, only its subjects': dataset.Fold) for each model
     file given as {name: path} (None: the procedural baseline); with ``by_category``,
@@ -250,8 +251,9 @@ def evaluate(
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
-    both feet are down (stance.LegHold)."""
-    seqs, indices = split_sequences(data_dir, split, limit, fold)
+    both feet are down (stance.LegHold). ``loaded``: what :func:`split_sequences` gave for these arguments,
+    when the caller has already read the split (``eval --keypoints`` reads it once for both reports)."""
+    seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
@@ -307,13 +309,18 @@ def split_sequences(
 
 
 def keypoint_accuracy(
-    data_dir: Path, split: str, models: dict[str, Path], limit: int | None = None, fold: Fold | None = None
+    data_dir: Path,
+    split: str,
+    models: dict[str, Path],
+    limit: int | None = None,
+    fold: Fold | None = None,
+    loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """{encoder: accuracy} of the visual encoders the given models use (each once), on a split: the keypoints
     it lifts to 3D in the camera frame against the truth, on joints in view and not occluded: median, mean and
     90th percentile error (cm), and under ``parts`` each of KEYPOINT_PARTS' median (cm) and how often its
-    joints are seen (share of frame × joint)."""
-    seqs, _ = split_sequences(data_dir, split, limit, fold)
+    joints are seen (share of frame × joint). ``loaded`` as :func:`evaluate`'s."""
+    seqs, _ = loaded or split_sequences(data_dir, split, limit, fold)
     encoders: dict[str, LoadedModel] = {}
     for path in models.values():
         if path is None:  # the procedural baseline reads no camera

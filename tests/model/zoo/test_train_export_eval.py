@@ -850,7 +850,14 @@ def test_the_served_head_and_hands_face_as_their_devices(tiny_weights, val, mode
     assert np.degrees(geodesic_angle(_global_rotations(pose.local_rot)[20], device_rot[1])) < 1.0
 
 
-def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny_weights, tmp_path, capsys):
+def test_eval_reports_categories_and_the_encoders_keypoint_error(
+    tiny_data, tiny_weights, tmp_path, capsys, monkeypatch
+):
+    from egoposevr.model.training import dataset
+
+    shards_read = []
+    load_shard = dataset.load_shard
+    monkeypatch.setattr(dataset, "load_shard", lambda path: shards_read.append(path) or load_shard(path))
     out = tmp_path / "eval.json"
     args = [
         "eval",
@@ -864,6 +871,7 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(tiny_data, tiny
     ]
     assert main([*args, "--models", "procedural,hmd,hmd-rgb,egoposevr", "--by-category", "--keypoints"]) == 0
     text = capsys.readouterr().out
+    assert shards_read and len(set(shards_read)) == len(shards_read)  # the split is read once for both reports
     assert "| category (sequences) |" in text and "| visual-rgbd |" in text and "| visual-rgb |" in text
     assert "| procedural |" in text  # the baseline, evaluated like the others
     report = json.loads(out.read_text())
