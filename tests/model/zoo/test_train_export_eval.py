@@ -871,7 +871,8 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(
     ]
     assert main([*args, "--models", "procedural,hmd,hmd-rgb,egoposevr", "--by-category", "--keypoints"]) == 0
     text = capsys.readouterr().out
-    assert shards_read and len(set(shards_read)) == len(shards_read)  # the split is read once for both reports
+    # The split is read once for both reports.
+    assert shards_read and len(set(shards_read)) == len(shards_read)
     assert "| category (sequences) |" in text and "| visual-rgbd |" in text and "| visual-rgb |" in text
     assert "| procedural |" in text  # the baseline, evaluated like the others
     report = json.loads(out.read_text())
