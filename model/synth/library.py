@@ -129,6 +129,9 @@ def parse_split_shares(text: str) -> tuple[tuple[str, float], ...]:
     return tuple((n, s / total) for n, s in shares)
 
 
+_TIE: Final = 1e-12  # split_subjects: misses this close are a tie
+
+
 def split_subjects(
     seconds_by_subject: dict[str, float],
     shares: tuple[tuple[str, float], ...] = DEFAULT_SPLITS,
@@ -138,8 +141,8 @@ def split_subjects(
 
     Subjects are taken largest first with seed 0 (the most even split), in a seeded random order with any
     other seed (other folds, less even); each goes to the split that it leaves closest to its share of the
-    hours. The last subjects go to splits still empty, so that no split is empty when there are at least as
-    many subjects as splits.
+    hours (a tie to the first of them in ``shares``). The last subjects go to splits still empty, so that no split
+    is empty when there are at least as many subjects as splits.
     """
     total = sum(seconds_by_subject.values()) or 1.0
     names = sorted(seconds_by_subject)
@@ -159,7 +162,10 @@ def split_subjects(
             after = {n: h + (seconds_by_subject[subject] if n == split else 0.0) for n, h in hours.items()}
             return sum((after[n] / total - share) ** 2 for n, share in shares)
 
-        choice = min(candidates, key=miss)
+        misses = [miss(split) for split in candidates]
+        # Splits this subject leaves equally close go to the first: left to rounding, two equal shares (folds)
+        # tie to the last digit, and a re-render that moves a duration by a microsecond renumbered the folds.
+        choice = candidates[next(i for i, m in enumerate(misses) if m <= min(misses) + _TIE)]
         assigned[subject] = choice
         hours[choice] += seconds_by_subject[subject]
         filled[choice] += 1

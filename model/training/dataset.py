@@ -100,7 +100,9 @@ class Fold:
     """Fold ``index`` of ``count`` of a split's subjects: the ones ``train --hold-out`` leaves out and ``eval
     --fold`` serves, so that a training choice can be judged on people the nets never saw without looking
     at val or test. Subjects go to folds whole and by duration (synth.library.split_subjects, as splits
-    are made), each dataset's split on its own, so the same data gives the same folds wherever it is read."""
+    are made; a subject that leaves two folds equally close goes to the lower-numbered), each dataset's split
+    on its own, so the same data gives the same folds wherever it is read, and a re-render whose durations
+    differ in their last digits gives the same folds too."""
 
     index: int
     count: int

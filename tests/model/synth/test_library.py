@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from egoposevr.model.synth.library import (
@@ -50,6 +51,17 @@ def test_split_is_subject_disjoint_deterministic_and_fills_every_split():
     assert set(assignment) == set(seconds) and set(assignment.values()) == {"train", "val", "test"}
     train_s = sum(seconds[s] for s, n in assignment.items() if n == "train")
     assert 0.65 < train_s / sum(seconds.values()) < 0.9
+
+
+def test_equal_shares_go_in_order_whatever_the_last_digits_of_the_durations():
+    """Folds are equal shares: a subject that leaves several of them equally close goes to the first, so that
+    a re-render that moves a duration by a microsecond does not renumber them."""
+    seconds = {"a": 431.09307, "b": 226.913729, "c": 226.772793, "d": 129.69856, "e": 58.274915, "f": 15.93}
+    seconds |= {f"p{i:02d}": 9.99 + 0.001 * i for i in range(40)}
+    shares = tuple((str(k), 0.2) for k in range(5))
+    for nudge_s in np.linspace(-5e-6, 5e-6, 41):
+        folds = split_subjects(seconds | {"p00": seconds["p00"] + nudge_s}, shares)
+        assert [folds[s] for s in "abcdef"] == ["0", "1", "2", "3", "4", "4"], nudge_s
 
 
 @pytest.mark.parametrize("text", ["train", "train=0", "train=0.5,train=0.5", "=1", "a=b"])
