@@ -24,6 +24,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -158,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))
     if args.json:
-        report = {"split": args.split} | ({"fold": str(fold)} if fold else {}) | {"models": results}
+        report = {"split": args.split} | (_fold_field(fold, loaded[0]) if fold else {}) | {"models": results}
         report |= {"keypoints": keypoints} if keypoints else {}
         args.json.write_text(json.dumps(_without_nan(report), indent=2) + "\n")
     return 0
@@ -171,3 +172,11 @@ def _without_nan(value):
     if isinstance(value, float) and value != value:
         return None
     return value
+
+
+def _fold_field(fold: Any, seqs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The JSON report's record of a fold: K/N and the people it served (a fold's number alone names other
+    people on other data)."""
+    from ..model.training.dataset import sequence_subject
+
+    return {"fold": str(fold), "fold_subjects": sorted({sequence_subject(s) for s in seqs})}

@@ -15,7 +15,14 @@ from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
-from egoposevr.model.training.dataset import Fold, fold_members, load_split, load_splits, split_camera
+from egoposevr.model.training.dataset import (
+    Fold,
+    fold_members,
+    load_split,
+    load_splits,
+    sequence_subject,
+    split_camera,
+)
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
 from egoposevr.model.training.train import PRESETS, build_net, load_checkpoint, prepare_fusion_sequence
 from egoposevr.model.weights import model_files
@@ -377,6 +384,10 @@ def test_a_held_out_fold_trains_without_its_subjects_and_eval_serves_only_them(
     assert main([*evaluate, "--fold", "0/2", "--json", str(report)]) == 0
     served = json.loads(report.read_text())
     assert served["fold"] == "0/2"
+    train = load_split(tiny_data, "train")
+    assert served["fold_subjects"] == sorted(
+        {sequence_subject(s) for s, h in zip(train, held, strict=True) if h}
+    )
     assert sum(c["sequences"] for c in served["models"]["hmd"]["categories"].values()) == held.sum()
     assert main([*evaluate, "--fold", "0-2"]) == 2 and "--fold" in capsys.readouterr().err
 
