@@ -12,7 +12,7 @@ on joints in view and not occluded, overall and per body part (torso, knees, ank
 shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose calibration (PROTOCOL.md
 §4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
 evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the
-people `train --hold-out K/N` left out).
+people `train --hold-out K/N` left out; --json names them).
 
 Example:
   egoposevr eval --data data/dev --split val --json eval.json
