@@ -77,6 +77,14 @@ class Browser:
             time.sleep(0.1)
         return state
 
+    def wait_for_text(self, element_id: str, text: str, timeout: float = 10.0) -> None:
+        """Until the element's text holds ``text``. The page draws its text on the next animation frame after
+        the state changes, which a loaded machine can delay past a state read."""
+        deadline = time.monotonic() + timeout
+        while text not in (shown := self.evaluate(f'document.getElementById("{element_id}").textContent')):
+            assert time.monotonic() < deadline, f"#{element_id} never showed {text!r}: {shown!r}"
+            time.sleep(0.1)
+
     def screenshot(self) -> np.ndarray:
         data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
         return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
@@ -131,7 +139,7 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
                 lambda s: (s.get("calibration") or {}).get("status") == "failed", timeout=20
             )
             assert state["calibration"]["message"]  # why, for the operator
-            assert "calibration failed" in browser.evaluate('document.getElementById("status").textContent')
+            browser.wait_for_text("status", "calibration failed")
         finally:
             browser.close()
 
