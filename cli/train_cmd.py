@@ -7,7 +7,8 @@ visual-rgb.pt, visual-rgbd.pt and fusion-<model>.pt. Models that share parts sha
 Then `egoposevr export` turns them into the ONNX models the runtime serves.
 --hold-out K/N leaves the train split's subjects of fold K of N out (whole people, by duration; every
 conversion of one capture together), so a training choice can be judged on people the nets never saw with
-`egoposevr eval --split train --fold K/N`, without looking at val or test.
+`egoposevr eval --split train --fold K/N`, without looking at val or test. The checkpoint records the fold and
+the people it trained on; --resume refuses a run whose fold held other people in the data as it is now.
 
 Example (the bundled weights; MODEL_CARD.md has the full recipe):
   egoposevr train --data data/dev --model all --out runs/cpu16 --preset cpu --seed 0 --fusion-steps 16000

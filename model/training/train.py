@@ -19,6 +19,7 @@ Shape legend: ``B`` batch, ``T`` HMD window, ``Tv`` visual window, ``J`` = 22, `
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -60,7 +61,7 @@ from .augment import (
     retime_sequence,
     swap_arms,
 )
-from .dataset import DatasetError, Fold, decode_frames, load_splits, split_camera
+from .dataset import DatasetError, Fold, decode_frames, load_splits, sequence_subject, split_camera
 from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
@@ -230,25 +231,41 @@ def load_net(path: Path) -> torch.nn.Module:
     return build_net(load_checkpoint(path), path)
 
 
-def _finished(path: Path, tc: TrainConfig) -> bool:
+def _finished(path: Path, tc: TrainConfig, seqs: list[dict[str, Any]]) -> bool:
     """A checkpoint exists and reached its planned number of steps (resume skips it); CheckpointError when
-    it was trained without the subjects ``tc`` leaves out, or with others."""
+    it was trained without the subjects ``tc`` leaves out of ``seqs``' data, or with others."""
     if not path.exists():
         return False
     ckpt = load_checkpoint(path)
-    _check_same_hold_out(ckpt, path, tc)
+    _check_same_hold_out(ckpt, path, tc, seqs)
     return ckpt["step"] >= ckpt["total_steps"]
 
 
-def _check_same_hold_out(ckpt: dict[str, Any], path: Path, tc: TrainConfig) -> None:
-    """A run resumes on the data it started on: its fold left out (``--hold-out``) must be this one."""
+def _check_same_hold_out(
+    ckpt: dict[str, Any], path: Path, tc: TrainConfig, seqs: list[dict[str, Any]]
+) -> None:
+    """A run resumes on the data it started on: its fold left out (``--hold-out``) must be this one, and
+    leave the same people in (a checkpoint from before 2026-11-27 records only the fold)."""
     data = ckpt.get("data")
-    held_then = data.get("held_out_fold") if isinstance(data, dict) else None
+    data = data if isinstance(data, dict) else {}
+    held_then = data.get("held_out_fold")
     if held_then != tc.hold_out:
         raise CheckpointError(
             f"{path} was trained with --hold-out {held_then or 'none'}, not {tc.hold_out or 'none'}: "
             "its data would change under it; train into another --out"
         )
+    people_then = data.get("trained_subjects_sha256")
+    if tc.hold_out and people_then is not None and people_then != _people_digest(seqs):
+        raise CheckpointError(
+            f"{path} was trained on other people than --hold-out {tc.hold_out} leaves in this data (its "
+            "folds fall otherwise now); train into another --out"
+        )
+
+
+def _people_digest(seqs: list[dict[str, Any]]) -> str:
+    """sha256 of the sorted subjects the sequences were taken from: which people a run learnt from."""
+    subjects = sorted({sequence_subject(s) for s in seqs})
+    return hashlib.sha256("\n".join(subjects).encode()).hexdigest()
 
 
 def _schedule(tc: TrainConfig, total: int) -> Callable[[int], float]:
@@ -430,17 +447,17 @@ def train_visual(
 ) -> Path:
     """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``."""
     path = out_dir / f"visual-{kind}.pt"
-    if resume and _finished(path, tc):
+    data_dirs = dataset_dirs(data)
+    seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
+    if resume and _finished(path, tc, seqs):
         return path
     torch.manual_seed(tc.seed)
     cfg = visual_config(kind, tc)
     net = KeypointNet(cfg).to(tc.device)
-    data_dirs = dataset_dirs(data)
     camera = split_camera(data_dirs[0], "train")  # the encoder's default camera: the first dataset's
-    seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
     frames = load_visual_data(seqs, (cfg.width, cfg.height))
     meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
-            "data": _data_field(data_dirs, tc, frames=len(frames.rgb), sequences=len(seqs))}  # fmt: skip
+            "data": _data_field(data_dirs, tc, seqs, frames=len(frames.rgb))}  # fmt: skip
     _run_steps(net, visual_loss_fn(net, frames, tc), path, tc.visual_steps, tc, meta, resume, progress)
     return path
 
@@ -761,7 +778,9 @@ def train_fusion(
     ``initial`` the net starts from those weights (its input statistics included) instead of a random
     draw: a fine-tune, with this run's own warmup and schedule."""
     path = out_dir / f"fusion-{name}.pt"
-    if resume and _finished(path, tc):
+    data_dirs = dataset_dirs(data)
+    seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
+    if resume and _finished(path, tc, seqs):
         return path
     entry = ZOO[name]
     visual: KeypointNet | ExportedEncoder | None = None
@@ -770,17 +789,15 @@ def train_fusion(
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
-    data_dirs = dataset_dirs(data)
-    seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
     rng = np.random.default_rng([tc.seed, 7])
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     if initial is not None:
         net.load_state_dict(initial.state_dict)
     net.to(tc.device)
+    hmd_samples = int(sum(len(p.t_us) for p in prepared))
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
-            "data": _data_field(data_dirs, tc, sequences=len(seqs),
-                                hmd_samples=int(sum(len(p.t_us) for p in prepared)))}  # fmt: skip
+            "data": _data_field(data_dirs, tc, seqs, hmd_samples=hmd_samples)}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
     if initial is not None:
@@ -910,10 +927,15 @@ def training_sequences(data_dirs: tuple[Path, ...], tc: TrainConfig) -> list[dic
     return seqs
 
 
-def _data_field(data_dirs: tuple[Path, ...], tc: TrainConfig, **counts: int) -> dict[str, Any]:
-    """A checkpoint's ``data`` record: the folders, the fold left out (when one is), the counts."""
-    held = {"held_out_fold": tc.hold_out} if tc.hold_out else {}
-    return {"dir": _dirs_field(data_dirs), **held, **counts}
+def _data_field(
+    data_dirs: tuple[Path, ...], tc: TrainConfig, seqs: list[dict[str, Any]], **counts: int
+) -> dict[str, Any]:
+    """A checkpoint's ``data`` record: the folders, the fold left out and the people left in (when a fold is
+    left out), the sequences and other counts."""
+    held = (
+        {"held_out_fold": tc.hold_out, "trained_subjects_sha256": _people_digest(seqs)} if tc.hold_out else {}
+    )
+    return {"dir": _dirs_field(data_dirs), **held, "sequences": len(seqs), **counts}
 
 
 def _dirs_field(data_dirs: tuple[Path, ...]) -> str | list[str]:

@@ -365,6 +365,8 @@ def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
 def test_a_held_out_fold_trains_without_its_subjects_and_eval_serves_only_them(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
+    import torch
+
     held = fold_members(load_split(tiny_data, "train"), Fold(0, 2))
     assert 0 < held.sum() < len(held)
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
@@ -375,6 +377,13 @@ def test_a_held_out_fold_trains_without_its_subjects_and_eval_serves_only_them(
     for other in (["--hold-out", "1/2"], []):  # a finished run, resumed on other data
         assert main([*args, "--out", str(out), "--fusion-steps", "2", "--resume", *other]) == 2
         assert "trained with --hold-out 0/2" in capsys.readouterr().err
+    resume = [*args, "--out", str(out), "--fusion-steps", "2", "--resume", "--hold-out", "0/2"]
+    assert main(resume) == 0  # the same fold of the same data: nothing to do
+    ckpt = torch.load(out / "fusion-hmd.pt", weights_only=False)
+    ckpt["data"]["trained_subjects_sha256"] = "0" * 64  # as if the fold had held other people then
+    torch.save(ckpt, out / "fusion-hmd.pt")
+    assert main(resume) == 2
+    assert "trained on other people than --hold-out 0/2" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "x"), "--hold-out", "2/2"]) == 2
     assert "--hold-out" in capsys.readouterr().err
 
