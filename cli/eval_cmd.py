@@ -177,6 +177,6 @@ def _without_nan(value):
 def _fold_field(fold: Any, seqs: list[dict[str, Any]]) -> dict[str, Any]:
     """The JSON report's record of a fold: K/N and the people it served (a fold's number alone names other
     people on other data)."""
-    from ..model.training.dataset import sequence_subject
+    from ..model.training.dataset import subjects
 
-    return {"fold": str(fold), "fold_subjects": sorted({sequence_subject(s) for s in seqs})}
+    return {"fold": str(fold), "fold_subjects": subjects(seqs)}

@@ -134,6 +134,11 @@ def sequence_subject(seq: dict[str, Any]) -> str:
     return f"{seq['source']}/{seq['name']}"
 
 
+def subjects(seqs: Sequence[dict[str, Any]]) -> list[str]:
+    """The people the sequences were taken from (:func:`sequence_subject`), sorted, each once."""
+    return sorted({sequence_subject(s) for s in seqs})
+
+
 def fold_members(seqs: Sequence[dict[str, Any]], fold: Fold) -> np.ndarray:
     """(len(seqs),) bool: whether each sequence's subject is in the fold. ``seqs`` is one dataset's whole
     split: which fold a subject falls in depends on every subject's duration."""

@@ -61,7 +61,7 @@ from .augment import (
     retime_sequence,
     swap_arms,
 )
-from .dataset import DatasetError, Fold, decode_frames, load_splits, sequence_subject, split_camera
+from .dataset import DatasetError, Fold, decode_frames, load_splits, split_camera, subjects
 from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
@@ -264,8 +264,7 @@ def _check_same_hold_out(
 
 def _people_digest(seqs: list[dict[str, Any]]) -> str:
     """sha256 of the sorted subjects the sequences were taken from: which people a run learnt from."""
-    subjects = sorted({sequence_subject(s) for s in seqs})
-    return hashlib.sha256("\n".join(subjects).encode()).hexdigest()
+    return hashlib.sha256("\n".join(subjects(seqs)).encode()).hexdigest()
 
 
 def _schedule(tc: TrainConfig, total: int) -> Callable[[int], float]:
