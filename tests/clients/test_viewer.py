@@ -71,19 +71,16 @@ class Browser:
         return json.loads(self.evaluate("JSON.stringify(window.viewerState || null)") or "null") or {}
 
     def wait_for(self, predicate: Any, timeout: float = 20.0) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        while not predicate(state := self.state()):
-            assert time.monotonic() < deadline, f"viewer state never matched: {state}"
-            time.sleep(0.1)
-        return state
+        return _poll(self.state, predicate, timeout, "viewer state never matched")
 
     def wait_for_text(self, element_id: str, text: str, timeout: float = 10.0) -> None:
         """Until the element's text holds ``text``. The page draws its text on the next animation frame after
         the state changes, which a loaded machine can delay past a state read."""
-        deadline = time.monotonic() + timeout
-        while text not in (shown := self.evaluate(f'document.getElementById("{element_id}").textContent')):
-            assert time.monotonic() < deadline, f"#{element_id} never showed {text!r}: {shown!r}"
-            time.sleep(0.1)
+
+        def shown() -> str:
+            return self.evaluate(f'document.getElementById("{element_id}").textContent')
+
+        _poll(shown, lambda now: text in now, timeout, f"#{element_id} never showed {text!r}")
 
     def screenshot(self) -> np.ndarray:
         data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
@@ -94,6 +91,15 @@ class Browser:
             self.ws.close()
         self.process.terminate()
         self.process.wait(10)
+
+
+def _poll(read: Any, done: Any, timeout: float, failure: str) -> Any:
+    """read() every 0.1 s until done(value) -> that value; fails with ``failure`` and the last value."""
+    deadline = time.monotonic() + timeout
+    while not done(value := read()):
+        assert time.monotonic() < deadline, f"{failure}: {value!r}"
+        time.sleep(0.1)
+    return value
 
 
 @contextlib.contextmanager
