@@ -3,7 +3,11 @@
 FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sources, in order of evidence:
 
 1. **Height.** The highest head-joint height the headset has shown (people stand up at some point) scales
-   the mean SMPL body, within ``SCALE_RANGE``, assuming a stage reference space (floor at y = 0).
+   the mean SMPL body, within ``SCALE_RANGE``, assuming a stage reference space (floor at y = 0). That
+   height is a lower bound, not a measurement: a head lower than the range allows (a seated or crouching
+   wearer) gives the mean body until the camera has measured the legs, and legs the camera measures more
+   than ``SEATED_RATIO`` times as long as the head's height says (a seated wearer, who may never stand up)
+   give the height instead (:meth:`BodyCalibrator.height_scale`).
 2. **Camera sightings.** The visor camera sees the hips, the lower spine and the legs most of the time. Each
    frame whose keypoints at both ends of one of ``SIGHTED_BONES`` pass Alg. 1's visibility mask gives one
    length; once a bone has ``MIN_VISUAL_SAMPLES`` of them, their median is its measurement.
@@ -48,6 +52,11 @@ from ..skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOIN
 # The head joint of the mean SMPL body standing straight, above the floor (left foot joint at 3.5 cm).
 STANDING_HEAD_HEIGHT_M: Final = float(REST_JOINTS_M[HEAD, 1] - REST_JOINTS_M[10, 1] + FOOT_JOINT_HEIGHT_M)
 SCALE_RANGE: Final = (0.8, 1.25)
+# Measured thighs and shins this many times as long as the head's height scale says are a wearer whose head
+# is not at standing height (seated: 1.13-1.29 on procedural seated streams, standing 0.97-1.06; MODEL_CARD.md,
+# "A seated wearer's body"). Then the legs' scale is the height's.
+SEATED_RATIO: Final = 1.10
+SEATED_BONES: Final = (4, 5, 7, 8)  # thighs and shins
 UPDATE_STEP_M: Final = 0.005  # rescale when the head is 5 mm higher than ever (rebuilding offsets is cheap)
 # Bones the downward camera sees (each joint's bone from its parent): hips, lower spine, thighs, shins, feet.
 SIGHTED_BONES: Final = tuple(range(1, 12))
@@ -305,7 +314,23 @@ class BodyCalibrator:
 
     @property
     def height_scale(self) -> float:
-        return height_scale(self.highest_head_m)
+        """The height scale the prior reads (:meth:`_height_scale_at` of the highest head joint seen)."""
+        return self._height_scale_at(self.highest_head_m)
+
+    def _height_scale_at(self, head_m: float) -> float:
+        """The height scale for a highest head joint at head_m: the head's (:func:`height_scale`), unless the
+        wearer is evidently not standing. A calibration measured a standing height: it is read as it is.
+        Otherwise, once a head was seen, measured legs more than SEATED_RATIO times the head's unclipped scale
+        give it; a head below SCALE_RANGE (or none yet) without such legs gives the mean body (1.0)."""
+        if self.height_locked:
+            return height_scale(head_m)
+        head_scale = max(head_m, 0.0) / STANDING_HEAD_HEIGHT_M
+        legs = [self.measured[j] for j in SEATED_BONES if j in self.measured]
+        if legs and head_scale > 0 and np.mean(legs) > SEATED_RATIO * head_scale:
+            return float(np.clip(np.mean(legs), *SCALE_RANGE))
+        if head_scale < SCALE_RANGE[0]:
+            return 1.0
+        return height_scale(head_m)
 
     def calibrate(self, head_height_m: float | None, arm_scale: float | None) -> None:
         """A calibration's standing head-joint height and arm scale (runtime/calibration.py) replace the
@@ -362,7 +387,7 @@ class BodyCalibrator:
         """The height scale as the regressor's fitting model would have measured it."""
         if self.highest_head_m <= 0:
             return self.height_scale
-        return height_scale(self.highest_head_m + self._regressor_lift_m)
+        return self._height_scale_at(self.highest_head_m + self._regressor_lift_m)
 
     def _height_and_legs(self, scale_h: float) -> np.ndarray:
         scale = np.full(NUM_JOINTS, scale_h)

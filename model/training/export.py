@@ -203,6 +203,7 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
     ckpts = [load_checkpoint(path) for path in paths]
     nets = [build_net(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
     cfg = nets[0].cfg
+    offsets = _rig_offsets(ckpts, paths)
     module = _served_module(nets)
     if len(nets) > 1:
         training: dict[str, Any] = {"ensemble": [_training_record(ckpt) for ckpt in ckpts]}
@@ -213,8 +214,7 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
         inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
         visual_encoder=f"visual-{entry.visual}.onnx" if entry.visual else "",
-        joint_names=JOINT_NAMES, rig_offsets_m=tuple(map(tuple, DEFAULT_OFFSETS_M.tolist())),
-        training=training,
+        joint_names=JOINT_NAMES, rig_offsets_m=offsets, training=training,
         units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
               "config.device_validity]; visual: tokens (model/inputs.py); "
               "rot6d (B, J, 6): first two matrix columns, row 0 the pelvis in the heading frame, "
@@ -222,6 +222,18 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
               "left / right foot is on the floor",
     ))  # fmt: skip
     return max(_parity(module, out_path, _fusion_inputs(cfg, batch)) for batch in (1, 8))
+
+
+def _rig_offsets(ckpts: list[dict[str, Any]], paths: list[Path]) -> tuple[tuple[float, ...], ...]:
+    """The head and grip offsets (3, 3) the checkpoints' nets were trained with, which the runtime must
+    anchor them at: a fine-tune's are its starting file's (train_fusion). A checkpoint that does not record
+    them is exported with today's defaults, as every export did before they were recorded. Members of one
+    graph must share them (raises ValueError)."""
+    offsets = {tuple(map(tuple, ckpt.get("rig_offsets_m", DEFAULT_OFFSETS_M.tolist()))) for ckpt in ckpts}
+    if len(offsets) > 1:
+        names = ", ".join(map(str, paths))
+        raise ValueError(f"{names} were trained with different rig offsets: one graph serves one")
+    return offsets.pop()
 
 
 def _served_module(nets: list[FusionNet]) -> torch.nn.Module:
@@ -341,7 +353,7 @@ def initial_fusion_state(
         raise ValueError(f"{path} serves {len(nets)} net(s): no member {member}")
     if metadata.config != cfg:
         raise ValueError(f"{path}: its net is configured otherwise than this run's flags make it")
-    return InitialWeights(str(path), member, nets[member].state_dict())
+    return InitialWeights(str(path), member, nets[member].state_dict(), metadata.rig_offsets_m)
 
 
 def reexport_model(path: Path) -> float:

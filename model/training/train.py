@@ -46,7 +46,7 @@ from ..inputs import (
     visual_tokens,
     visual_window,
 )
-from ..rig import joints_from_devices
+from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.loading import load_encoder
 from ..skeleton import ARM_JOINTS, HEAD, rest_offsets
@@ -558,13 +558,16 @@ def prepare_fusion_sequence(
     tc: TrainConfig,
     visual: KeypointNet | None,
     cache: dict[Any, Any] | None = None,
+    rig_offsets_m: np.ndarray = DEFAULT_OFFSETS_M,
 ) -> FusionSequence:
-    """Stage-2 arrays of one sequence; ``cache`` keeps HMD features and stage-1 predictions across zoo models."""
+    """Stage-2 arrays of one sequence; ``cache`` keeps HMD features and stage-1 predictions across zoo models.
+    The joints are anchored at the head joint that ``rig_offsets_m`` (3, 3) put under the headset, as the
+    runtime anchors a model trained with them."""
     t_us, poses = seq["hmd_t_us"], seq["hmd_poses"].astype(np.float64)
     rot, origin = heading_frame(poses[:, 0])
     local = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))  # (N, J, 3, 3)
     local[:, 0] = np.swapaxes(rot, -1, -2) @ local[:, 0]  # pelvis in the heading frame
-    head_joint = joints_from_devices(poses)[0][:, 0]
+    head_joint = joints_from_devices(poses, rig_offsets_m)[0][:, 0]
     K, J = len(seq["cam_t_us"]), local.shape[1]
     kp_world, conf = np.zeros((K, J, 3)), np.zeros((K, J))
     if visual is not None and K:
@@ -775,7 +778,8 @@ def train_fusion(
     checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teacher``
     (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output. With
     ``initial`` the net starts from those weights (its input statistics included) instead of a random
-    draw: a fine-tune, with this run's own warmup and schedule."""
+    draw: a fine-tune, with this run's own warmup and schedule, anchored at the head offset that net was
+    trained with (a net has learnt the body under its own head joint: another offset is another net)."""
     path = out_dir / f"fusion-{name}.pt"
     data_dirs = dataset_dirs(data)
     seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
@@ -789,14 +793,16 @@ def train_fusion(
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     rng = np.random.default_rng([tc.seed, 7])
-    prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache) for s in augmented(seqs, tc)]
+    offsets_m = DEFAULT_OFFSETS_M if initial is None else np.asarray(initial.rig_offsets_m, dtype=np.float64)
+    prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache, offsets_m) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     if initial is not None:
         net.load_state_dict(initial.state_dict)
     net.to(tc.device)
     hmd_samples = int(sum(len(p.t_us) for p in prepared))
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
-            "data": _data_field(data_dirs, tc, seqs, hmd_samples=hmd_samples)}  # fmt: skip
+            "data": _data_field(data_dirs, tc, seqs, hmd_samples=hmd_samples),
+            "rig_offsets_m": offsets_m.tolist()}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
     if initial is not None:
@@ -814,6 +820,7 @@ class InitialWeights:
     source: str  # the model file
     member: int  # which of its nets
     state_dict: dict[str, torch.Tensor]
+    rig_offsets_m: tuple[tuple[float, ...], ...]  # (3, 3) the offsets the file's nets were trained with
 
 
 class TeacherError(ValueError):

@@ -39,11 +39,50 @@ def test_the_highest_head_sets_the_scale():
     assert np.allclose(body.bone_scale, 1.1)
 
 
-@pytest.mark.parametrize(("height_m", "scale"), [(3.0, SCALE_RANGE[1]), (0.5, SCALE_RANGE[0])])
-def test_implausible_heights_are_clipped(height_m, scale):
+def test_a_head_higher_than_the_range_gives_the_largest_body():
     body = BodyCalibrator()
-    body.push(head_at(height_m), ALL)
-    assert np.allclose(body.bone_scale, scale)
+    body.push(head_at(3.0), ALL)
+    assert np.allclose(body.bone_scale, SCALE_RANGE[1])
+
+
+def test_a_head_lower_than_the_range_is_no_height_the_mean_body_stays():
+    """A head at three quarters of a standing height is a seated wearer far more often than a tiny adult."""
+    body = BodyCalibrator()
+    body.push(head_at(0.75 * STANDING_HEAD_HEIGHT_M), ALL)
+    assert np.allclose(body.bone_scale, 1.0)
+
+
+def _legs_seen(body: BodyCalibrator, scale: float, frames: int = STEADY_SAMPLES) -> None:
+    """The camera sees a body of this scale for some frames."""
+    keypoints, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(np.full(22, scale))
+    )
+    for _ in range(frames):
+        body.push_visual(keypoints + RNG.normal(scale=0.003, size=keypoints.shape), np.ones(22, dtype=bool))
+
+
+def test_a_seated_wearer_is_sized_by_the_legs_the_camera_measures_until_they_stand_up():
+    body = BodyCalibrator()
+    body.push(head_at(0.75 * 1.05 * STANDING_HEAD_HEIGHT_M), ALL)  # seated from the first sample
+    _legs_seen(body, 1.05)
+    assert body.height_scale == pytest.approx(1.05, abs=0.02)
+    np.testing.assert_allclose(body.bone_scale[[3, 6, 9, 16, 18]], 1.05, atol=0.02)  # spine, arms: not 0.8
+    body.push(head_at(1.12 * STANDING_HEAD_HEIGHT_M), ALL)  # stands up: the head is a height again
+    assert body.height_scale == pytest.approx(1.12)
+
+
+def test_a_standing_wearer_with_long_legs_keeps_the_heads_height():
+    body = BodyCalibrator()
+    body.push(head_at(0.95 * STANDING_HEAD_HEIGHT_M), ALL)
+    _legs_seen(body, 1.02)  # 7 % longer than the head says: long legs, not a seat
+    assert body.height_scale == pytest.approx(0.95)
+
+
+def test_a_calibrated_height_is_a_standing_height_whatever_the_legs_say(tmp_path):
+    body = BodyCalibrator()
+    body.calibrate(0.85 * STANDING_HEAD_HEIGHT_M, None)
+    _legs_seen(body, 1.1)
+    assert body.height_scale == pytest.approx(0.85)
 
 
 def test_an_untracked_headset_does_not_count():

@@ -246,6 +246,43 @@ def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
     assert "not an ONNX file" in capsys.readouterr().err
 
 
+def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, tiny_weights, tmp_path):
+    """A net has learnt the body under its own head joint: a fine-tune of a file trained with another head
+    offset than today's default trains anchored at that offset, and its export says so (the runtime then
+    anchors it there)."""
+    import shutil
+
+    import onnx
+
+    from egoposevr.model.rig import DEFAULT_OFFSETS_M
+
+    other = DEFAULT_OFFSETS_M.copy()
+    other[0] = (0.0, 0.06, 0.11)  # the bundled RGB-D nets' head offset
+    start = tmp_path / "start"
+    shutil.copytree(tiny_weights, start)
+    graph = onnx.load(start / "hmd-rgbd.onnx")
+    for prop in graph.metadata_props:
+        if prop.key == "egoposevr.rig_offsets_m":
+            prop.value = json.dumps(other.tolist())
+    onnx.save(graph, start / "hmd-rgbd.onnx")
+
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--encoders", str(tiny_weights), "--fusion-steps", "1", "--init-from", str(start)]
+    assert main([*train, "--out", str(tmp_path / "ft")]) == 0
+    assert load_checkpoint(tmp_path / "ft" / "fusion-hmd-rgbd.pt")["rig_offsets_m"] == other.tolist()
+    out = tmp_path / "ft-weights"
+    export = ["export", "--runs", str(tmp_path / "ft"), "--out", str(out), "--model", "hmd-rgbd"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    np.testing.assert_array_equal(LoadedModel.load(out / "hmd-rgbd.onnx").info.rig_offsets_m, other)
+
+    # the anchor moves with the offset: 4.6 cm between the two head joints
+    seq, tc = load_split(tiny_data, "train")[0], PRESETS["tiny"]
+    today = prepare_fusion_sequence(seq, np.random.default_rng(0), tc, None).anchor_h
+    theirs = prepare_fusion_sequence(seq, np.random.default_rng(0), tc, None, None, other).anchor_h
+    gap_m = np.linalg.norm(theirs - today, axis=-1)
+    np.testing.assert_allclose(gap_m, np.linalg.norm(other[0] - DEFAULT_OFFSETS_M[0]), atol=1e-5)
+
+
 def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, capsys):
     import dataclasses
 
