@@ -5,7 +5,7 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sour
 1. **Height.** The highest head-joint height the headset has shown (people stand up at some point) scales
    the mean SMPL body, within ``SCALE_RANGE``, assuming a stage reference space (floor at y = 0). That
    height is a lower bound, not a measurement: a head lower than the range allows (a seated or crouching
-   wearer) gives the mean body until the camera has measured the legs, and legs the camera measures more
+   wearer) gives the mean body until the camera has measured the legs, and shins the camera measures more
    than ``SEATED_RATIO`` times as long as the head's height says (a seated wearer, who may never stand up)
    give the height instead (:meth:`BodyCalibrator.height_scale`).
 2. **Camera sightings.** The visor camera sees the hips, the lower spine and the legs most of the time. Each
@@ -52,11 +52,13 @@ from ..skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOIN
 # The head joint of the mean SMPL body standing straight, above the floor (left foot joint at 3.5 cm).
 STANDING_HEAD_HEIGHT_M: Final = float(REST_JOINTS_M[HEAD, 1] - REST_JOINTS_M[10, 1] + FOOT_JOINT_HEIGHT_M)
 SCALE_RANGE: Final = (0.8, 1.25)
-# Measured thighs and shins this many times as long as the head's height scale says are a wearer whose head
-# is not at standing height (seated: 1.13-1.29 on procedural seated streams, standing 0.97-1.06; MODEL_CARD.md,
-# "A seated wearer's body"). Then the legs' scale is the height's.
-SEATED_RATIO: Final = 1.10
-SEATED_BONES: Final = (4, 5, 7, 8)  # thighs and shins
+# Measured shins this many times as long as the head's height scale says are a wearer whose head is not at
+# standing height: seated 1.35-1.71 on procedural seated streams, standing 0.95-1.11, and 0.94-1.02 on the
+# bundled recordings' other rig. Then the shins' scale is the height's. Not the thighs: a rig unlike the
+# training pool's measures them up to 10 % long, and thighs with shins sat a standing walker down at 1.10
+# (MODEL_CARD.md, "A false seat on another rig").
+SEATED_RATIO: Final = 1.25
+SEATED_BONES: Final = (7, 8)  # shins
 UPDATE_STEP_M: Final = 0.005  # rescale when the head is 5 mm higher than ever (rebuilding offsets is cheap)
 # Bones the downward camera sees (each joint's bone from its parent): hips, lower spine, thighs, shins, feet.
 SIGHTED_BONES: Final = tuple(range(1, 12))
@@ -320,14 +322,14 @@ class BodyCalibrator:
     def _height_scale_at(self, head_m: float) -> float:
         """The height scale for a highest head joint at head_m: the head's (:func:`height_scale`), unless the
         wearer is evidently not standing. A calibration measured a standing height: it is read as it is.
-        Otherwise, once a head was seen, measured legs more than SEATED_RATIO times the head's unclipped scale
-        give it; a head below SCALE_RANGE (or none yet) without such legs gives the mean body (1.0)."""
+        Otherwise, once a head was seen, measured shins more than SEATED_RATIO times the head's unclipped scale
+        give it; a head below SCALE_RANGE (or none yet) without such shins gives the mean body (1.0)."""
         if self.height_locked:
             return height_scale(head_m)
         head_scale = max(head_m, 0.0) / STANDING_HEAD_HEIGHT_M
-        legs = [self.measured[j] for j in SEATED_BONES if j in self.measured]
-        if legs and head_scale > 0 and np.mean(legs) > SEATED_RATIO * head_scale:
-            return float(np.clip(np.mean(legs), *SCALE_RANGE))
+        shins = [self.measured[j] for j in SEATED_BONES if j in self.measured]
+        if shins and head_scale > 0 and np.mean(shins) > SEATED_RATIO * head_scale:
+            return float(np.clip(np.mean(shins), *SCALE_RANGE))
         if head_scale < SCALE_RANGE[0]:
             return 1.0
         return height_scale(head_m)

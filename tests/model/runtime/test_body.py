@@ -78,6 +78,21 @@ def test_a_standing_wearer_with_long_legs_keeps_the_heads_height():
     assert body.height_scale == pytest.approx(0.95)
 
 
+def test_thighs_measured_long_do_not_sit_a_standing_wearer_down():
+    """Another rig than the training pool's measures the thighs up to 10 % long (the bundled recordings);
+    only the shins tell a seat."""
+    body = BodyCalibrator()
+    body.push(head_at(0.9 * STANDING_HEAD_HEIGHT_M), ALL)
+    scale = np.full(22, 0.9)
+    scale[[4, 5]] = 1.2  # thighs a third longer than the head says
+    keypoints, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(scale)
+    )
+    for _ in range(STEADY_SAMPLES):
+        body.push_visual(keypoints, np.ones(22, dtype=bool))
+    assert body.height_scale == pytest.approx(0.9)
+
+
 def test_a_calibrated_height_is_a_standing_height_whatever_the_legs_say(tmp_path):
     body = BodyCalibrator()
     body.calibrate(0.85 * STANDING_HEAD_HEIGHT_M, None)
