@@ -328,8 +328,9 @@ class BodyCalibrator:
             return height_scale(head_m)
         head_scale = max(head_m, 0.0) / STANDING_HEAD_HEIGHT_M
         shins = [self.measured[j] for j in SEATED_BONES if j in self.measured]
-        if shins and head_scale > 0 and np.mean(shins) > SEATED_RATIO * head_scale:
-            return float(np.clip(np.mean(shins), *SCALE_RANGE))
+        shin_scale = float(np.mean(shins)) if shins else 0.0
+        if head_scale > 0 and shin_scale > SEATED_RATIO * head_scale:
+            return float(np.clip(shin_scale, *SCALE_RANGE))
         if head_scale < SCALE_RANGE[0]:
             return 1.0
         return height_scale(head_m)

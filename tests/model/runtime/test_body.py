@@ -52,10 +52,10 @@ def test_a_head_lower_than_the_range_is_no_height_the_mean_body_stays():
     assert np.allclose(body.bone_scale, 1.0)
 
 
-def _legs_seen(body: BodyCalibrator, scale: float, frames: int = STEADY_SAMPLES) -> None:
-    """The camera sees a body of this scale for some frames."""
+def _legs_seen(body: BodyCalibrator, scale: float | np.ndarray, frames: int = STEADY_SAMPLES) -> None:
+    """The camera sees a body of this scale (one for every bone, or (22,) per bone) for some frames."""
     keypoints, _ = forward_kinematics(
-        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(np.full(22, scale))
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(np.broadcast_to(scale, 22))
     )
     for _ in range(frames):
         body.push_visual(keypoints + RNG.normal(scale=0.003, size=keypoints.shape), np.ones(22, dtype=bool))
@@ -85,11 +85,7 @@ def test_thighs_measured_long_do_not_sit_a_standing_wearer_down():
     body.push(head_at(0.9 * STANDING_HEAD_HEIGHT_M), ALL)
     scale = np.full(22, 0.9)
     scale[[4, 5]] = 1.2  # thighs a third longer than the head says
-    keypoints, _ = forward_kinematics(
-        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(scale)
-    )
-    for _ in range(STEADY_SAMPLES):
-        body.push_visual(keypoints, np.ones(22, dtype=bool))
+    _legs_seen(body, scale)
     assert body.height_scale == pytest.approx(0.9)
 
 
