@@ -137,9 +137,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--init-from",
         type=Path,
         default=None,
-        metavar="DIR",
-        help="fine-tune: each fusion net starts from the weights of DIR's exported <net>.onnx (e.g. the "
-        "bundled hmd-rgbd.onnx) instead of a random draw; give it the keypoints it learnt from "
+        metavar="PATH",
+        help="fine-tune: each fusion net starts from the weights of the folder PATH's exported <net>.onnx "
+        "(e.g. the bundled hmd-rgbd.onnx) instead of a random draw, or the run's one fusion net from the "
+        "model file PATH (e.g. model/weights/egoposevr-lite.onnx); give it the keypoints it learnt from "
         "(--encoders with the encoder it was trained on)",
     )
     parser.add_argument(
@@ -249,15 +250,20 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
 
 
 def _initial_weights(
-    names: list[str], models_dir: Path | None, member: int, config: TrainConfig
+    names: list[str], source: Path | None, member: int, config: TrainConfig
 ) -> dict[str, InitialWeights] | None:
-    """--init-from: each named model's fusion net -> the weights it starts from (raises ValueError)."""
-    if models_dir is None:
+    """--init-from: each named model's fusion net -> the weights it starts from (raises ValueError). A
+    folder gives each net its own file; one model file can start one net only."""
+    if source is None:
         return None
     from ..model.training.export import initial_fusion_state
     from ..model.training.train import fusion_config
     from ..model.zoo import fusion_names
 
-    return {
-        f: initial_fusion_state(models_dir, f, member, fusion_config(f, config)) for f in fusion_names(names)
-    }
+    nets = fusion_names(names)
+    if len(nets) > 1 and not source.is_dir():
+        raise ValueError(
+            f"{source} is one model file and this run trains {len(nets)} fusion nets ({', '.join(nets)}): "
+            "name a folder, or one model"
+        )
+    return {f: initial_fusion_state(source, f, member, fusion_config(f, config)) for f in nets}

@@ -340,14 +340,13 @@ def load_served_nets(path: Path) -> tuple[onnx.ModelProto, ModelMetadata, list[F
     return original, metadata, nets
 
 
-def initial_fusion_state(
-    models_dir: Path, fusion_name: str, member: int, cfg: FusionConfig
-) -> InitialWeights:
+def initial_fusion_state(source: Path, fusion_name: str, member: int, cfg: FusionConfig) -> InitialWeights:
     """Where ``egoposevr train --init-from`` starts the fusion net ``fusion_name``: the weights of
-    ``models_dir/<fusion_name>.onnx`` (its ``member``-th net when it serves several). Raises ValueError
-    when the file is not there or not a model, when it serves fewer nets, or when its nets are configured
-    otherwise than ``cfg`` (the flags of this run)."""
-    path = models_dir / f"{fusion_name}.onnx"
+    ``source/<fusion_name>.onnx`` when ``source`` is a folder, else of the model file ``source`` itself
+    (e.g. ``egoposevr-lite.onnx``, one net of ``hmd-rgbd``'s kind); its ``member``-th net when it serves
+    several. Raises ValueError when the file is not there or not a model, when it serves fewer nets, or
+    when its nets are configured otherwise than ``cfg`` (the flags of this run)."""
+    path = source / f"{fusion_name}.onnx" if source.is_dir() else source
     _, metadata, nets = load_served_nets(path)
     if not 0 <= member < len(nets):
         raise ValueError(f"{path} serves {len(nets)} net(s): no member {member}")

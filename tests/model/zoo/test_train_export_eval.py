@@ -246,6 +246,35 @@ def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
     assert "not an ONNX file" in capsys.readouterr().err
 
 
+def test_a_fine_tune_starts_from_a_model_file_named_otherwise_than_its_net(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    """`--init-from` a file: a net served under another name than its kind (the bundled egoposevr-lite.onnx
+    holds one net of hmd-rgbd's kind) starts a fine-tune of that kind; a run of several nets needs a folder."""
+    import shutil
+
+    from egoposevr.model.training.export import load_served_nets
+
+    lite = tmp_path / "elsewhere" / "lite.onnx"
+    lite.parent.mkdir()
+    shutil.copy(tiny_weights / "hmd-rgbd.onnx", lite)
+    train = ["train", "--data", str(tiny_data), "--preset", "tiny", "--no-progress", "--fusion-steps", "1"]
+    train += ["--encoders", str(tiny_weights), "--init-from", str(lite)]
+    assert main([*train, "--model", "egoposevr", "--out", str(tmp_path / "ft")]) == 0
+    ckpt = load_checkpoint(tmp_path / "ft" / "fusion-hmd-rgbd.pt")
+    assert ckpt["init"] == {"from": str(lite), "member": 0}
+    _, _, (start,) = load_served_nets(lite)
+    gap = max(
+        float((ckpt["state_dict"][k].float() - v.float()).abs().max()) for k, v in start.state_dict().items()
+    )
+    assert gap < 1e-3  # one small step away from the file's weights
+
+    capsys.readouterr()
+    assert main([*train, "--model", "hmd-rgbd,hmd", "--out", str(tmp_path / "x")]) == 2
+    assert "one model file" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, tiny_weights, tmp_path):
     """A net has learnt the body under its own head joint: a fine-tune of a file trained with another head
     offset than today's default trains anchored at that offset, and its export says so (the runtime then
