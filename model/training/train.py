@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -778,8 +779,8 @@ def train_fusion(
     checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teacher``
     (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output. With
     ``initial`` the net starts from those weights (its input statistics included) instead of a random
-    draw: a fine-tune, with this run's own warmup and schedule, anchored at the head offset that net was
-    trained with (a net has learnt the body under its own head joint: another offset is another net)."""
+    draw: a fine-tune, with this run's own warmup and schedule. The net is anchored at
+    :func:`training_offsets` (the initial net's head offset, else the teachers', else the default)."""
     path = out_dir / f"fusion-{name}.pt"
     data_dirs = dataset_dirs(data)
     seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
@@ -793,7 +794,7 @@ def train_fusion(
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     rng = np.random.default_rng([tc.seed, 7])
-    offsets_m = DEFAULT_OFFSETS_M if initial is None else np.asarray(initial.rig_offsets_m, dtype=np.float64)
+    offsets_m = training_offsets(initial, teacher)
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache, offsets_m) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     if initial is not None:
@@ -829,10 +830,12 @@ class TeacherError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class Teacher:
-    """What a student learns from: the frozen nets, and the runs folders they came from (for its record)."""
+    """What a student learns from: the frozen nets, the runs folders they came from (for its record), and
+    the head offsets (3, 3) they were trained at, where their checkpoints record them (None where not)."""
 
     nets: SeedEnsemble
     runs_dirs: tuple[str, ...]
+    rig_offsets_m: tuple[tuple[float, ...], ...] | None = None
 
 
 _TEACHER_MUST_MATCH: Final = ("window", "device_validity", "fusion")
@@ -850,7 +853,8 @@ def load_teacher(
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         raise TeacherError(f"no teacher checkpoint: {', '.join(missing)}")
-    nets = [load_net(p) for p in paths]
+    ckpts = [load_checkpoint(p) for p in paths]
+    nets = [build_net(c, p) for c, p in zip(ckpts, paths, strict=True)]
     wanted = _TEACHER_MUST_MATCH + (("visual_window",) if student.uses_camera else ())
     wanted += ("contact_head",) if student.contact_head else ()
     for path, net in zip(paths, nets, strict=True):
@@ -861,7 +865,30 @@ def load_teacher(
         ensemble = SeedEnsemble(nets)
     except ValueError as error:
         raise TeacherError(f"teachers {', '.join(map(str, runs_dirs))}: {error}") from error
-    return Teacher(ensemble.eval().requires_grad_(False).to(device), tuple(map(str, runs_dirs)))
+    recorded = {json.dumps(c["rig_offsets_m"]) for c in ckpts if "rig_offsets_m" in c}
+    if len(recorded) > 1:
+        raise TeacherError(
+            f"teachers {', '.join(map(str, runs_dirs))} were trained at different head offsets"
+        )
+    offsets = tuple(map(tuple, json.loads(recorded.pop()))) if recorded else None
+    return Teacher(ensemble.eval().requires_grad_(False).to(device), tuple(map(str, runs_dirs)), offsets)
+
+
+def training_offsets(initial: InitialWeights | None, teacher: Teacher | None) -> np.ndarray:
+    """(3, 3) the head offsets a fusion net trains at (its anchor, recorded in its checkpoint and export): a
+    net has learnt the body under its own head joint, so a fine-tune keeps the offsets of the net it starts
+    from, and a student takes its teachers' (their joints, which it learns, hang from their head joint);
+    otherwise today's default. TeacherError when the two are given and disagree."""
+    theirs = None if teacher is None or teacher.rig_offsets_m is None else np.asarray(teacher.rig_offsets_m)
+    if initial is not None:
+        mine = np.asarray(initial.rig_offsets_m, dtype=np.float64)
+        if theirs is not None and not np.allclose(mine, theirs):
+            raise TeacherError(
+                f"{initial.source} was trained at other head offsets than the teachers "
+                f"{', '.join(teacher.runs_dirs)}: a student would learn joints hung from another head joint"
+            )
+        return mine
+    return DEFAULT_OFFSETS_M if theirs is None else theirs.astype(np.float64)
 
 
 def _stage_one(
@@ -988,6 +1015,8 @@ def train_zoo(
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
     # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
     taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
+    for f in fusions:  # a fine-tune and teachers at different head offsets: refused now, too
+        training_offsets((initial or {}).get(f), taught[f])
     data_dirs = dataset_dirs(data)
     seqs = training_sequences(data_dirs, tc)
     paths = {}

@@ -312,6 +312,47 @@ def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, 
     np.testing.assert_allclose(gap_m, np.linalg.norm(other[0] - DEFAULT_OFFSETS_M[0]), atol=1e-5)
 
 
+def test_a_student_hangs_its_joints_from_its_teachers_head_joint(tiny_data, tiny_weights, tmp_path, capsys):
+    """Teachers trained at another head offset than today's default (the bundled RGB-D nets') teach a student
+    anchored at theirs, and its export says so; a fine-tune from a net at other offsets than its teachers',
+    or teachers that disagree, are refused before any training."""
+    import shutil
+
+    import onnx
+
+    from egoposevr.model.rig import DEFAULT_OFFSETS_M
+
+    other = DEFAULT_OFFSETS_M.copy()
+    other[0] = (0.0, 0.06, 0.11)
+    start = tmp_path / "start"
+    shutil.copytree(tiny_weights, start)
+    graph = onnx.load(start / "hmd-rgbd.onnx")
+    for prop in graph.metadata_props:
+        if prop.key == "egoposevr.rig_offsets_m":
+            prop.value = json.dumps(other.tolist())
+    onnx.save(graph, start / "hmd-rgbd.onnx")
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--encoders", str(tiny_weights), "--fusion-steps", "1"]
+    assert main([*train, "--out", str(tmp_path / "t-other"), "--init-from", str(start)]) == 0
+    assert main([*train, "--out", str(tmp_path / "t-default")]) == 0
+
+    assert main([*train, "--out", str(tmp_path / "student"), "--teachers", str(tmp_path / "t-other")]) == 0
+    assert load_checkpoint(tmp_path / "student" / "fusion-hmd-rgbd.pt")["rig_offsets_m"] == other.tolist()
+    out = tmp_path / "student-weights"
+    export = ["export", "--runs", str(tmp_path / "student"), "--out", str(out), "--model", "egoposevr-lite"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    np.testing.assert_array_equal(LoadedModel.load(out / "egoposevr-lite.onnx").info.rig_offsets_m, other)
+
+    capsys.readouterr()
+    mixed = ["--teachers", str(tmp_path / "t-other"), str(tmp_path / "t-default")]
+    assert main([*train, "--out", str(tmp_path / "x"), *mixed]) == 2
+    assert "different head offsets" in capsys.readouterr().err
+    at_default = ["--init-from", str(tiny_weights), "--teachers", str(tmp_path / "t-other")]
+    assert main([*train, "--out", str(tmp_path / "y"), *at_default]) == 2
+    assert "other head offsets than the teachers" in capsys.readouterr().err
+    assert not (tmp_path / "y" / "fusion-hmd-rgbd.pt").exists()
+
+
 def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, capsys):
     import dataclasses
 
