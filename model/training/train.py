@@ -297,6 +297,16 @@ def _run_steps(
     step, history, elapsed = 0, [], 0.0
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
+        if (
+            "rig_offsets_m" in ckpt
+            and "rig_offsets_m" in meta
+            and ckpt["rig_offsets_m"] != meta["rig_offsets_m"]
+        ):
+            raise CheckpointError(
+                f"{ckpt_path} cannot be resumed: it was trained at head offsets {ckpt['rig_offsets_m']}, and "
+                f"these flags train at {meta['rig_offsets_m']} (--init-from and --teachers decide them); "
+                "train into another --out, or resume with the flags it began with"
+            )
         try:
             net.load_state_dict(ckpt["state_dict"])
             opt.load_state_dict(ckpt["optimizer"])

@@ -319,6 +319,7 @@ def test_a_student_hangs_its_joints_from_its_teachers_head_joint(tiny_data, tiny
     import shutil
 
     import onnx
+    import torch
 
     from egoposevr.model.rig import DEFAULT_OFFSETS_M
 
@@ -343,7 +344,11 @@ def test_a_student_hangs_its_joints_from_its_teachers_head_joint(tiny_data, tiny
     assert main([*export, "--encoders", str(tiny_weights)]) == 0
     np.testing.assert_array_equal(LoadedModel.load(out / "egoposevr-lite.onnx").info.rig_offsets_m, other)
 
-    capsys.readouterr()
+    capsys.readouterr()  # stopped half way, then resumed without its teachers: it would go on at another anchor
+    stopped = load_checkpoint(tmp_path / "student" / "fusion-hmd-rgbd.pt") | {"total_steps": 2}
+    torch.save(stopped, tmp_path / "student" / "fusion-hmd-rgbd.pt")
+    assert main([*train, "--out", str(tmp_path / "student"), "--resume", "--fusion-steps", "2"]) == 2
+    assert "head offsets" in capsys.readouterr().err
     mixed = ["--teachers", str(tmp_path / "t-other"), str(tmp_path / "t-default")]
     assert main([*train, "--out", str(tmp_path / "x"), *mixed]) == 2
     assert "different head offsets" in capsys.readouterr().err
