@@ -3,8 +3,8 @@
 Models share trained parts: one visual encoder per modality (``rgb``, ``rgbd``) serves every model of that
 modality, and ``egoposevr`` is ``hmd-rgbd``'s fusion net with KPO switched on in the runtime. The bundled
 ``egoposevr`` and ``hmd-rgbd`` serve several trainings of that net as one graph (a seed ensemble, made by
-``export``); ``egoposevr-lite`` serves one net of that kind taught by them (``train --teachers``), for servers
-that need sessions more than accuracy.
+``export``); ``egoposevr-lite`` serves one net of that kind taught by them (``train --teachers``; the bundled one by
+the nets before their sitting fine-tune), for servers that need sessions more than accuracy.
 """
 
 from __future__ import annotations
@@ -45,7 +45,8 @@ ZOO: Final = {
         ZooEntry("hmd-rgbd-concat", "ablation: fusion by concatenation", "rgbd", {"fusion": "concat"}),
         ZooEntry(
             "egoposevr-lite",
-            "the full system on one net taught by egoposevr's ensemble: less fusion work per sample",
+            "the full system on one net taught by egoposevr's nets before they learnt sitting: half the fusion "
+            "work per sample; a seated wearer's legs are less accurate than egoposevr's",
             "rgbd",
             {},
             True,
