@@ -778,7 +778,10 @@ def test_the_python_clients_ignore_a_message_type_they_do_not_know(tmp_path):
                          "--json", str(report), "--quiet"])  # fmt: skip
     assert code == 0
     result = json.loads(report.read_text())
-    assert result["answered"] > 100 and not result["errors"]
+    # Every sample sent is accounted for by a pose the client read: answered, or counted in a pose's
+    # `skipped` (a host stall makes the server skip to the newest sample; it must not fail this test), bar
+    # the last few in flight when the replay stops. A client that choked on the unknown type would read none.
+    assert not result["errors"] and result["answered"] >= 10 and result["unanswered"] <= 5, result
 
 
 @pytest.mark.protocol("welcome-provider")

@@ -1,6 +1,7 @@
 """End to end on data the test synthesizes: train -> checkpoints -> export (parity) -> runtime -> eval."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -275,10 +276,9 @@ def test_a_fine_tune_starts_from_a_model_file_named_otherwise_than_its_net(
     assert not (tmp_path / "x").exists()
 
 
-def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, tiny_weights, tmp_path):
-    """A net has learnt the body under its own head joint: a fine-tune of a file trained with another head
-    offset than today's default trains anchored at that offset, and its export says so (the runtime then
-    anchors it there)."""
+def _weights_at_the_bundled_head_offset(weights: Path, out: Path) -> tuple[Path, np.ndarray]:
+    """A copy of an exported zoo whose ``hmd-rgbd.onnx`` says it was trained at the bundled RGB-D nets' head
+    offset, (0, 6, 11) cm, not today's default; and those offsets (3, 3)."""
     import shutil
 
     import onnx
@@ -286,14 +286,24 @@ def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, 
     from egoposevr.model.rig import DEFAULT_OFFSETS_M
 
     other = DEFAULT_OFFSETS_M.copy()
-    other[0] = (0.0, 0.06, 0.11)  # the bundled RGB-D nets' head offset
-    start = tmp_path / "start"
-    shutil.copytree(tiny_weights, start)
-    graph = onnx.load(start / "hmd-rgbd.onnx")
+    other[0] = (0.0, 0.06, 0.11)
+    shutil.copytree(weights, out)
+    graph = onnx.load(out / "hmd-rgbd.onnx")
     for prop in graph.metadata_props:
         if prop.key == "egoposevr.rig_offsets_m":
             prop.value = json.dumps(other.tolist())
-    onnx.save(graph, start / "hmd-rgbd.onnx")
+    onnx.save(graph, out / "hmd-rgbd.onnx")
+    return out, other
+
+
+def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, tiny_weights, tmp_path):
+    """A net has learnt the body under its own head joint: a fine-tune of a file trained with another head
+    offset than today's default trains anchored at that offset, and its export says so (the runtime then
+    anchors it there)."""
+
+    from egoposevr.model.rig import DEFAULT_OFFSETS_M
+
+    start, other = _weights_at_the_bundled_head_offset(tiny_weights, tmp_path / "start")
 
     train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
     train += ["--encoders", str(tiny_weights), "--fusion-steps", "1", "--init-from", str(start)]
@@ -316,22 +326,10 @@ def test_a_student_hangs_its_joints_from_its_teachers_head_joint(tiny_data, tiny
     """Teachers trained at another head offset than today's default (the bundled RGB-D nets') teach a student
     anchored at theirs, and its export says so; a fine-tune from a net at other offsets than its teachers',
     or teachers that disagree, are refused before any training."""
-    import shutil
 
-    import onnx
     import torch
 
-    from egoposevr.model.rig import DEFAULT_OFFSETS_M
-
-    other = DEFAULT_OFFSETS_M.copy()
-    other[0] = (0.0, 0.06, 0.11)
-    start = tmp_path / "start"
-    shutil.copytree(tiny_weights, start)
-    graph = onnx.load(start / "hmd-rgbd.onnx")
-    for prop in graph.metadata_props:
-        if prop.key == "egoposevr.rig_offsets_m":
-            prop.value = json.dumps(other.tolist())
-    onnx.save(graph, start / "hmd-rgbd.onnx")
+    start, other = _weights_at_the_bundled_head_offset(tiny_weights, tmp_path / "start")
     train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
     train += ["--encoders", str(tiny_weights), "--fusion-steps", "1"]
     assert main([*train, "--out", str(tmp_path / "t-other"), "--init-from", str(start)]) == 0
