@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -875,12 +874,12 @@ def load_teacher(
         ensemble = SeedEnsemble(nets)
     except ValueError as error:
         raise TeacherError(f"teachers {', '.join(map(str, runs_dirs))}: {error}") from error
-    recorded = {json.dumps(c["rig_offsets_m"]) for c in ckpts if "rig_offsets_m" in c}
+    recorded = {tuple(map(tuple, c["rig_offsets_m"])) for c in ckpts if "rig_offsets_m" in c}
     if len(recorded) > 1:
         raise TeacherError(
             f"teachers {', '.join(map(str, runs_dirs))} were trained at different head offsets"
         )
-    offsets = tuple(map(tuple, json.loads(recorded.pop()))) if recorded else None
+    offsets = recorded.pop() if recorded else None
     return Teacher(ensemble.eval().requires_grad_(False).to(device), tuple(map(str, runs_dirs)), offsets)
 
 

@@ -300,7 +300,6 @@ def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, 
     """A net has learnt the body under its own head joint: a fine-tune of a file trained with another head
     offset than today's default trains anchored at that offset, and its export says so (the runtime then
     anchors it there)."""
-
     from egoposevr.model.rig import DEFAULT_OFFSETS_M
 
     start, other = _weights_at_the_bundled_head_offset(tiny_weights, tmp_path / "start")
@@ -326,7 +325,6 @@ def test_a_student_hangs_its_joints_from_its_teachers_head_joint(tiny_data, tiny
     """Teachers trained at another head offset than today's default (the bundled RGB-D nets') teach a student
     anchored at theirs, and its export says so; a fine-tune from a net at other offsets than its teachers',
     or teachers that disagree, are refused before any training."""
-
     import torch
 
     start, other = _weights_at_the_bundled_head_offset(tiny_weights, tmp_path / "start")
