@@ -14,8 +14,15 @@ shoulders) with how often each part is seen; --calibrate serves each sequence af
 evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the
 people `train --hold-out K/N` left out; --json names them).
 
-Example:
+--intervals R adds 95 % intervals over R resamples of the split's people (model/training/intervals.py: a
+person is drawn with all their sequences) for each model, and each later model's paired difference from the
+first one named: whether a gap between two models is more than the people in the split make it. A model file
+that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
+(its folder holds the visual encoder it reads, as export writes it).
+
+Examples:
   egoposevr eval --data data/dev --split val --json eval.json
+  egoposevr eval --data data/dev --split val --models egoposevr,mine=runs/x-weights/egoposevr.onnx --intervals 2000
 """
 
 from __future__ import annotations
@@ -30,7 +37,11 @@ from typing import Any
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset root")
     parser.add_argument("--split", default="val", help="split to evaluate (default val)")
-    parser.add_argument("--models", default="all", help="comma-separated model names (default all)")
+    parser.add_argument(
+        "--models", default="all",
+        help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
+        "your own (a candidate beside the bundled model of its name)",
+    )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
     parser.add_argument(
@@ -74,6 +85,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="cpu",
         help="onnxruntime execution providers, most preferred first (as serve's)",
     )
+    parser.add_argument(
+        "--intervals", type=int, default=0, metavar="R",
+        help="also 95%% intervals over R resamples of the split's people (e.g. 2000), and each model's paired "
+        "difference from the first model named",
+    )  # fmt: skip
+    parser.add_argument("--seed", type=int, default=0, help="the resamples' seed (default 0)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -81,10 +98,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError, ProviderError, resolve_providers
     from ..model.runtime.procedural import NAME as PROCEDURAL
-    from ..model.training.dataset import DatasetError, Fold
+    from ..model.training.dataset import DatasetError, Fold, subjects
     from ..model.training.evaluate import (
         category_table,
         evaluate,
+        interval_table,
         keypoint_accuracy,
         keypoint_table,
         markdown_table,
@@ -98,14 +116,15 @@ def run(args: argparse.Namespace) -> int:
     except ProviderError as error:
         print(f"egoposevr eval: {error}", file=sys.stderr)
         return 2
+    if args.intervals < 0:
+        print("egoposevr eval: --intervals must be 0 (off) or a number of resamples", file=sys.stderr)
+        return 2
     available = {PROCEDURAL: None} | model_files(args.models_dir or WEIGHTS_DIR)  # the baseline has no file
     wanted = list(available) if args.models in ("", "all") else [m.strip() for m in args.models.split(",")]
-    missing = [m for m in wanted if m not in available]
-    if missing or not wanted:
-        print(
-            f"egoposevr eval: no model file for {missing or 'any model'}; have {sorted(available)}",
-            file=sys.stderr,
-        )
+    try:
+        chosen = _chosen_models(wanted, available)
+    except ValueError as error:
+        print(f"egoposevr eval: {error}", file=sys.stderr)
         return 2
 
     try:
@@ -119,7 +138,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"\r{name}: {done}/{total} sequences", end="" if done < total else "\n", file=sys.stderr)
 
     try:
-        chosen = {m: available[m] for m in wanted}
         loaded = split_sequences(args.data, args.split, args.limit, fold)  # read once for both reports
         results = evaluate(
             args.data,
@@ -135,6 +153,8 @@ def run(args: argparse.Namespace) -> int:
             leg_hold=not args.no_leg_hold,
             fold=fold,
             loaded=loaded,
+            resamples=args.intervals,
+            seed=args.seed,
         )
         keypoints = (
             keypoint_accuracy(args.data, args.split, chosen, args.limit, fold, loaded)
@@ -155,14 +175,49 @@ def run(args: argparse.Namespace) -> int:
         print(category_table(results))
         print("\nFoot skating (cm/s) / leg leakage (cm) per motion category:\n")
         print(category_table(results, ("foot_skate_cm_s", "leg_leakage_cm"), "skate / leak"))
+    if args.intervals:
+        people = len(subjects(loaded[0]))
+        print(
+            f"\n95 % intervals over {args.intervals} resamples of the split's {people} people, and each model's"
+        )
+        print(
+            f"paired difference from {next(iter(results))} (an interval that holds 0: no difference told):\n"
+        )
+        print(interval_table(results))
     if keypoints is not None:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))
     if args.json:
         report = {"split": args.split} | (_fold_field(fold, loaded[0]) if fold else {}) | {"models": results}
         report |= {"keypoints": keypoints} if keypoints else {}
+        if args.intervals:
+            report["intervals"] = {"resamples": args.intervals, "seed": args.seed, "level": 0.95,
+                                   "people": len(subjects(loaded[0]))}  # fmt: skip
         args.json.write_text(json.dumps(_without_nan(report), indent=2) + "\n")
     return 0
+
+
+def _chosen_models(wanted: list[str], available: dict[str, Path | None]) -> dict[str, Path | None]:
+    """{label: model file (None: the procedural baseline)} for --models' entries: a model's name, or
+    LABEL=FILE. Raises ValueError naming what is missing or clashes."""
+    chosen: dict[str, Path | None] = {}
+    for entry in wanted:
+        label, is_file, file = entry.partition("=")
+        label = label.strip()
+        if is_file:
+            path = Path(file.strip())
+            if not label or not path.is_file():
+                raise ValueError(f"--models {entry!r}: LABEL=FILE needs a label and an existing model file")
+        elif label in available:
+            path = available[label]
+        else:
+            raise ValueError(f"no model file for {label!r}; have {sorted(available)}")
+        if label in chosen:
+            raise ValueError(f"--models names {label!r} twice")
+        chosen[label] = path
+    if not chosen:
+        raise ValueError(f"no model named; have {sorted(available)}")
+    return chosen
 
 
 def _without_nan(value):

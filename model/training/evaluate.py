@@ -37,8 +37,9 @@ from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
-from .dataset import DatasetError, Fold, load_fold, load_split
-from .plausibility import plausibility, summarize_plausibility
+from . import intervals
+from .dataset import DatasetError, Fold, load_fold, load_split, sequence_subject
+from .plausibility import add_totals, plausibility, plausibility_totals, pooled_means
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
 FPS_SAMPLES = 200
@@ -123,30 +124,41 @@ def truth_on_devices(gt: np.ndarray, seq: dict[str, Any]) -> np.ndarray:
     return out
 
 
-def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
-    """Pool per-sample errors over sequences -> the metric dict (without fps)."""
-    pos = np.concatenate([e["pos"] for e in errors])
-    pa = np.concatenate([e["pa"] for e in errors])
-    rot = np.concatenate([e["rot"] for e in errors])
-    jitter = np.concatenate([e["jitter"] for e in errors])
-    lost = np.concatenate([e["lost"] for e in errors])  # (N, 2), the wrists' order
-    facing = np.concatenate([e["facing"] for e in errors])  # (N, 3) head, left wrist, right wrist
+def sequence_totals(errors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """One sequence's :func:`sequence_errors` as (2,) [sum, count] per metric of :func:`summarize` (without
+    fps): every metric is a mean pooled over samples, so a set of sequences' value is the ratio of its summed
+    totals (what :mod:`.intervals` reweights to resample people)."""
+
+    def total(values: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        return np.array([float(values.sum()) * scale, float(values.size)])
+
+    pos, lost, facing = errors["pos"], errors["lost"], errors["facing"]  # (N, J), (N, 2), (N, 3)
     wrists = pos[:, WRISTS]
     return {
-        "mpjpe_u_cm": 100 * float(pos[:, UPPER_BODY].mean()),
-        "mpjpe_l_cm": 100 * float(pos[:, LOWER_BODY].mean()),
-        "pa_mpjpe_u_cm": 100 * float(pa[:, UPPER_BODY].mean()),
-        "pa_mpjpe_l_cm": 100 * float(pa[:, LOWER_BODY].mean()),
-        "mpjre_u_deg": float(rot[:, UPPER_BODY].mean()),
-        "mpjre_l_deg": float(rot[:, LOWER_BODY].mean()),
-        "hpe_cm": 100 * float(wrists.mean()),
-        "hpe_lost_cm": 100 * float(wrists[lost].mean()) if lost.any() else float("nan"),
-        "lost_share": float(lost.mean()),
-        "facing_head_deg": float(facing[:, 0].mean()),
-        "facing_hands_deg": float(facing[:, 1:].mean()),
-        "jitter": float(jitter.mean()) if len(jitter) else 0.0,
-        **summarize_plausibility([e["plausibility"] for e in errors]),
+        "mpjpe_u_cm": total(pos[:, UPPER_BODY], 100.0),
+        "mpjpe_l_cm": total(pos[:, LOWER_BODY], 100.0),
+        "pa_mpjpe_u_cm": total(errors["pa"][:, UPPER_BODY], 100.0),
+        "pa_mpjpe_l_cm": total(errors["pa"][:, LOWER_BODY], 100.0),
+        "mpjre_u_deg": total(errors["rot"][:, UPPER_BODY]),
+        "mpjre_l_deg": total(errors["rot"][:, LOWER_BODY]),
+        "hpe_cm": total(wrists, 100.0),
+        "hpe_lost_cm": total(wrists[lost], 100.0),
+        "lost_share": total(lost.astype(np.float64)),
+        "facing_head_deg": total(facing[:, 0]),
+        "facing_hands_deg": total(facing[:, 1:]),
+        "jitter": total(errors["jitter"]),
+        **plausibility_totals(errors["plausibility"]),
     }
+
+
+def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
+    """Pool per-sample errors over sequences -> the metric dict (without fps): NaN where a metric has
+    nothing to measure (no lost controller, no contact, no still legs), jitter 0 for sequences too short
+    for it."""
+    metrics = pooled_means(add_totals([sequence_totals(e) for e in errors]))
+    if metrics["jitter"] != metrics["jitter"]:
+        metrics["jitter"] = 0.0
+    return metrics
 
 
 def measure_fps(
@@ -242,6 +254,8 @@ def evaluate(
     leg_hold: bool = True,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
+    resamples: int = 0,
+    seed: int = 0,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split (with ``fold``, only its subjects': dataset.Fold) for each model
     file given as {name: path} (None: the procedural baseline); with ``by_category``,
@@ -252,12 +266,17 @@ def evaluate(
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
     both feet are down (stance.LegHold). ``loaded``: what :func:`split_sequences` gave for these arguments,
-    when the caller has already read the split (``eval --keypoints`` reads it once for both reports)."""
+    when the caller has already read the split (``eval --keypoints`` reads it once for both reports).
+    With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
+    resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
+    ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of
+    that difference, paired}."""
     seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
+    totals: dict[str, list[dict[str, np.ndarray]]] = {}
     for name, path in models.items():
         model = (
             ProceduralModel() if path is None else LoadedModel.load(path, shared=shared, providers=providers)
@@ -271,13 +290,38 @@ def evaluate(
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
         results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0])}
+        totals[name] = [sequence_totals(e) for e in errors]
         if by_category:
             results[name]["categories"] = {
                 c: {**summarize([e for e, k in zip(errors, categories, strict=True) if k == c]),
                     "sequences": categories.count(c)}
                 for c in CATEGORIES if c in categories
             }  # fmt: skip
+    if resamples > 0:
+        _add_intervals(results, totals, [sequence_subject(s) for s in seqs], resamples, seed)
     return results
+
+
+def _add_intervals(
+    results: dict[str, dict[str, Any]],
+    totals: dict[str, list[dict[str, np.ndarray]]],
+    people: list[str],
+    resamples: int,
+    seed: int,
+) -> None:
+    """Each model's ``intervals`` and, after the first, its paired ``versus`` the first (:func:`evaluate`)."""
+    weights = intervals.resample_weights(people, resamples, seed)
+    first = next(iter(totals))
+    for name, model_totals in totals.items():
+        results[name]["intervals"] = _listed(intervals.metric_intervals(model_totals, weights))
+        if name != first:
+            difference = {k: results[name][k] - results[first][k] for k in model_totals[0]}
+            paired = intervals.difference_intervals(totals[first], model_totals, weights)
+            results[name]["versus"] = {"model": first, "difference": difference, "intervals": _listed(paired)}
+
+
+def _listed(bounds: dict[str, tuple[float, float]]) -> dict[str, list[float]]:
+    return {k: list(v) for k, v in bounds.items()}
 
 
 # Body parts of the keypoint report: the feet and knees are what the lower body's pose needs from the
@@ -315,6 +359,8 @@ def keypoint_accuracy(
     limit: int | None = None,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
+    resamples: int = 0,
+    seed: int = 0,
 ) -> dict[str, dict[str, Any]]:
     """{encoder: accuracy} of the visual encoders the given models use (each once), on a split: the keypoints
     it lifts to 3D in the camera frame against the truth, on joints in view and not occluded: median, mean and
@@ -433,3 +479,37 @@ def markdown_table(results: dict[str, dict[str, float]]) -> str:
             f"{m['jitter']:.1f} | {m['fps']:.0f} |"
         )
     return "\n".join(rows)
+
+
+INTERVAL_KEYS: Final = (
+    ("mpjpe_u_cm", "MPJPE-U cm"), ("mpjpe_l_cm", "MPJPE-L cm"), ("mpjre_l_deg", "MPJRE-L °"),
+    ("hpe_lost_cm", "H-PE lost cm"), ("foot_skate_cm_s", "skating cm/s"), ("leg_leakage_cm", "leakage cm"),
+)  # fmt: skip
+
+
+def interval_table(results: dict[str, dict[str, Any]]) -> str:
+    """Each model's value [95 % interval] over resampled people, then each later model's paired difference
+    from the first (``evaluate(resamples=...)``): a difference whose interval holds 0 is not told apart from
+    no difference on this many people. "[–]": fewer than two people have the metric."""
+    rows = ["| model | " + " | ".join(label for _, label in INTERVAL_KEYS) + " |",
+            "|---|" + "---:|" * len(INTERVAL_KEYS)]  # fmt: skip
+    for name, m in results.items():
+        cells = [_with_interval(m[k], m["intervals"][k], "") for k, _ in INTERVAL_KEYS]
+        rows.append(f"| {name} | " + " | ".join(cells) + " |")
+    for name, m in results.items():
+        if "versus" in m:
+            versus = m["versus"]
+            cells = [
+                _with_interval(versus["difference"][k], versus["intervals"][k], "+") for k, _ in INTERVAL_KEYS
+            ]
+            rows.append(f"| {name} − {versus['model']} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def _with_interval(value: float, bounds: list[float], sign: str) -> str:
+    low, high = bounds
+    if value != value:
+        return "–"
+    if low != low:
+        return f"{value:{sign}.2f} [–]"
+    return f"{value:{sign}.2f} [{low:{sign}.2f}, {high:{sign}.2f}]"

@@ -97,26 +97,44 @@ def plausibility(
     } | ({} if on_devices is None else {"jerk_devices": jerk(on_devices, t_us)})
 
 
+def pooled_means(totals: dict[str, np.ndarray]) -> dict[str, float]:
+    """Metrics from totals {key: (2,) [sum, count]}: sum / count, NaN where the count is 0 (or a part had no
+    value: its sum is NaN)."""
+    return {k: float(t[0] / t[1]) if t[1] > 0 else float("nan") for k, t in totals.items()}
+
+
+def add_totals(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Element-wise sum of several sequences' totals {key: (2,) [sum, count]} (same keys in each)."""
+    return {k: np.sum([p[k] for p in parts], axis=0) for k in parts[0]} if parts else {}
+
+
+def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """One sequence's :func:`plausibility` as (2,) [sum, count] per metric of :func:`summarize_plausibility`:
+    every one is a mean pooled over samples (or still stretches), so a set of sequences' value is the ratio of
+    its summed totals. A part without ``jerk_devices`` gives it a NaN sum: NaN for any set that holds it."""
+
+    def total(values: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        return np.array([float(values.sum()) * scale, float(values.size)])
+
+    sole = part["sole"]
+    return {
+        "foot_skate_cm_s": total(part["skate"], 100.0),
+        "floor_float_cm": total(np.maximum(sole, 0.0), 100.0),
+        "floor_penetration_cm": total(np.maximum(-sole, 0.0), 100.0),
+        "leg_leakage_cm": total(part["leakage"], 100.0),
+        "jerk": total(part["jerk"]),
+        "jerk_true": total(part["jerk_true"]),
+        "jerk_devices": total(part["jerk_devices"]) if "jerk_devices" in part else np.array([np.nan, 0.0]),
+    }
+
+
 def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
     """Pooled over sequences: foot_skate_cm_s, floor_float_cm, floor_penetration_cm, leg_leakage_cm (NaN
     where nothing was in contact or still), jerk, jerk_true and jerk_devices (m/s³; NaN unless every part
     has it)."""
+    if not parts:
+        return {k: float("nan") for k in plausibility_totals(_EMPTY)}
+    return pooled_means(add_totals([plausibility_totals(p) for p in parts]))
 
-    def pooled(key: str) -> np.ndarray:
-        return np.concatenate([p[key] for p in parts]) if parts else np.zeros(0)
 
-    def mean(values: np.ndarray, scale: float = 1.0) -> float:
-        return float(values.mean() * scale) if values.size else float("nan")
-
-    sole = pooled("sole")
-    return {
-        "foot_skate_cm_s": mean(pooled("skate"), 100.0),
-        "floor_float_cm": mean(np.maximum(sole, 0.0), 100.0),
-        "floor_penetration_cm": mean(np.maximum(-sole, 0.0), 100.0),
-        "leg_leakage_cm": mean(pooled("leakage"), 100.0),
-        "jerk": mean(pooled("jerk")),
-        "jerk_true": mean(pooled("jerk_true")),
-        "jerk_devices": mean(pooled("jerk_devices"))
-        if all("jerk_devices" in p for p in parts)
-        else float("nan"),
-    }
+_EMPTY: Final = {k: np.zeros(0) for k in ("skate", "sole", "leakage", "jerk", "jerk_true")}

@@ -841,6 +841,39 @@ def test_eval_serves_the_runtime_before_the_steady_stance_or_the_leg_hold_on_req
         assert runs[""]["procedural"]["mpjpe_l_cm"] == runs[flag]["procedural"]["mpjpe_l_cm"]
 
 
+def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between_people(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    copy = (
+        tmp_path / "candidate.onnx"
+    )  # a candidate's folder holds the encoders it reads, as export writes it
+    copy.write_bytes((tiny_weights / "egoposevr.onnx").read_bytes())
+    for encoder in tiny_weights.glob("visual-*"):
+        (tmp_path / encoder.name).write_bytes(encoder.read_bytes())
+    out = tmp_path / "eval.json"
+    args = ["eval", "--data", str(tiny_data), "--split", "train", "--models-dir", str(tiny_weights)]
+    args += ["--no-progress"]  # train: two procedural sequences, so two people
+    models = f"egoposevr,procedural,same={copy}"
+    assert main([*args, "--models", models, "--intervals", "200", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| same − egoposevr | +0.00 [+0.00, +0.00] |" in printed
+    report = json.loads(out.read_text())
+    assert report["intervals"]["resamples"] == 200 and report["intervals"]["people"] == 2
+    served = report["models"]
+    assert list(served) == ["egoposevr", "procedural", "same"] and "versus" not in served["egoposevr"]
+    for key in ("mpjpe_l_cm", "foot_skate_cm_s"):
+        low, high = served["egoposevr"]["intervals"][key]
+        assert low <= served["egoposevr"][key] <= high
+        assert served["same"]["versus"]["difference"][key] == 0.0
+        assert served["same"]["versus"]["intervals"][key] == [0.0, 0.0]  # the same file: no difference
+        difference = served["procedural"]["versus"]["difference"][key]
+        assert difference == pytest.approx(served["procedural"][key] - served["egoposevr"][key])
+    for bad in ("x=" + str(tmp_path / "missing.onnx"), "egoposevr,egoposevr", "=" + str(copy)):
+        assert main([*args, "--models", bad]) == 2
+        assert "--models" in capsys.readouterr().err
+    assert main([*args, "--models", "hmd", "--intervals", "-1"]) == 2
+
+
 def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "nope"]
     assert main(args) == 2
