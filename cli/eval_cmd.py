@@ -100,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     from ..model.runtime.procedural import NAME as PROCEDURAL
     from ..model.training.dataset import DatasetError, Fold, subjects
     from ..model.training.evaluate import (
+        category_difference_table,
         category_table,
         evaluate,
         interval_table,
@@ -184,6 +185,11 @@ def run(args: argparse.Namespace) -> int:
             f"paired difference from {next(iter(results))} (an interval that holds 0: no difference told):\n"
         )
         print(interval_table(results))
+        if args.by_category and len(results) > 1:
+            print(
+                f"\nLower-body MPJPE per motion category, paired difference from {next(iter(results))} (cm):\n"
+            )
+            print(category_difference_table(results))
     if keypoints is not None:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))

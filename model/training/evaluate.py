@@ -270,7 +270,7 @@ def evaluate(
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of
-    that difference, paired}."""
+    that difference, paired}; with ``by_category`` each category's metrics too, over that category's people."""
     seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -298,7 +298,16 @@ def evaluate(
                 for c in CATEGORIES if c in categories
             }  # fmt: skip
     if resamples > 0:
-        _add_intervals(results, totals, [sequence_subject(s) for s in seqs], resamples, seed)
+        people = [sequence_subject(s) for s in seqs]
+        _add_intervals(results, totals, people, resamples, seed)
+        for c in CATEGORIES if by_category else ():
+            members = [i for i, k in enumerate(categories) if k == c]
+            if members:
+                _add_intervals(
+                    {n: r["categories"][c] for n, r in results.items()},
+                    {n: [t[i] for i in members] for n, t in totals.items()},
+                    [people[i] for i in members], resamples, seed,
+                )  # fmt: skip
     return results
 
 
@@ -428,6 +437,22 @@ def category_table(
         count = next(r["categories"][c]["sequences"] for r in results.values() if c in r["categories"])
         cells = [" / ".join(f"{results[n]['categories'][c][k]:.2f}" for k in keys) for n in names]
         rows.append(f"| {c} ({count}) | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def category_difference_table(results: dict[str, dict[str, Any]], key: str = "mpjpe_l_cm") -> str:
+    """One metric's paired difference from the first model [95 % interval] per motion category (rows) and
+    later model (columns): ``evaluate(by_category=True, resamples=...)``."""
+    first, *later = results
+    categories = [c for c in CATEGORIES if c in results[first].get("categories", {})]
+    rows = ["| category (sequences) | " + " | ".join(f"{n} − {first}" for n in later) + " |",
+            "|" + "---:|" * (len(later) + 1)]  # fmt: skip
+    for c in categories:
+        cells = []
+        for n in later:
+            versus = results[n]["categories"][c]["versus"]
+            cells.append(_with_interval(versus["difference"][key], versus["intervals"][key], "+"))
+        rows.append(f"| {c} ({results[first]['categories'][c]['sequences']}) | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
 

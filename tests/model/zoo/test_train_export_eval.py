@@ -854,9 +854,11 @@ def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between
     args = ["eval", "--data", str(tiny_data), "--split", "train", "--models-dir", str(tiny_weights)]
     args += ["--no-progress"]  # train: two procedural sequences, so two people
     models = f"egoposevr,procedural,same={copy}"
-    assert main([*args, "--models", models, "--intervals", "200", "--json", str(out)]) == 0
+    chosen = ["--models", models, "--by-category", "--intervals", "200", "--json", str(out)]
+    assert main([*args, *chosen]) == 0
     printed = capsys.readouterr().out
     assert "| same − egoposevr | +0.00 [+0.00, +0.00] |" in printed
+    assert "per motion category, paired difference from egoposevr" in printed
     report = json.loads(out.read_text())
     assert report["intervals"]["resamples"] == 200 and report["intervals"]["people"] == 2
     served = report["models"]
@@ -868,6 +870,8 @@ def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between
         assert served["same"]["versus"]["intervals"][key] == [0.0, 0.0]  # the same file: no difference
         difference = served["procedural"]["versus"]["difference"][key]
         assert difference == pytest.approx(served["procedural"][key] - served["egoposevr"][key])
+        for category in served["same"]["categories"].values():  # each category over its own people
+            assert category["versus"]["difference"][key] in (0.0, None)
     for bad in ("x=" + str(tmp_path / "missing.onnx"), "egoposevr,egoposevr", "=" + str(copy)):
         assert main([*args, "--models", bad]) == 2
         assert "--models" in capsys.readouterr().err
