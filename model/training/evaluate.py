@@ -446,7 +446,7 @@ def category_difference_table(results: dict[str, dict[str, Any]], key: str = "mp
     first, *later = results
     categories = [c for c in CATEGORIES if c in results[first].get("categories", {})]
     rows = ["| category (sequences) | " + " | ".join(f"{n} − {first}" for n in later) + " |",
-            "|" + "---:|" * (len(later) + 1)]  # fmt: skip
+            "|---|" + "---:|" * len(later)]  # fmt: skip
     for c in categories:
         cells = []
         for n in later:
