@@ -270,7 +270,7 @@ def evaluate(
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of
-    that difference, paired}; with ``by_category`` each category's metrics too, over that category's people."""
+    that difference, paired, ``relative`` and ``relative_intervals``: the same for its value / the first's − 1}; with ``by_category`` each category's metrics too, over that category's people."""
     seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -326,7 +326,13 @@ def _add_intervals(
         if name != first:
             difference = {k: results[name][k] - results[first][k] for k in model_totals[0]}
             paired = intervals.difference_intervals(totals[first], model_totals, weights)
-            results[name]["versus"] = {"model": first, "difference": difference, "intervals": _listed(paired)}
+            relative = {k: results[name][k] / results[first][k] - 1.0 if results[first][k] else float("nan")
+                        for k in model_totals[0]}  # fmt: skip
+            ratio = intervals.difference_intervals(totals[first], model_totals, weights, relative=True)
+            results[name]["versus"] = {
+                "model": first, "difference": difference, "intervals": _listed(paired),
+                "relative": relative, "relative_intervals": _listed(ratio),
+            }  # fmt: skip
 
 
 def _listed(bounds: dict[str, tuple[float, float]]) -> dict[str, list[float]]:
@@ -528,7 +534,23 @@ def interval_table(results: dict[str, dict[str, Any]]) -> str:
                 _with_interval(versus["difference"][k], versus["intervals"][k], "+") for k, _ in INTERVAL_KEYS
             ]
             rows.append(f"| {name} − {versus['model']} | " + " | ".join(cells) + " |")
+    for name, m in results.items():
+        if "versus" in m:
+            versus = m["versus"]
+            cells = [
+                _as_percent(versus["relative"][k], versus["relative_intervals"][k]) for k, _ in INTERVAL_KEYS
+            ]
+            rows.append(f"| {name} / {versus['model']} − 1 | " + " | ".join(cells) + " |")
     return "\n".join(rows)
+
+
+def _as_percent(value: float, bounds: list[float]) -> str:
+    low, high = bounds
+    if value != value:
+        return "–"
+    if low != low:
+        return f"{100 * value:+.1f} % [–]"
+    return f"{100 * value:+.1f} % [{100 * low:+.1f}, {100 * high:+.1f}]"
 
 
 def _with_interval(value: float, bounds: list[float], sign: str) -> str:

@@ -80,12 +80,16 @@ def difference_intervals(
     other: Sequence[dict[str, np.ndarray]],
     weights: np.ndarray,
     level: float = LEVEL,
+    relative: bool = False,
 ) -> dict[str, tuple[float, float]]:
     """{metric: (low, high)} of other − reference, both served the same sequences in the same order, paired
-    under the same resamples ``weights`` (R, S)."""
+    under the same resamples ``weights`` (R, S); with ``relative``, of other / reference − 1 (a bar such as
+    "40 % lower" is a statement about the ratio)."""
     if len(reference) != len(other):
         raise ValueError(
             f"{len(reference)} and {len(other)} sequences: a paired difference needs the same ones"
         )
     ref, oth = resampled_metrics(reference, weights), resampled_metrics(other, weights)
-    return {k: percentile_interval(oth[k] - ref[k], level) for k in ref}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        changes = {k: oth[k] / ref[k] - 1.0 if relative else oth[k] - ref[k] for k in ref}
+    return {k: percentile_interval(np.where(np.isfinite(v), v, np.nan), level) for k, v in changes.items()}

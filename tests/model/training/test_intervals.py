@@ -67,6 +67,8 @@ def test_a_paired_difference_sees_a_small_gain_that_the_spread_between_people_hi
     assert second[1] > first[0]  # each model's interval overlaps the other's
     low, high = difference_intervals(_totals(base), _totals(better), weights)["m"]
     assert -0.31 < low <= high < -0.29
+    low, high = difference_intervals(_totals(base), _totals(better), weights, relative=True)["m"]
+    assert -0.3 / 3.0 < low <= high < -0.3 / 12.0  # 0.3 cm of people erring 3-12 cm
     with pytest.raises(ValueError, match="the same ones"):
         difference_intervals(_totals(base), _totals(better[:-1]), weights)
 

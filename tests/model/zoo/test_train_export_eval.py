@@ -858,6 +858,7 @@ def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between
     assert main([*args, *chosen]) == 0
     printed = capsys.readouterr().out
     assert "| same − egoposevr | +0.00 [+0.00, +0.00] |" in printed
+    assert "| same / egoposevr − 1 | +0.0 % [+0.0, +0.0] |" in printed
     assert "per motion category, paired difference from egoposevr" in printed
     report = json.loads(out.read_text())
     assert report["intervals"]["resamples"] == 200 and report["intervals"]["people"] == 2
@@ -868,6 +869,7 @@ def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between
         assert low <= served["egoposevr"][key] <= high
         assert served["same"]["versus"]["difference"][key] == 0.0
         assert served["same"]["versus"]["intervals"][key] == [0.0, 0.0]  # the same file: no difference
+        assert served["same"]["versus"]["relative_intervals"][key] == [0.0, 0.0]
         difference = served["procedural"]["versus"]["difference"][key]
         assert difference == pytest.approx(served["procedural"][key] - served["egoposevr"][key])
         for category in served["same"]["categories"].values():  # each category over its own people
