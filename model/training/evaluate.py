@@ -277,10 +277,14 @@ def evaluate(
     shared: dict[Path, Any] = {}
     results: dict[str, dict[str, Any]] = {}
     totals: dict[str, list[dict[str, np.ndarray]]] = {}
-    for name, path in models.items():
-        model = (
-            ProceduralModel() if path is None else LoadedModel.load(path, shared=shared, providers=providers)
-        )
+    # every file is loaded before any is served: a damaged third file is an error now, not after two models
+    loaded_models = {
+        name: ProceduralModel()
+        if path is None
+        else LoadedModel.load(path, shared=shared, providers=providers)
+        for name, path in models.items()
+    }
+    for name, model in loaded_models.items():
         pipeline = pipeline_for(model, contacts=foot_contacts, steady_stance=steady_stance, leg_hold=leg_hold)
         errors = []
         for i, seq in enumerate(seqs):

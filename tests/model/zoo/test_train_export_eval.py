@@ -877,7 +877,13 @@ def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between
     for bad in ("x=" + str(tmp_path / "missing.onnx"), "egoposevr,egoposevr", "=" + str(copy)):
         assert main([*args, "--models", bad]) == 2
         assert "--models" in capsys.readouterr().err
-    assert main([*args, "--models", "hmd", "--intervals", "-1"]) == 2
+    for count in ("-1", "100001"):
+        assert main([*args, "--models", "hmd", "--intervals", count]) == 2
+        assert "--intervals" in capsys.readouterr().err
+    damaged = tmp_path / "damaged.onnx"
+    damaged.write_bytes((tiny_weights / "hmd.onnx").read_bytes()[:1000])
+    assert main([*args, "--models", f"hmd,damaged={damaged}"]) == 2  # before hmd is served
+    assert "damaged.onnx" in capsys.readouterr().err
 
 
 def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
