@@ -182,12 +182,28 @@ def measure_fps(
 
 
 # Motion categories read from the truth (not from names, which captured clips do not carry): thresholds on the
-# pelvis's horizontal speed, its height below the clip's standing height, and how fast the ankles move.
-CATEGORIES: Final = ("stand, upper body", "walk", "crouch, bend", "legs", "other")
+# pelvis's horizontal speed, its height below the clip's standing height, how fast the ankles move, and, for
+# still legs, how high the pelvis is above the ankles for the legs' length (standing or seated).
+CATEGORIES: Final = ("stand, upper body", "sit, upper body", "walk", "crouch, bend", "legs", "other")
 WALK_SPEED_M_S = 0.3  # mean pelvis speed over the floor
 CROUCH_DROP_M = 0.2  # the pelvis this far below its highest (90th percentile) height at some point
 STILL_ANKLE_M_S = 0.15  # 90th percentile ankle speed below this: the legs stand still
 LEG_ACTION_ANKLE_M_S = 0.6  # ... above this without walking: kicks, knee raises, lunges, steps in place
+# Still legs whose pelvis is less than this share of the legs' length above the ankles are folded: a seated
+# person (the truth's pelvis is ~0.5 leg lengths above the ankles seated and ~0.95 standing).
+SEATED_LEG_SHARE = 0.7
+_LEGS: Final = ((1, 4, 7), (2, 5, 8))  # hip, knee, ankle: left, right
+
+
+def _seated(joints: np.ndarray) -> bool:
+    """Whether the true joints (N, J, 3) hold the pelvis less than SEATED_LEG_SHARE of the legs' length
+    (thigh + shin, the mean of both sides) above the ankles, at the median sample."""
+    legs = np.array(_LEGS)
+    thigh = np.linalg.norm(joints[:, legs[:, 1]] - joints[:, legs[:, 0]], axis=-1)  # (N, 2)
+    shin = np.linalg.norm(joints[:, legs[:, 2]] - joints[:, legs[:, 1]], axis=-1)
+    length_m = float(np.median(thigh + shin))
+    above_m = float(np.median(joints[:, 0, 1] - joints[:, legs[:, 2], 1].mean(-1)))
+    return above_m < SEATED_LEG_SHARE * length_m
 
 
 def motion_category(seq: dict[str, Any]) -> str:
@@ -205,7 +221,7 @@ def motion_category(seq: dict[str, Any]) -> str:
     if drop > CROUCH_DROP_M:
         return "crouch, bend"
     if ankle_p90 < STILL_ANKLE_M_S:
-        return "stand, upper body"
+        return "sit, upper body" if _seated(joints) else "stand, upper body"
     if ankle_p90 > LEG_ACTION_ANKLE_M_S:
         return "legs"
     return "other"

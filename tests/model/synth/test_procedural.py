@@ -99,7 +99,14 @@ def test_unknown_family_is_refused():
 
 @pytest.mark.parametrize(
     ("family", "category"),
-    [("walk", "walk"), ("squat", "crouch, bend"), ("stand_interact", "stand, upper body"), ("kick", "legs")],
+    [
+        ("walk", "walk"),
+        ("squat", "crouch, bend"),
+        ("stand_interact", "stand, upper body"),
+        ("kick", "legs"),
+        ("still_stand", "stand, upper body"),
+        ("still_sit", "sit, upper body"),
+    ],
 )
 def test_evaluation_reads_the_motion_category_from_the_truth(family, category):
     from egoposevr.model.training.evaluate import motion_category
