@@ -454,14 +454,15 @@ def category_table(
     keys: tuple[str, str] = ("mpjpe_u_cm", "mpjpe_l_cm"),
     unit: str = "U / L cm",
 ) -> str:
-    """Two metrics (``keys``, shown as "a / b") per motion category (rows) and model (columns)."""
+    """Two metrics (``keys``, shown as "a / b") per motion category (rows) and model (columns), each with its
+    95 % interval where ``evaluate(resamples=...)`` gave one."""
     names = list(results)
     categories = [c for c in CATEGORIES if any(c in r.get("categories", {}) for r in results.values())]
     rows = ["| category (sequences) | " + " | ".join(f"{n} {unit}" for n in names) + " |",
             "|" + "---|" * (len(names) + 1)]  # fmt: skip
     for c in categories:
         count = next(r["categories"][c]["sequences"] for r in results.values() if c in r["categories"])
-        cells = [" / ".join(f"{results[n]['categories'][c][k]:.2f}" for k in keys) for n in names]
+        cells = [" / ".join(_value(results[n]["categories"][c], k) for k in keys) for n in names]
         rows.append(f"| {c} ({count}) | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
@@ -562,6 +563,13 @@ def interval_table(results: dict[str, dict[str, Any]]) -> str:
             ]
             rows.append(f"| {name} / {versus['model']} − 1 | " + " | ".join(cells) + " |")
     return "\n".join(rows)
+
+
+def _value(metrics: dict[str, Any], key: str) -> str:
+    """A metric as "value", or "value [low, high]" where the metrics carry its interval."""
+    if "intervals" not in metrics:
+        return f"{metrics[key]:.2f}"
+    return _with_interval(metrics[key], metrics["intervals"][key], "")
 
 
 def _as_percent(value: float, bounds: list[float]) -> str:
