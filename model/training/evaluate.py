@@ -478,7 +478,7 @@ def category_difference_table(results: dict[str, dict[str, Any]], key: str = "mp
         cells = []
         for n in later:
             versus = results[n]["categories"][c]["versus"]
-            cells.append(_with_interval(versus["difference"][key], versus["intervals"][key], "+"))
+            cells.append(_with_interval(versus["difference"][key], versus["intervals"][key], "+.2f"))
         rows.append(f"| {c} ({results[first]['categories'][c]['sequences']}) | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
@@ -546,13 +546,14 @@ def interval_table(results: dict[str, dict[str, Any]]) -> str:
     rows = ["| model | " + " | ".join(label for _, label in INTERVAL_KEYS) + " |",
             "|---|" + "---:|" * len(INTERVAL_KEYS)]  # fmt: skip
     for name, m in results.items():
-        cells = [_with_interval(m[k], m["intervals"][k], "") for k, _ in INTERVAL_KEYS]
+        cells = [_with_interval(m[k], m["intervals"][k], ".2f") for k, _ in INTERVAL_KEYS]
         rows.append(f"| {name} | " + " | ".join(cells) + " |")
     for name, m in results.items():
         if "versus" in m:
             versus = m["versus"]
             cells = [
-                _with_interval(versus["difference"][k], versus["intervals"][k], "+") for k, _ in INTERVAL_KEYS
+                _with_interval(versus["difference"][k], versus["intervals"][k], "+.2f")
+                for k, _ in INTERVAL_KEYS
             ]
             rows.append(f"| {name} − {versus['model']} | " + " | ".join(cells) + " |")
     for name, m in results.items():
@@ -569,22 +570,18 @@ def _value(metrics: dict[str, Any], key: str) -> str:
     """A metric as "value", or "value [low, high]" where the metrics carry its interval."""
     if "intervals" not in metrics:
         return f"{metrics[key]:.2f}"
-    return _with_interval(metrics[key], metrics["intervals"][key], "")
+    return _with_interval(metrics[key], metrics["intervals"][key], ".2f")
 
 
 def _as_percent(value: float, bounds: list[float]) -> str:
+    return _with_interval(100.0 * value, [100.0 * b for b in bounds], "+.1f", " %")
+
+
+def _with_interval(value: float, bounds: list[float], spec: str, unit: str = "") -> str:
+    """ "value[unit] [low, high]" in the format ``spec``; "–" for no value, "[–]" for no interval."""
     low, high = bounds
     if value != value:
         return "–"
     if low != low:
-        return f"{100 * value:+.1f} % [–]"
-    return f"{100 * value:+.1f} % [{100 * low:+.1f}, {100 * high:+.1f}]"
-
-
-def _with_interval(value: float, bounds: list[float], sign: str) -> str:
-    low, high = bounds
-    if value != value:
-        return "–"
-    if low != low:
-        return f"{value:{sign}.2f} [–]"
-    return f"{value:{sign}.2f} [{low:{sign}.2f}, {high:{sign}.2f}]"
+        return f"{value:{spec}}{unit} [–]"
+    return f"{value:{spec}}{unit} [{low:{spec}}, {high:{spec}}]"
