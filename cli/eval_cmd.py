@@ -7,8 +7,8 @@ body behaves like one: foot skating and floor error while the true foot is plant
 true legs are still, jerk, beside the truth's and that of the truth with its head and tracked wrists where
 the devices put them (model/training/plausibility.py defines each). --by-category adds
 MPJPE per motion category (stand or sit with the upper body moving, walk, crouch or bend, leg actions,
-other: read from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D keypoint error
-on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet, arms, head and
+other: read from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D
+keypoint error on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet, arms, head and
 shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose calibration (PROTOCOL.md
 §4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
 evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the

@@ -39,7 +39,7 @@ from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
 from . import intervals
 from .dataset import DatasetError, Fold, load_fold, load_split, sequence_subject
-from .plausibility import add_totals, plausibility, plausibility_totals, pooled_means
+from .plausibility import add_totals, plausibility, plausibility_totals, pooled_means, total
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
 FPS_SAMPLES = 200
@@ -128,10 +128,6 @@ def sequence_totals(errors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """One sequence's :func:`sequence_errors` as (2,) [sum, count] per metric of :func:`summarize` (without
     fps): every metric is a mean pooled over samples, so a set of sequences' value is the ratio of its summed
     totals (what :mod:`.intervals` reweights to resample people)."""
-
-    def total(values: np.ndarray, scale: float = 1.0) -> np.ndarray:
-        return np.array([float(values.sum()) * scale, float(values.size)])
-
     pos, lost, facing = errors["pos"], errors["lost"], errors["facing"]  # (N, J), (N, 2), (N, 3)
     wrists = pos[:, WRISTS]
     return {
@@ -286,7 +282,8 @@ def evaluate(
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of
-    that difference, paired, ``relative`` and ``relative_intervals``: the same for its value / the first's − 1}; with ``by_category`` each category's metrics too, over that category's people."""
+    that difference, paired, ``relative`` and ``relative_intervals``: the same for its value / the first's
+    − 1}; with ``by_category`` each category's metrics too, over that category's people."""
     seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -394,8 +391,6 @@ def keypoint_accuracy(
     limit: int | None = None,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
-    resamples: int = 0,
-    seed: int = 0,
 ) -> dict[str, dict[str, Any]]:
     """{encoder: accuracy} of the visual encoders the given models use (each once), on a split: the keypoints
     it lifts to 3D in the camera frame against the truth, on joints in view and not occluded: median, mean and

@@ -108,14 +108,15 @@ def add_totals(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {k: np.sum([p[k] for p in parts], axis=0) for k in parts[0]} if parts else {}
 
 
+def total(values: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(2,) [sum × scale, count] of any array of per-sample values: what a pooled mean needs of it."""
+    return np.array([float(values.sum()) * scale, float(values.size)])
+
+
 def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """One sequence's :func:`plausibility` as (2,) [sum, count] per metric of :func:`summarize_plausibility`:
     every one is a mean pooled over samples (or still stretches), so a set of sequences' value is the ratio of
     its summed totals. A part without ``jerk_devices`` gives it a NaN sum: NaN for any set that holds it."""
-
-    def total(values: np.ndarray, scale: float = 1.0) -> np.ndarray:
-        return np.array([float(values.sum()) * scale, float(values.size)])
-
     sole = part["sole"]
     return {
         "foot_skate_cm_s": total(part["skate"], 100.0),
