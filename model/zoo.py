@@ -3,8 +3,9 @@
 Models share trained parts: one visual encoder per modality (``rgb``, ``rgbd``) serves every model of that
 modality, and ``egoposevr`` is ``hmd-rgbd``'s fusion net with KPO switched on in the runtime. The bundled
 ``egoposevr`` and ``hmd-rgbd`` serve several trainings of that net as one graph (a seed ensemble, made by
-``export``); ``egoposevr-lite`` serves one net of that kind taught by them (``train --teachers``; the bundled one by
-the nets before their sitting fine-tune), for servers that need sessions more than accuracy.
+``export``); ``egoposevr-lite`` serves one net of that kind taught by them (``train --teachers``; the bundled one was
+distilled from the two nets before their sitting fine-tune, then fine-tuned by them after it), for servers that
+need sessions more than accuracy.
 """
 
 from __future__ import annotations
@@ -45,8 +46,7 @@ ZOO: Final = {
         ZooEntry("hmd-rgbd-concat", "ablation: fusion by concatenation", "rgbd", {"fusion": "concat"}),
         ZooEntry(
             "egoposevr-lite",
-            "the full system on one net taught by egoposevr's nets before they learnt sitting: half the fusion "
-            "work per sample; a seated wearer's legs are less accurate than egoposevr's",
+            "the full system on one net taught by egoposevr's nets: half the fusion work per sample",
             "rgbd",
             {},
             True,
