@@ -8,10 +8,10 @@ true legs are still, jerk, beside the truth's and that of the truth with its hea
 the devices put them (model/training/plausibility.py defines each). --by-category adds
 MPJPE per motion category (stand or sit with the upper body moving, walk, crouch or bend, leg actions,
 other: read from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D
-keypoint error on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet, arms, head and
-shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose calibration (PROTOCOL.md
-§4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth --rig-pool heldout --split NAME`) is
-evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the
+keypoint error on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet,
+arms, head and shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose
+calibration (PROTOCOL.md §4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth
+--rig-pool heldout --split NAME`) is evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the
 people `train --hold-out K/N` left out; --json names them).
 
 --intervals R adds 95 % intervals over R resamples of the split's people (model/training/intervals.py: a
@@ -202,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
         report |= {"keypoints": keypoints} if keypoints else {}
         if args.intervals:
             report["intervals"] = {"resamples": args.intervals, "seed": args.seed, "level": 0.95,
-                                   "people": len(subjects(loaded[0]))}  # fmt: skip
+                                   "people": people}  # fmt: skip
         args.json.write_text(json.dumps(_without_nan(report), indent=2) + "\n")
     return 0
 

@@ -291,13 +291,13 @@ def evaluate(
     results: dict[str, dict[str, Any]] = {}
     totals: dict[str, list[dict[str, np.ndarray]]] = {}
     # every file is loaded before any is served: a damaged third file is an error now, not after two models
-    loaded_models = {
+    served_models = {
         name: ProceduralModel()
         if path is None
         else LoadedModel.load(path, shared=shared, providers=providers)
         for name, path in models.items()
     }
-    for name, model in loaded_models.items():
+    for name, model in served_models.items():
         pipeline = pipeline_for(model, contacts=foot_contacts, steady_stance=steady_stance, leg_hold=leg_hold)
         errors = []
         for i, seq in enumerate(seqs):
@@ -337,15 +337,18 @@ def _add_intervals(
 ) -> None:
     """Each model's ``intervals`` and, after the first, its paired ``versus`` the first (:func:`evaluate`)."""
     weights = intervals.resample_weights(people, resamples, seed)
+    resampled = {
+        name: intervals.resampled_metrics(t, weights) for name, t in totals.items()
+    }  # once per model
     first = next(iter(totals))
-    for name, model_totals in totals.items():
-        results[name]["intervals"] = _listed(intervals.metric_intervals(model_totals, weights))
+    for name, values in resampled.items():
+        results[name]["intervals"] = _listed(intervals.metric_intervals(values))
         if name != first:
-            difference = {k: results[name][k] - results[first][k] for k in model_totals[0]}
-            paired = intervals.difference_intervals(totals[first], model_totals, weights)
+            difference = {k: results[name][k] - results[first][k] for k in values}
+            paired = intervals.difference_intervals(resampled[first], values)
             relative = {k: results[name][k] / results[first][k] - 1.0 if results[first][k] else float("nan")
-                        for k in model_totals[0]}  # fmt: skip
-            ratio = intervals.difference_intervals(totals[first], model_totals, weights, relative=True)
+                        for k in values}  # fmt: skip
+            ratio = intervals.difference_intervals(resampled[first], values, relative=True)
             results[name]["versus"] = {
                 "model": first, "difference": difference, "intervals": _listed(paired),
                 "relative": relative, "relative_intervals": _listed(ratio),

@@ -44,6 +44,10 @@ def resampled_metrics(totals: Sequence[dict[str, np.ndarray]], weights: np.ndarr
     """{metric: (R,)} each resample's pooled value: Σ weight × sum / Σ weight × count over the sequences;
     NaN in a resample whose sequences have nothing to measure (no lost controller, say), and in every
     resample of a metric that fewer than two people have: one person's value has no spread to resample."""
+    if len(totals) != weights.shape[1]:
+        raise ValueError(
+            f"{len(totals)} sequences for resamples of {weights.shape[1]}: a paired difference needs the same ones"
+        )
     keys = list(totals[0])
     sums, counts = _stacked(totals, keys)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -69,27 +73,23 @@ def percentile_interval(values: np.ndarray, level: float = LEVEL) -> tuple[float
 
 
 def metric_intervals(
-    totals: Sequence[dict[str, np.ndarray]], weights: np.ndarray, level: float = LEVEL
+    resampled: dict[str, np.ndarray], level: float = LEVEL
 ) -> dict[str, tuple[float, float]]:
-    """{metric: (low, high)} for one model's per-sequence totals under the resamples ``weights`` (R, S)."""
-    return {k: percentile_interval(v, level) for k, v in resampled_metrics(totals, weights).items()}
+    """{metric: (low, high)} of one model's :func:`resampled_metrics` {metric: (R,)}."""
+    return {k: percentile_interval(v, level) for k, v in resampled.items()}
 
 
 def difference_intervals(
-    reference: Sequence[dict[str, np.ndarray]],
-    other: Sequence[dict[str, np.ndarray]],
-    weights: np.ndarray,
+    reference: dict[str, np.ndarray],
+    other: dict[str, np.ndarray],
     level: float = LEVEL,
     relative: bool = False,
 ) -> dict[str, tuple[float, float]]:
-    """{metric: (low, high)} of other − reference, both served the same sequences in the same order, paired
-    under the same resamples ``weights`` (R, S); with ``relative``, of other / reference − 1 (a bar such as
-    "40 % lower" is a statement about the ratio)."""
-    if len(reference) != len(other):
-        raise ValueError(
-            f"{len(reference)} and {len(other)} sequences: a paired difference needs the same ones"
-        )
-    ref, oth = resampled_metrics(reference, weights), resampled_metrics(other, weights)
+    """{metric: (low, high)} of other − reference, each a model's :func:`resampled_metrics` {metric: (R,)} of
+    the same sequences under the same resample weights (so the difference is paired); with ``relative``, of
+    other / reference − 1 (a bar such as "40 % lower" is a statement about the ratio)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        changes = {k: oth[k] / ref[k] - 1.0 if relative else oth[k] - ref[k] for k in ref}
+        changes = {
+            k: other[k] / reference[k] - 1.0 if relative else other[k] - reference[k] for k in reference
+        }
     return {k: percentile_interval(np.where(np.isfinite(v), v, np.nan), level) for k, v in changes.items()}

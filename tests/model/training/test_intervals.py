@@ -11,6 +11,7 @@ from egoposevr.model.training.intervals import (
     metric_intervals,
     percentile_interval,
     resample_weights,
+    resampled_metrics,
 )
 from egoposevr.model.training.plausibility import plausibility
 
@@ -18,6 +19,10 @@ from egoposevr.model.training.plausibility import plausibility
 def _totals(values_by_sequence: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
     """One metric ``m``, each sequence's per-sample values as its (sum, count)."""
     return [{"m": np.array([v.sum(), v.size], dtype=float)} for v in values_by_sequence]
+
+
+def _resampled(values_by_sequence: list[np.ndarray], weights: np.ndarray) -> dict[str, np.ndarray]:
+    return resampled_metrics(_totals(values_by_sequence), weights)
 
 
 def test_a_person_is_drawn_with_all_their_sequences():
@@ -42,14 +47,14 @@ def test_the_interval_is_as_wide_as_the_people_differ_however_many_sequences_eac
     values = [np.full(50, 1.0) + rng.normal(0, 0.01, 50) for _ in range(40)]
     values += [np.full(50, 9.0) + rng.normal(0, 0.01, 50) for _ in range(40)]
     people = ["a"] * 40 + ["b"] * 40
-    low, high = metric_intervals(_totals(values), resample_weights(people, 2000, seed=1))["m"]
+    low, high = metric_intervals(_resampled(values, resample_weights(people, 2000, seed=1)))["m"]
     assert low < 1.1 and high > 8.9
 
 
 def test_people_alike_give_a_narrow_interval_around_the_pooled_value():
     rng = np.random.default_rng(0)
     values = [rng.normal(5.0, 1.0, 200) for _ in range(30)]
-    low, high = metric_intervals(_totals(values), resample_weights([str(i) for i in range(30)], 2000))["m"]
+    low, high = metric_intervals(_resampled(values, resample_weights([str(i) for i in range(30)], 2000)))["m"]
     pooled = np.concatenate(values).mean()
     assert low < pooled < high and high - low < 0.2
 
@@ -61,25 +66,27 @@ def test_a_paired_difference_sees_a_small_gain_that_the_spread_between_people_hi
     better = [v - 0.3 for v in base]
     weights = resample_weights([str(i) for i in range(20)], 2000, seed=0)
     first, second = (
-        metric_intervals(_totals(base), weights)["m"],
-        metric_intervals(_totals(better), weights)["m"],
+        metric_intervals(_resampled(base, weights))["m"],
+        metric_intervals(_resampled(better, weights))["m"],
     )
     assert second[1] > first[0]  # each model's interval overlaps the other's
-    low, high = difference_intervals(_totals(base), _totals(better), weights)["m"]
+    low, high = difference_intervals(_resampled(base, weights), _resampled(better, weights))["m"]
     assert -0.31 < low <= high < -0.29
-    low, high = difference_intervals(_totals(base), _totals(better), weights, relative=True)["m"]
+    low, high = difference_intervals(_resampled(base, weights), _resampled(better, weights), relative=True)[
+        "m"
+    ]
     assert -0.3 / 3.0 < low <= high < -0.3 / 12.0  # 0.3 cm of people erring 3-12 cm
     with pytest.raises(ValueError, match="the same ones"):
-        difference_intervals(_totals(base), _totals(better[:-1]), weights)
+        _resampled(better[:-1], weights)  # a sequence short of the weights: not paired
 
 
 def test_a_metric_that_one_person_has_has_no_interval():
     people = list("abcdefghij")
     weights = resample_weights(people, 500)
     one = [np.zeros(0)] * 9 + [np.ones(10)]  # one person in ten lost a controller
-    assert np.isnan(metric_intervals(_totals(one), weights)["m"]).all()
+    assert np.isnan(metric_intervals(_resampled(one, weights))["m"]).all()
     two = [np.zeros(0)] * 8 + [np.ones(10), np.full(10, 3.0)]
-    low, high = metric_intervals(_totals(two), weights)["m"]
+    low, high = metric_intervals(_resampled(two, weights))["m"]
     assert low == pytest.approx(1.0) and high == pytest.approx(3.0)
     assert np.isnan(percentile_interval(np.array([np.nan, np.nan, 1.0]))).all()
 
