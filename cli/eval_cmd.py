@@ -11,8 +11,8 @@ other: read from the true motion, model/training/evaluate.py says how); --keypoi
 keypoint error on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet,
 arms, head and shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose
 calibration (PROTOCOL.md §4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth
---rig-pool heldout --split NAME`) is evaluated like any split. --fold K/N serves only the split's subjects of fold K of N (with --split train, the
-people `train --hold-out K/N` left out; --json names them).
+--rig-pool heldout --split NAME`) is evaluated like any split. --fold K/N serves only the split's subjects of
+fold K of N (with --split train, the people `train --hold-out K/N` left out; --json names them).
 
 --intervals R adds 95 % intervals over R resamples of the split's people (model/training/intervals.py: a
 person is drawn with all their sequences) for each model, and each later model's paired difference from the
