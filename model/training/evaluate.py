@@ -544,7 +544,7 @@ def interval_table(results: dict[str, dict[str, Any]]) -> str:
     rows = ["| model | " + " | ".join(label for _, label in INTERVAL_KEYS) + " |",
             "|---|" + "---:|" * len(INTERVAL_KEYS)]  # fmt: skip
     for name, m in results.items():
-        cells = [_with_interval(m[k], m["intervals"][k], ".2f") for k, _ in INTERVAL_KEYS]
+        cells = [_value(m, k) for k, _ in INTERVAL_KEYS]
         rows.append(f"| {name} | " + " | ".join(cells) + " |")
     for name, m in results.items():
         if "versus" in m:
