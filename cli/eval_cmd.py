@@ -18,11 +18,15 @@ fold K of N (with --split train, the people `train --hold-out K/N` left out; --j
 person is drawn with all their sequences) for each model, and each later model's paired difference from the
 first one named: whether a gap between two models is more than the people in the split make it. A model file
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
-(its folder holds the visual encoder it reads, as export writes it).
+(its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
+served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
+@no-steady-stance, @no-leg-hold, @no-gait-hold), so --models egoposevr@no-gait-hold,egoposevr says, paired,
+what one stage of the runtime changes.
 
 Examples:
   egoposevr eval --data data/dev --split val --json eval.json
   egoposevr eval --data data/dev --split val --models egoposevr,mine=runs/x-weights/egoposevr.onnx --intervals 2000
+  egoposevr eval --data data/dev --split val --models egoposevr@no-gait-hold,egoposevr --intervals 2000
 """
 
 from __future__ import annotations
@@ -36,6 +40,9 @@ from typing import Any
 # Each resample is a row of weights over the split's sequences (intervals.py): 100 000 rows of a few hundred
 # sequences are a few hundred MB; the percentiles are steady to 0.01 cm long before that (2 000 is plenty).
 MAX_RESAMPLES = 100_000
+# --models' @SWITCH: the runtime stage it turns off for that model, as evaluate's pipeline option
+SWITCHES = {"no-foot-contacts": "contacts", "no-steady-stance": "steady_stance", "no-leg-hold": "leg_hold",
+            "no-gait-hold": "gait_hold"}  # fmt: skip
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
-        "your own (a candidate beside the bundled model of its name)",
+        "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-gait-hold)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -83,6 +91,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the pelvis, hips and knees wander with the network while both feet are down and the headset "
         "is quiet (model/runtime/stance.py, LegHold): the runtime before the leg hold",
+    )
+    parser.add_argument(
+        "--no-gait-hold",
+        action="store_true",
+        help="a walking wearer's planted foot is let go as soon as the network puts it far off "
+        "(model/runtime/contact.py, DRIFT_PERSIST_S): the runtime before the gait hold",
     )
     parser.add_argument(
         "--providers",
@@ -127,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     available = {PROCEDURAL: None} | model_files(args.models_dir or WEIGHTS_DIR)  # the baseline has no file
     wanted = list(available) if args.models in ("", "all") else [m.strip() for m in args.models.split(",")]
     try:
-        chosen = _chosen_models(wanted, available)
+        chosen, runtime = _chosen_models(wanted, available)
     except ValueError as error:
         print(f"egoposevr eval: {error}", file=sys.stderr)
         return 2
@@ -156,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
+            gait_hold=not args.no_gait_hold,
+            runtime=runtime,
             fold=fold,
             loaded=loaded,
             resamples=args.intervals,
@@ -207,27 +223,37 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _chosen_models(wanted: list[str], available: dict[str, Path | None]) -> dict[str, Path | None]:
-    """{label: model file (None: the procedural baseline)} for --models' entries: a model's name, or
-    LABEL=FILE. Raises ValueError naming what is missing or clashes."""
+def _chosen_models(
+    wanted: list[str], available: dict[str, Path | None]
+) -> tuple[dict[str, Path | None], dict[str, dict[str, bool]]]:
+    """({label: model file (None: the procedural baseline)}, {label: runtime options it is served with}) for
+    --models' entries: a model's name, or LABEL=FILE, either with @SWITCH... after it (SWITCHES; a name's
+    label keeps them: ``egoposevr@no-gait-hold``). Raises ValueError naming what is missing or clashes."""
     chosen: dict[str, Path | None] = {}
+    runtime: dict[str, dict[str, bool]] = {}
     for entry in wanted:
         label, is_file, file = entry.partition("=")
         label = label.strip()
+        model, *switches = (file if is_file else label).split("@")
+        unknown = [w for w in switches if w.strip() not in SWITCHES]
+        if unknown:
+            raise ValueError(f"--models {entry!r}: unknown @{unknown[0]}; have @{', @'.join(SWITCHES)}")
         if is_file:
-            path = Path(file.strip())
+            path = Path(model.strip())
             if not label or not path.is_file():
                 raise ValueError(f"--models {entry!r}: LABEL=FILE needs a label and an existing model file")
-        elif label in available:
-            path = available[label]
+        elif model.strip() in available:
+            path = available[model.strip()]
         else:
-            raise ValueError(f"no model file for {label!r}; have {sorted(available)}")
+            raise ValueError(f"no model file for {model.strip()!r}; have {sorted(available)}")
         if label in chosen:
             raise ValueError(f"--models names {label!r} twice")
         chosen[label] = path
+        if switches:
+            runtime[label] = {SWITCHES[w.strip()]: False for w in switches}
     if not chosen:
         raise ValueError(f"no model named; have {sorted(available)}")
-    return chosen
+    return chosen, runtime
 
 
 def _without_nan(value):

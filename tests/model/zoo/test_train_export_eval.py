@@ -841,6 +841,35 @@ def test_eval_serves_the_runtime_before_the_steady_stance_or_the_leg_hold_on_req
         assert runs[""]["procedural"]["mpjpe_l_cm"] == runs[flag]["procedural"]["mpjpe_l_cm"]
 
 
+def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    """NAME@SWITCH serves that model as the --no-SWITCH flag would serve every model, under its own label,
+    beside the model as bundled: a paired look at what one stage of the runtime changes."""
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    served = {}
+    for name, chosen in (
+        ("switch", ["--models", "egoposevr,egoposevr@no-foot-contacts@no-gait-hold"]),
+        ("flags", ["--models", "egoposevr", "--no-foot-contacts", "--no-gait-hold"]),
+    ):
+        out = tmp_path / f"{name}.json"
+        assert main([*args, *chosen, "--json", str(out)]) == 0
+        served[name] = json.loads(out.read_text())["models"]
+    assert list(served["switch"]) == ["egoposevr", "egoposevr@no-foot-contacts@no-gait-hold"]
+    without = served["switch"]["egoposevr@no-foot-contacts@no-gait-hold"]
+    keys = ("mpjpe_l_cm", "foot_skate_cm_s", "leg_leakage_cm")
+    assert all(without[key] == served["flags"]["egoposevr"][key] for key in keys)
+    assert any(without[key] != served["switch"]["egoposevr"][key] for key in keys)  # the stages do something
+    capsys.readouterr()
+    for bad, said in (
+        ("egoposevr@no-such-stage", "@no-such-stage"),
+        ("egoposevr@no-leg-hold,egoposevr@no-leg-hold", "twice"),
+        ("nope@no-leg-hold", "'nope'"),
+    ):
+        assert main([*args, "--models", bad]) == 2
+        assert said in capsys.readouterr().err
+
+
 def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between_people(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
