@@ -20,13 +20,13 @@ first one named: whether a gap between two models is more than the people in the
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
-@no-steady-stance, @no-leg-hold, @no-gait-hold), so --models egoposevr@no-gait-hold,egoposevr says, paired,
-what one stage of the runtime changes.
+@no-steady-stance, @no-leg-hold), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage
+of the runtime changes.
 
 Examples:
   egoposevr eval --data data/dev --split val --json eval.json
   egoposevr eval --data data/dev --split val --models egoposevr,mine=runs/x-weights/egoposevr.onnx --intervals 2000
-  egoposevr eval --data data/dev --split val --models egoposevr@no-gait-hold,egoposevr --intervals 2000
+  egoposevr eval --data data/dev --split val --models egoposevr@no-leg-hold,egoposevr --intervals 2000
 """
 
 from __future__ import annotations
@@ -41,8 +41,7 @@ from typing import Any
 # sequences are a few hundred MB; the percentiles are steady to 0.01 cm long before that (2 000 is plenty).
 MAX_RESAMPLES = 100_000
 # --models' @SWITCH: the runtime stage it turns off for that model, as evaluate's pipeline option
-SWITCHES = {"no-foot-contacts": "contacts", "no-steady-stance": "steady_stance", "no-leg-hold": "leg_hold",
-            "no-gait-hold": "gait_hold"}  # fmt: skip
+SWITCHES = {"no-foot-contacts": "contacts", "no-steady-stance": "steady_stance", "no-leg-hold": "leg_hold"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-gait-hold)",
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -91,12 +90,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the pelvis, hips and knees wander with the network while both feet are down and the headset "
         "is quiet (model/runtime/stance.py, LegHold): the runtime before the leg hold",
-    )
-    parser.add_argument(
-        "--no-gait-hold",
-        action="store_true",
-        help="a walking wearer's planted foot is let go as soon as the network puts it far off "
-        "(model/runtime/contact.py, DRIFT_PERSIST_S): the runtime before the gait hold",
     )
     parser.add_argument(
         "--providers",
@@ -170,7 +163,6 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
-            gait_hold=not args.no_gait_hold,
             runtime=runtime,
             fold=fold,
             loaded=loaded,
@@ -228,7 +220,7 @@ def _chosen_models(
 ) -> tuple[dict[str, Path | None], dict[str, dict[str, bool]]]:
     """({label: model file (None: the procedural baseline)}, {label: runtime options it is served with}) for
     --models' entries: a model's name, or LABEL=FILE, either with @SWITCH... after it (SWITCHES; a name's
-    label keeps them: ``egoposevr@no-gait-hold``). Raises ValueError naming what is missing or clashes."""
+    label keeps them: ``egoposevr@no-leg-hold``). Raises ValueError naming what is missing or clashes."""
     chosen: dict[str, Path | None] = {}
     runtime: dict[str, dict[str, bool]] = {}
     for entry in wanted:

@@ -20,12 +20,6 @@ is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of
   target (smoothstep, ``LAND_S`` for a plant, ``BLEND_S`` for a release), so a foot lowered onto the floor,
   let go, or planted again at once elsewhere glides instead of moving centimetres in one sample (the jerk
   spikes that were most of the served legs' jerk).
-- **a walking head** (faster than ``GAIT_SPEED_M_S``): with a contact head that still calls the foot down, the
-  distance release waits until the network has put the foot that far for ``DRIFT_PERSIST_S`` without a break.
-  A walking network's foot is often 15-30 cm off for a tenth of a second (its guess of the gait's phase is
-  early or late); let go at once, the foot was planted again where the guess was, a glide of 3-5 m/s
-  mid-stance. A slower head keeps the rule above: a standing or seated wearer's first anchors are often off,
-  and the release is what moves them to where the network settles.
 - **a steady stance** (:mod:`.stance`: both feet planted, the headset still): a planted foot steps only when
   the network lifts it, however far its guess wanders over the floor, and the anchor moves towards the mean
   of the network's placements since the plant at most ``ANCHOR_SPEED_M_S`` (one early guess is a worse
@@ -81,12 +75,6 @@ FLOOR_WINDOW_S: Final = 5.0
 FLOOR_MIN_S: Final = 1.0
 FLOOR_EVERY_S: Final = 0.25  # the percentile is re-taken this often (it costs ~30 µs; the floor moves slowly)
 FLOOR_PERCENTILE: Final = 20.0  # one foot is on the floor most of the time, standing, walking or sitting
-# A headset faster than this over GAIT_WINDOW_S walks (0.5-1.5 m/s; a wearer who stands or sits and reaches
-# moves it slower): a planted foot the contact head still calls down is let go for distance only once it has
-# been that far for DRIFT_PERSIST_S (chosen on the training split and data/still, MODEL_CARD.md, rule 13).
-GAIT_SPEED_M_S: Final = 0.3
-GAIT_WINDOW_S: Final = 0.2
-DRIFT_PERSIST_S: Final = 0.4
 PLANT_P: Final = 0.5  # a net with a contact head: plant at this probability, release under RELEASE_P
 RELEASE_P: Final = 0.3
 
@@ -104,7 +92,6 @@ class _Foot:
     blend_m: np.ndarray | None = None
     switched_us: int = 0
     blend_s: float = BLEND_S
-    drift_since_us: int | None = None  # while walking: since when the network has put the foot far enough to go
     speed: WindowSpeed = dataclasses.field(
         default_factory=lambda: WindowSpeed(SPEED_WINDOW_S)
     )  # foot joint's
@@ -139,10 +126,8 @@ class FloorEstimate:
 class FootContacts:
     """Per-session foot contact state; :meth:`targets` adds the feet's KPO targets for one sample."""
 
-    def __init__(self, floor_y_m: float = 0.0, gait_hold: bool = True) -> None:
+    def __init__(self, floor_y_m: float = 0.0) -> None:
         self.floor_y_m = floor_y_m  # the reference space's floor
-        self.gait_hold = gait_hold  # while the head walks, a brief drift does not let a planted foot go
-        self._head_speed = WindowSpeed(GAIT_WINDOW_S)
         self._estimate = FloorEstimate()  # the session's own, from the network's feet
         self._floor_now_m = floor_y_m
         self._feet = (_Foot(), _Foot())
@@ -167,34 +152,25 @@ class FootContacts:
         observed: np.ndarray,
         contact_p: np.ndarray | None = None,
         steady: bool = False,
-        head_m: np.ndarray | None = None,
     ) -> None:
         """joints (J, 3) the network's joints for this sample; body_scale the body's size against SMPL's
         (leg length); contact_p (2,) the network's probability that each foot is on the floor, if it has a
         contact head (None: inferred from its feet); steady: the stance is held (:mod:`.stance`: both feet
-        down and the headset still), so a planted foot steps only when the network lifts it; head_m (3,)
-        the tracked head this sample (None: lost), whose speed tells a walking wearer. KPO's targets (J, 3)
-        and observed (J,) are filled in for the ankles and feet, which then pull with the devices' weight
-        λa."""
+        down and the headset still), so a planted foot steps only when the network lifts it. KPO's targets
+        (J, 3) and observed (J,) are filled in for the ankles and feet, which then pull with the devices'
+        weight λa."""
         dt_s = 0.0 if self._last_us is None else max(t_us - self._last_us, 0) * 1e-6
         if dt_s > MAX_GAP_S:
             self._feet = (_Foot(), _Foot())
-            self._head_speed = WindowSpeed(GAIT_WINDOW_S)
         self._last_us = t_us
-        walking = self.gait_hold and head_m is not None and self._walking(t_us, head_m)
         floor_y_m = self._floor(t_us, joints)
         for side, (foot, (ankle_j, foot_j)) in enumerate(zip(self._feet, FEET, strict=True)):
             predicted = joints[[ankle_j, foot_j]]
             p = None if contact_p is None else float(contact_p[side])
-            target = self._step(foot, t_us, predicted, body_scale, p, floor_y_m, steady, walking)
+            target = self._step(foot, t_us, predicted, body_scale, p, floor_y_m, steady)
             if target is not None:
                 targets[[ankle_j, foot_j]] = target
                 observed[[ankle_j, foot_j]] = True
-
-    def _walking(self, t_us: int, head_m: np.ndarray) -> bool:
-        """Record the head (3,); whether it moved faster than GAIT_SPEED_M_S over the last GAIT_WINDOW_S."""
-        speed_m_s = self._head_speed.push(t_us, head_m)
-        return self._head_speed.span_s >= 0.9 * GAIT_WINDOW_S and speed_m_s > GAIT_SPEED_M_S
 
     def _floor(self, t_us: int, joints: np.ndarray) -> float:
         """The floor for this sample: the space's, unless the session's estimate from the feet is more than
@@ -216,7 +192,6 @@ class FootContacts:
         contact_p: float | None,
         floor_y_m: float,
         steady: bool = False,
-        walking: bool = False,
     ) -> np.ndarray | None:
         """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
         rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
@@ -227,15 +202,15 @@ class FootContacts:
         speed_m_s = foot.speed.push(t_us, predicted[1])
         if foot.planted:
             assert foot.anchor is not None
-            if self._steps(foot, t_us, predicted, lift_m, body_scale, speed_m_s, contact_p, steady, walking):
-                foot.planted, foot.drift_since_us = False, None
+            if self._steps(foot, predicted, lift_m, body_scale, speed_m_s, contact_p, steady):
+                foot.planted = False
                 self._switch(foot, t_us, predicted, BLEND_S)
             else:
                 if steady:
                     self._settle(foot, predicted - np.array([0.0, lift_m, 0.0]))
                 return self._serve(foot, t_us, foot.anchor, predicted, rest_y)
         elif self._plants(lift_m, speed_m_s, contact_p):
-            foot.planted, foot.drift_since_us = True, None
+            foot.planted = True
             foot.anchor = predicted - np.array([0.0, lift_m, 0.0])  # sole on the floor, foot as predicted
             foot.placed_sum, foot.placed = foot.anchor.copy(), 1
             self._switch(foot, t_us, foot.anchor, LAND_S)
@@ -245,16 +220,14 @@ class FootContacts:
     @staticmethod
     def _steps(
         foot: _Foot,
-        t_us: int,
         predicted: np.ndarray,
         lift_m: float,
         body_scale: float,
         speed_m_s: float,
         contact_p: float | None,
         steady: bool,
-        walking: bool,
     ) -> bool:
-        """Whether a planted foot steps now (module docstring: planted -> free, a walking head)."""
+        """Whether a planted foot steps now (module docstring: planted -> free)."""
         assert foot.anchor is not None
         drift_m = float(np.linalg.norm(predicted[1, [0, 2]] - foot.anchor[1, [0, 2]]))
         away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
@@ -262,16 +235,7 @@ class FootContacts:
             sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
             return lift_m > RELEASE_HEIGHT_M and sure
         if contact_p is not None:
-            if contact_p < RELEASE_P:
-                return True
-            if away <= SURE_RELEASE:
-                foot.drift_since_us = None
-                return False
-            if not walking:
-                return True
-            if foot.drift_since_us is None:
-                foot.drift_since_us = t_us
-            return (t_us - foot.drift_since_us) * 1e-6 >= DRIFT_PERSIST_S
+            return contact_p < RELEASE_P or away > SURE_RELEASE
         return away > SURE_RELEASE or (away > 1.0 and speed_m_s > STEP_SPEED_M_S)
 
     @staticmethod

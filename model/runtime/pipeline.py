@@ -91,13 +91,11 @@ class Pipeline:
         contacts: bool = True,
         steady_stance: bool = True,
         leg_hold: bool = True,
-        gait_hold: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
         self.steady_stance = steady_stance  # with contacts: feet stay down while the head is still
         self.leg_hold = leg_hold  # with contacts: pelvis, hips and knees stay while both feet are down
-        self.gait_hold = gait_hold  # with contacts: a walking foot is not let go for a brief drift
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -142,8 +140,7 @@ class Pipeline:
         self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.cache.forget()
         self.position_filter.reset()
-        self.feet = FootContacts(gait_hold=self.gait_hold)
-        self.stance, self.hands = SteadyStance(), LostHandPolicy()
+        self.feet, self.stance, self.hands = FootContacts(), SteadyStance(), LostHandPolicy()
         self.legs = LegHold()
 
     @property
@@ -305,8 +302,7 @@ class Pipeline:
                 leg_scale = float(bones[_LEG_BONES].mean())
                 still_m = self._stillness_point(pending)
                 steady = self.steady_stance and self.stance.observe_head(t_us, still_m, bool(valid[0]))
-                head_m = still_m if valid[0] else None
-                self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady, head_m)
+                self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
                 self.stance.observe_feet(self.feet.planted)
                 if self.leg_hold:
                     network = joints  # the lambda's, bound now: `joints` becomes KPO's result below

@@ -397,6 +397,5 @@ def pipeline_for(model, **kwargs):
         kwargs.pop("contacts", None)  # it plants its own feet
         kwargs.pop("steady_stance", None)
         kwargs.pop("leg_hold", None)
-        kwargs.pop("gait_hold", None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

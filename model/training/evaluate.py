@@ -264,7 +264,6 @@ def evaluate(
     foot_contacts: bool = True,
     steady_stance: bool = True,
     leg_hold: bool = True,
-    gait_hold: bool = True,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
@@ -279,10 +278,9 @@ def evaluate(
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
-    both feet are down (stance.LegHold), ``gait_hold`` False lets a walking wearer's planted foot go as soon
-    as the network puts it far off (contact.DRIFT_PERSIST_S). ``runtime`` {label: {option: bool}} serves a
-    label with some of those four (as ``contacts``, ``steady_stance``, ``leg_hold``, ``gait_hold``) set
-    otherwise: one file served twice, with and without a runtime stage, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments,
+    both feet are down (stance.LegHold). ``runtime`` {label: {option: bool}} serves a label with some of
+    those three (as ``contacts``, ``steady_stance``, ``leg_hold``) set otherwise: one file served twice, with
+    and without a runtime stage, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments,
     when the caller has already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
@@ -303,8 +301,8 @@ def evaluate(
         for name, path in models.items()
     }
     for name, model in served_models.items():
-        options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold,
-                   "gait_hold": gait_hold} | (runtime or {}).get(name, {})  # fmt: skip
+        options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold}
+        options |= (runtime or {}).get(name, {})
         pipeline = pipeline_for(model, **options)
         errors = []
         for i, seq in enumerate(seqs):

@@ -849,14 +849,14 @@ def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
     served = {}
     for name, chosen in (
-        ("switch", ["--models", "egoposevr,egoposevr@no-foot-contacts@no-gait-hold"]),
-        ("flags", ["--models", "egoposevr", "--no-foot-contacts", "--no-gait-hold"]),
+        ("switch", ["--models", "egoposevr,egoposevr@no-foot-contacts@no-leg-hold"]),
+        ("flags", ["--models", "egoposevr", "--no-foot-contacts", "--no-leg-hold"]),
     ):
         out = tmp_path / f"{name}.json"
         assert main([*args, *chosen, "--json", str(out)]) == 0
         served[name] = json.loads(out.read_text())["models"]
-    assert list(served["switch"]) == ["egoposevr", "egoposevr@no-foot-contacts@no-gait-hold"]
-    without = served["switch"]["egoposevr@no-foot-contacts@no-gait-hold"]
+    assert list(served["switch"]) == ["egoposevr", "egoposevr@no-foot-contacts@no-leg-hold"]
+    without = served["switch"]["egoposevr@no-foot-contacts@no-leg-hold"]
     keys = ("mpjpe_l_cm", "foot_skate_cm_s", "leg_leakage_cm")
     assert all(without[key] == served["flags"]["egoposevr"][key] for key in keys)
     assert any(without[key] != served["switch"]["egoposevr"][key] for key in keys)  # the stages do something
