@@ -64,6 +64,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--by-category", action="store_true", help="also MPJPE per motion category (read from the truth)"
     )
     parser.add_argument(
+        "--per-sequence", action="store_true",
+        help="also each sequence's lower-body MPJPE and foot skating (the first model's worst first), and in "
+        "--json every metric per sequence",
+    )  # fmt: skip
+    parser.add_argument(
         "--keypoints",
         action="store_true",
         help="also each visual encoder's 3D keypoint error on visible joints",
@@ -119,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
         keypoint_table,
         markdown_table,
         plausibility_table,
+        sequence_table,
         split_sequences,
     )
     from ..model.weights import WEIGHTS_DIR, model_files
@@ -168,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
             loaded=loaded,
             resamples=args.intervals,
             seed=args.seed,
+            per_sequence=args.per_sequence,
         )
         keypoints = (
             keypoint_accuracy(args.data, args.split, chosen, args.limit, fold, loaded)
@@ -202,6 +209,10 @@ def run(args: argparse.Namespace) -> int:
                 f"\nLower-body MPJPE per motion category, paired difference from {next(iter(results))} (cm):\n"
             )
             print(category_difference_table(results))
+    if args.per_sequence:
+        first = next(iter(results))
+        print(f"\nLower-body MPJPE (cm) / foot skating (cm/s) per sequence, {first}'s worst first:\n")
+        print(sequence_table(results))
     if keypoints is not None:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))
@@ -211,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
         if args.intervals:
             report["intervals"] = {"resamples": args.intervals, "seed": args.seed, "level": 0.95,
                                    "people": people}  # fmt: skip
-        args.json.write_text(json.dumps(_without_nan(report), indent=2) + "\n")
+        args.json.write_text(json.dumps(_without_nan(report), indent=2, allow_nan=False) + "\n")
     return 0
 
 
@@ -252,6 +263,8 @@ def _without_nan(value):
     """NaN (a metric with nothing to measure on the split) as JSON null."""
     if isinstance(value, dict):
         return {k: _without_nan(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_without_nan(v) for v in value]
     if isinstance(value, float) and value != value:
         return None
     return value

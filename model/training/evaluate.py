@@ -269,6 +269,7 @@ def evaluate(
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
     resamples: int = 0,
     seed: int = 0,
+    per_sequence: bool = False,
 ) -> dict[str, dict[str, Any]]:
     """{model name: metrics} over a split (with ``fold``, only its subjects': dataset.Fold) for each model
     file given as {name: path} (None: the procedural baseline); with ``by_category``,
@@ -286,7 +287,9 @@ def evaluate(
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of
     that difference, paired, ``relative`` and ``relative_intervals``: the same for its value / the first's
-    − 1}; with ``by_category`` each category's metrics too, over that category's people."""
+    − 1}; with ``by_category`` each category's metrics too, over that category's people. With
+    ``per_sequence``, each model's ``sequences``: [{``name``, ``person``, ``category``, its metrics}] in the
+    split's order (where a model's error comes from)."""
     seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
@@ -313,6 +316,12 @@ def evaluate(
                 on_sequence(name, i + 1, len(seqs))
         results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0])}
         totals[name] = [sequence_totals(e) for e in errors]
+        if per_sequence:
+            results[name]["sequences"] = [
+                {"name": str(seq["name"]), "person": sequence_subject(seq), "category": category,
+                 **summarize([e])}
+                for seq, category, e in zip(seqs, categories, errors, strict=True)
+            ]  # fmt: skip
         if by_category:
             results[name]["categories"] = {
                 c: {**summarize([e for e, k in zip(errors, categories, strict=True) if k == c]),
@@ -467,6 +476,23 @@ def category_table(
         count = next(r["categories"][c]["sequences"] for r in results.values() if c in r["categories"])
         cells = [" / ".join(_value(results[n]["categories"][c], k) for k in keys) for n in names]
         rows.append(f"| {c} ({count}) | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def sequence_table(
+    results: dict[str, dict[str, Any]], keys: tuple[str, str] = ("mpjpe_l_cm", "foot_skate_cm_s")
+) -> str:
+    """Two metrics (``keys``, shown as "a / b") per sequence (rows, the first model's ``keys[0]`` highest
+    first) and model (columns): ``evaluate(per_sequence=True)``."""
+    names = list(results)
+    rows = ["| sequence | person | category | " + " | ".join(f"{n} {' / '.join(keys)}" for n in names) + " |",
+            "|" + "---|" * 3 + "---:|" * len(names)]  # fmt: skip
+    first = results[names[0]]["sequences"]
+    order = sorted(range(len(first)), key=lambda i: -np.nan_to_num(first[i][keys[0]], nan=-np.inf))
+    for i in order:
+        cells = [" / ".join(f"{results[n]['sequences'][i][k]:.2f}" for k in keys) for n in names]
+        row = first[i]
+        rows.append(f"| {row['name']} | {row['person']} | {row['category']} | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
 

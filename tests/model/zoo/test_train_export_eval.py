@@ -827,6 +827,25 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     )
 
 
+def test_eval_says_where_the_error_comes_from_sequence_by_sequence(tiny_data, tiny_weights, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    assert main([*args, "--models", "egoposevr,hmd", "--per-sequence", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    names = [s["name"] for s in load_split(tiny_data, "val")]
+    served = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))["models"]
+    for model in served.values():
+        rows = model["sequences"]
+        assert [r["name"] for r in rows] == names and all(r["person"] and r["category"] for r in rows)
+        assert all(np.isfinite(r["mpjpe_l_cm"]) for r in rows)
+    table = printed.split("per sequence, egoposevr's worst first:")[1].strip().splitlines()[2:]
+    assert len(table) == len(names)
+    worst_first = [float(line.split("|")[4].split("/")[0]) for line in table]
+    assert worst_first == sorted(worst_first, reverse=True)
+    ego = {r["name"]: r for r in served["egoposevr"]["sequences"]}
+    assert all(f"{ego[line.split('|')[1].strip()]['mpjpe_l_cm']:.2f}" in line for line in table)
+
+
 def test_eval_serves_the_runtime_before_the_steady_stance_or_the_leg_hold_on_request(
     tiny_data, tiny_weights, tmp_path
 ):
