@@ -68,6 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _number(
         parser,
+        "--foot-weight",
+        "W",
+        "the fusion nets' position loss on the ankles and feet, against 1 for the other joints (default 1)",
+    )
+    _number(
+        parser,
         "--dropout",
         "P",
         "the fusion nets' dropout in attention and feed-forward layers (default 0.1)",
@@ -184,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("served_rotation_weight", args.served_rotation_weight),
             ("contact_weight", args.contact_weight), ("dropout", args.dropout),
+            ("foot_weight", args.foot_weight),
             ("weight_decay", args.weight_decay),
             ("distill_weight", args.distill_weight),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
@@ -243,6 +250,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.dropout is not None and not 0.0 <= args.dropout < 1.0, "--dropout P needs 0 <= P < 1"),
         (args.weight_decay is not None and not 0.0 <= args.weight_decay < 1.0, "--weight-decay D needs 0 <= D < 1"),
         (args.contact_weight is not None and args.contact_weight < 0.0, "--contact-weight W needs W >= 0"),
+        (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
     )  # fmt: skip

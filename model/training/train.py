@@ -100,6 +100,9 @@ class TrainConfig:
     served_rotation_weight: float = 0.0
     device_validity: bool = True  # the nets read each device's tracking state after x_t (hmd.py)
     lost_hand_weight: float = 3.0  # position loss of a lost controller's wrist and elbow, against 1
+    # Position loss of the ankles and feet, against 1: where a planted foot is served is the anchor the
+    # runtime holds, and on people the nets never saw a walking foot is placed worst (MODEL_CARD.md, rule 13).
+    foot_weight: float = 1.0
     contact_head: bool = True  # the nets also predict each foot's contact (labels: plausibility.contacts)
     contact_weight: float = 1.0  # binary cross-entropy of the contact logits, against the losses above
     # L1 (m, summed over x, y, z) of how much each joint's error changes from the sample before: the served
@@ -137,6 +140,7 @@ class TrainConfig:
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
 
 
+FOOT_JOINTS: Final = [7, 8, 10, 11]  # ankles and feet (the balls of the feet)
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {
@@ -669,6 +673,7 @@ def fusion_loss_fn(
         offsets = torch.from_numpy(np.stack([fs.offsets for fs, _ in items]))
         lost = np.stack([~fs.valid[i, 1:] for fs, i in items])  # (B, 2) left, right controller lost
         weight = np.ones((len(items), cfg.joints), dtype=np.float32)
+        weight[:, FOOT_JOINTS] = tc.foot_weight
         for side, arm in enumerate(LOST_HAND_JOINTS):
             weight[np.ix_(lost[:, side], arm)] = tc.lost_hand_weight
         contact = torch.from_numpy(np.stack([fs.contact[i] for fs, i in items]))
