@@ -281,8 +281,9 @@ def evaluate(
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
     both feet are down (stance.LegHold). ``runtime`` {label: {option: bool}} serves a label with some of
     those three (as ``contacts``, ``steady_stance``, ``leg_hold``) set otherwise: one file served twice, with
-    and without a runtime stage, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments,
-    when the caller has already read the split (``eval --keypoints`` reads it once for both reports).
+    and without a runtime stage, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
+    these arguments, when the caller has already read the split (``eval --keypoints`` reads it once for
+    both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of

@@ -82,7 +82,7 @@ def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_
     assert ckpt["history"][-1]["rot_served"] > 0
 
 
-def test_dropout_weight_decay_and_the_contact_weight_are_flags_the_net_and_checkpoint_keep(
+def test_dropout_weight_decay_the_contact_and_foot_weights_are_flags_the_net_and_checkpoint_keep(
     tiny_data, tmp_path, capsys
 ):
     import torch
@@ -106,8 +106,20 @@ def test_dropout_weight_decay_and_the_contact_weight_are_flags_the_net_and_check
     unweighted = ["--out", str(tmp_path / "c0"), "--fusion-steps", "2", "--contact-weight", "0"]
     assert main([*args, *unweighted, "--no-progress"]) == 0  # the weight scales the contact loss itself
     assert load_checkpoint(tmp_path / "c0" / "fusion-hmd.pt")["history"][-1]["contact"] == 0.0
+    first_pos = {}
+    for weight in ("1", "5"):  # the feet's weight changes the position loss the first step sees, nothing else
+        out = tmp_path / f"fw{weight}"
+        assert (
+            main([*args, "--out", str(out), "--fusion-steps", "1", "--foot-weight", weight, "--no-progress"])
+            == 0
+        )
+        ckpt = load_checkpoint(out / "fusion-hmd.pt")
+        assert ckpt["train_config"]["foot_weight"] == float(weight)
+        first_pos[weight] = ckpt["history"][0]
+    assert first_pos["1"]["pos"] != first_pos["5"]["pos"] and first_pos["1"]["rot"] == first_pos["5"]["rot"]
     for bad, says in (
         ("--dropout", "--dropout P needs"),
+        ("--foot-weight", "--foot-weight W needs"),
         ("--contact-weight", "--contact-weight W needs"),
         ("--weight-decay", "--weight-decay D needs"),
     ):
