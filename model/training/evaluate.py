@@ -481,12 +481,14 @@ def category_table(
 
 
 def sequence_table(
-    results: dict[str, dict[str, Any]], keys: tuple[str, str] = ("mpjpe_l_cm", "foot_skate_cm_s")
+    results: dict[str, dict[str, Any]],
+    keys: tuple[str, str] = ("mpjpe_l_cm", "foot_skate_cm_s"),
+    unit: str = "L cm / skate cm/s",
 ) -> str:
     """Two metrics (``keys``, shown as "a / b") per sequence (rows, the first model's ``keys[0]`` highest
     first) and model (columns): ``evaluate(per_sequence=True)``."""
     names = list(results)
-    rows = ["| sequence | person | category | " + " | ".join(f"{n} {' / '.join(keys)}" for n in names) + " |",
+    rows = ["| sequence | person | category | " + " | ".join(f"{n} {unit}" for n in names) + " |",
             "|" + "---|" * 3 + "---:|" * len(names)]  # fmt: skip
     first = results[names[0]]["sequences"]
     order = sorted(range(len(first)), key=lambda i: -np.nan_to_num(first[i][keys[0]], nan=-np.inf))
