@@ -237,23 +237,23 @@ def _chosen_models(
     for entry in wanted:
         label, is_file, file = entry.partition("=")
         label = label.strip()
-        model, *switches = (file if is_file else label).split("@")
-        unknown = [w for w in switches if w.strip() not in SWITCHES]
+        model, *switches = (part.strip() for part in (file if is_file else label).split("@"))
+        unknown = [w for w in switches if w not in SWITCHES]
         if unknown:
             raise ValueError(f"--models {entry!r}: unknown @{unknown[0]}; have @{', @'.join(SWITCHES)}")
         if is_file:
-            path = Path(model.strip())
+            path = Path(model)
             if not label or not path.is_file():
                 raise ValueError(f"--models {entry!r}: LABEL=FILE needs a label and an existing model file")
-        elif model.strip() in available:
-            path = available[model.strip()]
+        elif model in available:
+            path = available[model]
         else:
-            raise ValueError(f"no model file for {model.strip()!r}; have {sorted(available)}")
+            raise ValueError(f"no model file for {model!r}; have {sorted(available)}")
         if label in chosen:
             raise ValueError(f"--models names {label!r} twice")
         chosen[label] = path
         if switches:
-            runtime[label] = {SWITCHES[w.strip()]: False for w in switches}
+            runtime[label] = {SWITCHES[w]: False for w in switches}
     if not chosen:
         raise ValueError(f"no model named; have {sorted(available)}")
     return chosen, runtime

@@ -151,7 +151,12 @@ def summarize(errors: list[dict[str, np.ndarray]]) -> dict[str, float]:
     """Pool per-sample errors over sequences -> the metric dict (without fps): NaN where a metric has
     nothing to measure (no lost controller, no contact, no still legs), jitter 0 for sequences too short
     for it."""
-    metrics = pooled_means(add_totals([sequence_totals(e) for e in errors]))
+    return summarize_totals([sequence_totals(e) for e in errors])
+
+
+def summarize_totals(totals: list[dict[str, np.ndarray]]) -> dict[str, float]:
+    """:func:`summarize` of sequences already reduced to their :func:`sequence_totals`."""
+    metrics = pooled_means(add_totals(totals))
     if metrics["jitter"] != metrics["jitter"]:
         metrics["jitter"] = 0.0
     return metrics
@@ -315,17 +320,17 @@ def evaluate(
             errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
-        results[name] = {**summarize(errors), "fps": measure_fps(pipeline, seqs[0])}
-        totals[name] = [sequence_totals(e) for e in errors]
+        totals[name] = [sequence_totals(e) for e in errors]  # each view below pools these
+        results[name] = {**summarize_totals(totals[name]), "fps": measure_fps(pipeline, seqs[0])}
         if per_sequence:
             results[name]["sequences"] = [
                 {"name": str(seq["name"]), "person": sequence_subject(seq), "category": category,
-                 **summarize([e])}
-                for seq, category, e in zip(seqs, categories, errors, strict=True)
+                 **summarize_totals([t])}
+                for seq, category, t in zip(seqs, categories, totals[name], strict=True)
             ]  # fmt: skip
         if by_category:
             results[name]["categories"] = {
-                c: {**summarize([e for e, k in zip(errors, categories, strict=True) if k == c]),
+                c: {**summarize_totals([t for t, k in zip(totals[name], categories, strict=True) if k == c]),
                     "sequences": categories.count(c)}
                 for c in CATEGORIES if c in categories
             }  # fmt: skip

@@ -48,6 +48,7 @@ from ..inputs import (
 )
 from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
+from ..runtime.contact import FEET as ANKLES_AND_FEET
 from ..runtime.loading import load_encoder
 from ..skeleton import ARM_JOINTS, HEAD, rest_offsets
 from ..synth.headset import TRACKING_CONE_DEG
@@ -140,7 +141,8 @@ class TrainConfig:
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
 
 
-FOOT_JOINTS: Final = [7, 8, 10, 11]  # ankles and feet (the balls of the feet)
+# The ankles and the feet (the runtime's planted pairs): the joints --foot-weight weighs
+FOOT_JOINTS: Final = [j for ankle_and_foot in ANKLES_AND_FEET for j in ankle_and_foot]
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {
