@@ -5,6 +5,7 @@ import pytest
 
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
 from egoposevr.model.training.plausibility import (
+    WARM_UP_S,
     contacts,
     plausibility,
     still_stretches,
@@ -45,6 +46,26 @@ def test_legs_drifting_while_the_truth_stands_still_leak_their_mean_displacement
     leak = summarize_plausibility([plausibility(served, truth, t_us)])["leg_leakage_cm"]
     # six of the nine lower-body joints move, by 3 cm on average over the stretch
     assert leak == pytest.approx(6 / 9 * 3.0, rel=0.02)
+
+
+def test_legs_corrected_in_a_sessions_first_second_leak_but_not_once_settled():
+    """A cold session's first guess of the legs, corrected within its first second, counts in leakage from
+    the stretch's start and not in settled leakage; a drift later counts in both, and a stretch whose part
+    after the first second is shorter than STILL_MIN_S has no settled leakage at all."""
+    truth, t_us = standing(seconds=4.0)
+    served = truth.copy()
+    t_s = (t_us - t_us[0]) * 1e-6
+    served[t_s >= 0.2, :, 2] += 0.09  # the whole body moves 9 cm at 0.2 s and stays there
+    result = summarize_plausibility([plausibility(served, truth, t_us)])
+    assert result["leg_leakage_cm"] == pytest.approx(9.0 * (4.0 - 0.2) / 4.0, rel=0.02)
+    assert result["leg_leakage_settled_cm"] == 0.0
+    served[:, :, 2] += np.maximum(t_s - 2.0, 0.0)[:, None] * 0.02  # then drifts 2 cm/s from 2 s on
+    settled = summarize_plausibility([plausibility(served, truth, t_us)])["leg_leakage_settled_cm"]
+    # the settled stretch runs from WARM_UP_S (1 s) to 4 s: still 1 s, then 2 s drifting 0 -> 4 cm
+    assert settled == pytest.approx((0.0 * 1.0 + 2.0 * 2.0) / 3.0, rel=0.03)
+    short, t_short = standing(seconds=WARM_UP_S + 0.3)
+    result = summarize_plausibility([plausibility(short, short, t_short)])
+    assert result["leg_leakage_cm"] == 0.0 and np.isnan(result["leg_leakage_settled_cm"])
 
 
 def test_a_walking_truth_has_no_still_legs_and_feet_in_the_air_are_not_in_contact():
