@@ -4,7 +4,7 @@ Runs the serving runtime (ONNX models, the same code the server uses) over every
 pushing camera frames as they would arrive, and reports MPJPE / PA-MPJPE / MPJRE (upper and lower body),
 H-PE, jitter and full-pipeline FPS (one stream, a new RGB-D frame every headset sample), then whether the
 body behaves like one: foot skating and floor error while the true foot is planted, leg leakage while the
-true legs are still (and that after a session's first second, once the model's windows hold real history), jerk, beside the truth's and that of the truth with its head and tracked wrists where
+true legs are still (both also after a session's first second, once the model's windows hold real history), jerk, beside the truth's and that of the truth with its head and tracked wrists where
 the devices put them (model/training/plausibility.py defines each). --by-category adds
 MPJPE per motion category (stand or sit with the upper body moving, walk, crouch or bend, leg actions,
 other: read from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D
@@ -193,10 +193,10 @@ def run(args: argparse.Namespace) -> int:
     if args.by_category:
         print("\nMPJPE per motion category (upper / lower body, cm):\n")
         print(category_table(results))
-        print("\nFoot skating (cm/s) / leg leakage (cm) / leg leakage after a session's first second (cm) per")
-        print("motion category:\n")
-        keys = ("foot_skate_cm_s", "leg_leakage_cm", "leg_leakage_settled_cm")
-        print(category_table(results, keys, "skate / leak / after 1 s"))
+        print("\nFoot skating (cm/s) and leg leakage (cm) per motion category, each also after a session's")
+        print("first second:\n")
+        keys = ("foot_skate_cm_s", "foot_skate_settled_cm_s", "leg_leakage_cm", "leg_leakage_settled_cm")
+        print(category_table(results, keys, "skate / after 1 s / leak / after 1 s"))
     if args.intervals:
         people = len(subjects(loaded[0]))
         print(

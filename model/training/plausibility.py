@@ -3,7 +3,8 @@ still while only the arms move. Measured against the truth of a dataset sequence
 
 - **Contact** (from the truth): a foot touches the floor while its foot joint (the ball of the foot) is
   below ``CONTACT_HEIGHT_M`` and moves slower than ``CONTACT_SPEED_M_S`` over the floor.
-- **Foot skating** (cm/s): the served foot joint's speed over the floor while the true foot is in contact.
+- **Foot skating** (cm/s): the served foot joint's speed over the floor while the true foot is in contact;
+  **settled skating** the same after a session's first ``WARM_UP_S`` (see settled leakage below).
 - **Floor error** (cm): the served sole's height while the true foot is in contact (sole = foot joint minus
   its height above the sole when flat), as floating (above the floor) and penetration (below), each the mean
   over contact samples of the positive part.
@@ -73,10 +74,14 @@ def still_stretches(true_joints: np.ndarray, t_us: np.ndarray) -> list[slice]:
     return stretches
 
 
+def warmed_up(t_us: np.ndarray) -> int:
+    """The first sample after the session's first WARM_UP_S (the first sample is the session's start)."""
+    return int(np.searchsorted(t_us, t_us[0] + WARM_UP_S * 1e6)) if len(t_us) else 0
+
+
 def settled(stretches: list[slice], t_us: np.ndarray) -> list[slice]:
-    """The stretches' parts after the session's first WARM_UP_S (the first sample is the session's start),
-    each still at least STILL_MIN_S long."""
-    first = int(np.searchsorted(t_us, t_us[0] + WARM_UP_S * 1e6)) if len(t_us) else 0
+    """The stretches' parts after the session's first WARM_UP_S, each still at least STILL_MIN_S long."""
+    first = warmed_up(t_us)
     parts = [slice(max(s.start, first), s.stop) for s in stretches]
     return [s for s in parts if s.start < s.stop and (t_us[s.stop - 1] - t_us[s.start]) * 1e-6 >= STILL_MIN_S]
 
@@ -109,6 +114,7 @@ def plausibility(
     still = still_stretches(truth, t_us)
     return {
         "skate": served_speed[touch],
+        "skate_settled": served_speed[warmed_up(t_us) :][touch[warmed_up(t_us) :]],
         "sole": sole[touch],
         "leakage": leakage(served, still),
         "leakage_settled": leakage(served, settled(still, t_us)),
@@ -140,6 +146,7 @@ def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     sole = part["sole"]
     return {
         "foot_skate_cm_s": total(part["skate"], 100.0),
+        "foot_skate_settled_cm_s": total(part["skate_settled"], 100.0),
         "floor_float_cm": total(np.maximum(sole, 0.0), 100.0),
         "floor_penetration_cm": total(np.maximum(-sole, 0.0), 100.0),
         "leg_leakage_cm": total(part["leakage"], 100.0),
@@ -151,7 +158,7 @@ def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
-    """Pooled over sequences: foot_skate_cm_s, floor_float_cm, floor_penetration_cm, leg_leakage_cm and
+    """Pooled over sequences: foot_skate_cm_s, foot_skate_settled_cm_s, floor_float_cm, floor_penetration_cm, leg_leakage_cm and
     leg_leakage_settled_cm (NaN where nothing was in contact or still), jerk, jerk_true and jerk_devices (m/s³; NaN unless every part
     has it)."""
     if not parts:
@@ -159,4 +166,4 @@ def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, floa
     return pooled_means(add_totals([plausibility_totals(p) for p in parts]))
 
 
-_EMPTY: Final = {k: np.zeros(0) for k in ("skate", "sole", "leakage", "leakage_settled", "jerk", "jerk_true")}
+_EMPTY: Final = {k: np.zeros(0) for k in ("skate", "skate_settled", "sole", "leakage", "leakage_settled", "jerk", "jerk_true")}

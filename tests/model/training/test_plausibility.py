@@ -48,9 +48,10 @@ def test_legs_drifting_while_the_truth_stands_still_leak_their_mean_displacement
     assert leak == pytest.approx(6 / 9 * 3.0, rel=0.02)
 
 
-def test_legs_corrected_in_a_sessions_first_second_leak_but_not_once_settled():
+def test_legs_corrected_in_a_sessions_first_second_leak_and_skate_but_not_once_settled():
     """A cold session's first guess of the legs, corrected within its first second, counts in leakage from
-    the stretch's start and not in settled leakage; a drift later counts in both, and a stretch whose part
+    the stretch's start and not in settled leakage, and a foot that slides then in skating and not in
+    settled skating; a drift later counts in both, and a stretch whose part
     after the first second is shorter than STILL_MIN_S has no settled leakage at all."""
     truth, t_us = standing(seconds=4.0)
     served = truth.copy()
@@ -63,6 +64,12 @@ def test_legs_corrected_in_a_sessions_first_second_leak_but_not_once_settled():
     settled = summarize_plausibility([plausibility(served, truth, t_us)])["leg_leakage_settled_cm"]
     # the settled stretch runs from WARM_UP_S (1 s) to 4 s: still 1 s, then 2 s drifting 0 -> 4 cm
     assert settled == pytest.approx((0.0 * 1.0 + 2.0 * 2.0) / 3.0, rel=0.03)
+    slid = truth.copy()
+    slid[t_s < 0.5, 10, 0] += 0.2 * t_s[t_s < 0.5]  # the left foot slides 20 cm/s for half a second, then stays
+    slid[t_s >= 0.5, 10, 0] += 0.1
+    skating = summarize_plausibility([plausibility(slid, truth, t_us)])
+    assert skating["foot_skate_cm_s"] == pytest.approx(20.0 * 0.5 / 4.0 / 2, rel=0.05)  # one foot of two
+    assert skating["foot_skate_settled_cm_s"] == pytest.approx(0.0, abs=1e-9)
     short, t_short = standing(seconds=WARM_UP_S + 0.3)
     result = summarize_plausibility([plausibility(short, short, t_short)])
     assert result["leg_leakage_cm"] == 0.0 and np.isnan(result["leg_leakage_settled_cm"])
