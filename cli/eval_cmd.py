@@ -4,8 +4,9 @@ Runs the serving runtime (ONNX models, the same code the server uses) over every
 pushing camera frames as they would arrive, and reports MPJPE / PA-MPJPE / MPJRE (upper and lower body),
 H-PE, jitter and full-pipeline FPS (one stream, a new RGB-D frame every headset sample), then whether the
 body behaves like one: foot skating and floor error while the true foot is planted, leg leakage while the
-true legs are still (both also after a session's first second, once the model's windows hold real history), jerk, beside the truth's and that of the truth with its head and tracked wrists where
-the devices put them (model/training/plausibility.py defines each). --by-category adds
+true legs are still (skating and leakage also after a session's first second, once the model's windows hold
+real history), jerk, beside the truth's and that of the truth with its head and tracked wrists where the
+devices put them (model/training/plausibility.py defines each). --by-category adds
 MPJPE per motion category (stand or sit with the upper body moving, walk, crouch or bend, leg actions,
 other: read from the true motion, model/training/evaluate.py says how); --keypoints the visual encoders' 3D
 keypoint error on joints in view and not occluded, overall and per body part (torso, knees, ankles and feet,

@@ -90,7 +90,10 @@ def leakage(served: np.ndarray, stretches: list[slice]) -> np.ndarray:
     """(S,) m: each stretch's mean distance of the served lower-body joints (N, J, 3) from where they were
     at its start."""
     return np.array(
-        [np.linalg.norm(served[s][:, LOWER_BODY] - served[s][:1, LOWER_BODY], axis=-1).mean() for s in stretches]
+        [
+            np.linalg.norm(served[s][:, LOWER_BODY] - served[s][:1, LOWER_BODY], axis=-1).mean()
+            for s in stretches
+        ]
     )
 
 
@@ -111,10 +114,10 @@ def plausibility(
     touch = contacts(truth, t_us)
     served_speed = _speeds(served[:, FEET], t_us, horizontal=True)
     sole = served[:, FEET, 1] - FOOT_JOINT_HEIGHT_M
-    still = still_stretches(truth, t_us)
+    still, first = still_stretches(truth, t_us), warmed_up(t_us)
     return {
         "skate": served_speed[touch],
-        "skate_settled": served_speed[warmed_up(t_us) :][touch[warmed_up(t_us) :]],
+        "skate_settled": served_speed[first:][touch[first:]],
         "sole": sole[touch],
         "leakage": leakage(served, still),
         "leakage_settled": leakage(served, settled(still, t_us)),
@@ -158,12 +161,15 @@ def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
-    """Pooled over sequences: foot_skate_cm_s, foot_skate_settled_cm_s, floor_float_cm, floor_penetration_cm, leg_leakage_cm and
-    leg_leakage_settled_cm (NaN where nothing was in contact or still), jerk, jerk_true and jerk_devices (m/s³; NaN unless every part
-    has it)."""
+    """Pooled over sequences: foot_skate_cm_s, foot_skate_settled_cm_s, floor_float_cm, floor_penetration_cm,
+    leg_leakage_cm and leg_leakage_settled_cm (NaN where nothing was in contact or still), jerk, jerk_true and
+    jerk_devices (m/s³; NaN unless every part has it)."""
     if not parts:
         return {k: float("nan") for k in plausibility_totals(_EMPTY)}
     return pooled_means(add_totals([plausibility_totals(p) for p in parts]))
 
 
-_EMPTY: Final = {k: np.zeros(0) for k in ("skate", "skate_settled", "sole", "leakage", "leakage_settled", "jerk", "jerk_true")}
+_EMPTY: Final = {
+    k: np.zeros(0)
+    for k in ("skate", "skate_settled", "sole", "leakage", "leakage_settled", "jerk", "jerk_true")
+}

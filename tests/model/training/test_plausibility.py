@@ -50,9 +50,9 @@ def test_legs_drifting_while_the_truth_stands_still_leak_their_mean_displacement
 
 def test_legs_corrected_in_a_sessions_first_second_leak_and_skate_but_not_once_settled():
     """A cold session's first guess of the legs, corrected within its first second, counts in leakage from
-    the stretch's start and not in settled leakage, and a foot that slides then in skating and not in
-    settled skating; a drift later counts in both, and a stretch whose part
-    after the first second is shorter than STILL_MIN_S has no settled leakage at all."""
+    the stretch's start and not in settled leakage, and a foot that slides then counts in skating and not in
+    settled skating; a drift later counts in both, and a stretch whose part after the first second is
+    shorter than STILL_MIN_S has no settled leakage at all."""
     truth, t_us = standing(seconds=4.0)
     served = truth.copy()
     t_s = (t_us - t_us[0]) * 1e-6
@@ -65,7 +65,7 @@ def test_legs_corrected_in_a_sessions_first_second_leak_and_skate_but_not_once_s
     # the settled stretch runs from WARM_UP_S (1 s) to 4 s: still 1 s, then 2 s drifting 0 -> 4 cm
     assert settled == pytest.approx((0.0 * 1.0 + 2.0 * 2.0) / 3.0, rel=0.03)
     slid = truth.copy()
-    slid[t_s < 0.5, 10, 0] += 0.2 * t_s[t_s < 0.5]  # the left foot slides 20 cm/s for half a second, then stays
+    slid[t_s < 0.5, 10, 0] += 0.2 * t_s[t_s < 0.5]  # the left foot slides at 20 cm/s for 0.5 s, then stays
     slid[t_s >= 0.5, 10, 0] += 0.1
     skating = summarize_plausibility([plausibility(slid, truth, t_us)])
     assert skating["foot_skate_cm_s"] == pytest.approx(20.0 * 0.5 / 4.0 / 2, rel=0.05)  # one foot of two
