@@ -828,6 +828,7 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     assert main([*args, "--models", "hmd,egoposevr", "--no-progress"]) == 0
     table = capsys.readouterr().out
     assert table.splitlines()[0].startswith("| model | MPJPE-U cm") and "| egoposevr |" in table
+    assert "| foot skating cm/s (after 1 s) |" in table and "| leg leakage cm (after 1 s) |" in table
     results = json.loads(out.read_text())["models"]
     assert list(results) == ["hmd", "egoposevr"]
     assert set(results["hmd"]) == set(METRIC_KEYS)
@@ -1107,6 +1108,7 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(
     # The split is read once for both reports.
     assert shards_read and len(set(shards_read)) == len(shards_read)
     assert "| category (sequences) |" in text and "| visual-rgbd |" in text and "| visual-rgb |" in text
+    assert "egoposevr skate / after 1 s / leak / after 1 s |" in text  # the still bars' table
     assert "| procedural |" in text  # the baseline, evaluated like the others
     report = json.loads(out.read_text())
     assert set(report["keypoints"]) == {"visual-rgb", "visual-rgbd"}
