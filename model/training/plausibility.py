@@ -59,6 +59,13 @@ def contacts(true_joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     return (height < CONTACT_HEIGHT_M) & (speed < CONTACT_SPEED_M_S)
 
 
+def _lasts(stretch: slice, t_us: np.ndarray) -> bool:
+    """Whether a non-empty sample range spans at least STILL_MIN_S, first sample to last."""
+    return (
+        stretch.start < stretch.stop and (t_us[stretch.stop - 1] - t_us[stretch.start]) * 1e-6 >= STILL_MIN_S
+    )
+
+
 def still_stretches(true_joints: np.ndarray, t_us: np.ndarray) -> list[slice]:
     """Sample ranges of at least STILL_MIN_S where every true lower-body joint is slower than
     STILL_SPEED_M_S."""
@@ -68,7 +75,7 @@ def still_stretches(true_joints: np.ndarray, t_us: np.ndarray) -> list[slice]:
         if now and start is None:
             start = i
         elif not now and start is not None:
-            if (t_us[i - 1] - t_us[start]) * 1e-6 >= STILL_MIN_S:
+            if _lasts(slice(start, i), t_us):
                 stretches.append(slice(start, i))
             start = None
     return stretches
@@ -83,7 +90,7 @@ def settled(stretches: list[slice], t_us: np.ndarray) -> list[slice]:
     """The stretches' parts after the session's first WARM_UP_S, each still at least STILL_MIN_S long."""
     first = warmed_up(t_us)
     parts = [slice(max(s.start, first), s.stop) for s in stretches]
-    return [s for s in parts if s.start < s.stop and (t_us[s.stop - 1] - t_us[s.start]) * 1e-6 >= STILL_MIN_S]
+    return [s for s in parts if _lasts(s, t_us)]
 
 
 def leakage(served: np.ndarray, stretches: list[slice]) -> np.ndarray:
