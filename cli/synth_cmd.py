@@ -61,6 +61,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--procedural", type=int, default=0, metavar="N", help="procedural clips to add")
     parser.add_argument("--families", default="", help="comma-separated procedural families (default: all)")
+    parser.add_argument(
+        "--mixed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="clips that put one --motion file's trunk, head and arms on another's legs (model/synth/mixing.py)",
+    )
+    parser.add_argument(
+        "--no-files",
+        action="store_true",
+        help="the --motion files are only --mixed's sources: none is synthesised as it is",
+    )
     parser.add_argument("--out", type=Path, required=True, metavar="DIR")
     parser.add_argument(
         "--split", default="train", help="dataset split name (folder under OUT); default train"
@@ -169,7 +181,10 @@ def run(args: argparse.Namespace) -> int:
             f"egoposevr synth: unknown families {sorted(unknown)}; known: {sorted(FAMILIES)}", file=sys.stderr
         )
         return 2
-    if not files and args.procedural <= 0:
+    if args.mixed > 0 and len(files) < 2:
+        print("egoposevr synth: --mixed needs two --motion files or more to mix", file=sys.stderr)
+        return 2
+    if (not files or args.no_files) and args.procedural <= 0 and args.mixed <= 0:
         print("egoposevr synth: nothing to do: give --motion files and/or --procedural N", file=sys.stderr)
         return 2
     try:
@@ -196,8 +211,11 @@ def run(args: argparse.Namespace) -> int:
 
     # Jobs in a fixed order; each gets its own generator seeded by (seed, job index): deterministic, and the
     # results are written in job order whichever worker made them.
-    jobs: list[tuple[int, str, object]] = [(i, "file", f) for i, f in enumerate(files)]
+    jobs: list[tuple[int, str, object]] = (
+        [] if args.no_files else [(i, "file", f) for i, f in enumerate(files)]
+    )
     jobs += [(len(files) + i, "procedural", families[i % len(families)]) for i in range(args.procedural)]
+    jobs += [(len(files) + args.procedural + i, "mixed", pair) for i, pair in enumerate(_pairs(files, args))]
     writer = None if args.sessions else DatasetWriter(args.out, args.split)
     sources: list[dict] = []
     failures: list[str] = []
@@ -239,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
             "sources": sources,
             "licences": licences,
             "procedural_families": families if args.procedural else [],
+            "mixed": args.mixed,
             "skipped": failures,
             "motion_library": library_record,
             "bodies": _bank_record(args.bodies, bank) if bank is not None else None,
@@ -298,8 +317,9 @@ def _job(job: tuple[int, str, object]) -> tuple[list, list[dict], str | None]:
     """One motion source -> its sequences (cut into --seconds pieces) with their manifest entries."""
     import numpy as np
 
-    from ..model.synth.amass import AmassError, load_amass_motion
-    from ..model.synth.bvh import BvhError, load_bvh_motion
+    from ..model.synth.amass import AmassError
+    from ..model.synth.bvh import BvhError
+    from ..model.synth.mixing import mix_halves
     from ..model.synth.pipeline import synthesize_sequence
     from ..model.synth.procedural import Body, generate
     from ..model.synth.variation import pool_bodies
@@ -313,18 +333,16 @@ def _job(job: tuple[int, str, object]) -> tuple[list, list[dict], str | None]:
         body = int(rng.choice(pool_bodies(bank.count, cfg.rig_pool) if cfg.rig_pool else bank.count))
     try:
         if kind == "file":
-            path = what.path
-            motion = load_amass_motion(path) if path.suffix.lower() == ".npz" else load_bvh_motion(path)
-            if args.licence:
-                motion = motion.replace(licence=args.licence)
-            elif not motion.licence:
-                motion = motion.replace(licence=_default_licence(motion.source))
+            motion = _load(what, args)
+        elif kind == "mixed":
+            legs, upper = (_load(item, args) for item in what)
+            motion = mix_halves(legs, upper, rng, args.seconds, name=f"mixed-{index:04d}")
         else:
             on = Body.from_scale(bank.bone_scale(body)) if bank is not None else None
             motion = generate(str(what), args.seconds, 60.0, rng, on)
             motion = motion.replace(name=f"{what}-{index:04d}")
-    except (BvhError, AmassError) as error:
-        return [], [], f"{what.path}: {error}" if kind == "file" else str(error)
+    except (BvhError, AmassError, ValueError) as error:
+        return [], [], f"{what.path}: {error}" if kind == "file" else f"{kind} {index}: {error}"
     seqs, sources = [], []
     chunk = max(2, round(args.seconds * motion.fps))
     for start in range(0, motion.num_frames, chunk):
@@ -348,8 +366,45 @@ def _job(job: tuple[int, str, object]) -> tuple[list, list[dict], str | None]:
             | ({"body": seq.body} if bank is not None else {})
             | ({"rig": seq.rig} if seq.rig is not None else {})
             | ({"file": str(what.path), "subject": what.subject} if kind == "file" else {})
+            | (
+                {"files": [str(item.path) for item in what], "subjects": [item.subject for item in what]}
+                if kind == "mixed"
+                else {}
+            )
         )
     return seqs, sources, None
+
+
+def _load(item, args: argparse.Namespace):
+    """One motion file of the library -> its Motion, with --licence's terms or its source's default."""
+    from ..model.synth.amass import load_amass_motion
+    from ..model.synth.bvh import load_bvh_motion
+
+    path = item.path
+    motion = load_amass_motion(path) if path.suffix.lower() == ".npz" else load_bvh_motion(path)
+    if args.licence:
+        return motion.replace(licence=args.licence)
+    return motion if motion.licence else motion.replace(licence=_default_licence(motion.source))
+
+
+def _pairs(files: list, args: argparse.Namespace) -> list[tuple]:
+    """--mixed's (legs, upper body) file pairs, drawn with --seed: the legs' file in proportion to its length
+    (a second of anyone's walking is as likely as any other), the upper body's from another subject where
+    the files have two or more (one person's arms on their own legs teach little new)."""
+    import numpy as np
+
+    if args.mixed <= 0:
+        return []
+    from ..model.synth.library import motion_seconds
+
+    rng = np.random.default_rng([args.seed, len(files), args.mixed])
+    seconds = np.array([motion_seconds(item.path) for item in files])
+    pairs = []
+    for _ in range(args.mixed):
+        legs = files[int(rng.choice(len(files), p=seconds / seconds.sum()))]
+        others = [f for f in files if f.subject != legs.subject] or [f for f in files if f is not legs]
+        pairs.append((legs, others[int(rng.integers(len(others)))]))
+    return pairs
 
 
 def _bank_record(path: Path, bank) -> dict:

@@ -88,3 +88,20 @@ def test_synth_takes_a_library_split_by_subject(tmp_path, capsys):
     licences = {s["licence"] for split in splits.values() for s in split["sources"]}
     assert "not given: pass --licence with the terms of these files" in licences  # AMASS brings its own
     assert np.isclose(sum(record["hours"].values()), (4 * 2.5 + 2.0) / 3600, rtol=0.01)
+
+
+def test_synth_mixes_one_subjects_legs_with_anothers_arms(tmp_path, capsys):
+    lib = _library(tmp_path / "lib")
+    args = ["synth", "--motion", str(lib), "--mixed", "3", "--no-files", "--seed", "4", "--seconds", "2",
+            "--resolution", "64x48", "--no-progress"]  # fmt: skip
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert main([*args, "--out", str(tmp_path / "b")]) == 0
+    split = json.loads((tmp_path / "a" / "manifest.json").read_text())["splits"]["train"]
+    assert split["mixed"] == 3 and len(split["sources"]) == 3  # and no file synthesised as it is
+    for source in split["sources"]:
+        legs, upper = source["subjects"]
+        assert source["source"].startswith("mixed:") and legs != upper
+    a, b = (tmp_path / x / "train" / "shard-00000.npz" for x in "ab")
+    assert a.read_bytes() == b.read_bytes()
+    one = ["synth", "--motion", str(lib / "alice"), "--mixed", "1", "--out", str(tmp_path / "c")]
+    assert main(one) == 2 and "--mixed needs two" in capsys.readouterr().err
