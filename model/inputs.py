@@ -7,6 +7,12 @@
   come back as normalised image coordinates and are lifted with the frame's own intrinsics).
 - **Visual tokens.** Cached keypoints (world frame, one row per camera frame) become per-frame tokens in the
   heading frame of the newest headset sample: ``[joints 22x3, confidence 22, present 1, age_s 1]``.
+- **Mirrored inputs.** The world reflected through the heading frame's x = 0 plane, left and right swapped,
+  is a person too (training mirrors whole sequences, training/augment.py): ``hmd[..., HMD_MIRROR_ORDER] *
+  HMD_MIRROR_SIGNS`` and ``tokens[..., VISUAL_MIRROR_ORDER] * VISUAL_MIRROR_SIGNS`` are that person's inputs,
+  and ``sixd[..., MIRROR_JOINTS, :] * SIXD_MIRROR_SIGNS`` turns their joints' rotations back into this one's.
+  A reflection M = diag(-1, 1, 1) turns a rotation R into M R M; the two 6D columns of M R M are the
+  columns' of R with SIXD_MIRROR_SIGNS, whichever frame the rotation is in.
 
 Shape legend: ``T`` HMD window, ``Tv`` visual window, ``J`` = 22 joints, ``K`` camera frames, ``...`` batch.
 """
@@ -22,9 +28,11 @@ from ..protocol.errors import InputError
 from .hmd import FEATURE_DIM, VALIDITY_DIM
 from .rotations import quat_xyzw_to_matrix
 from .runtime.filters import OneEuroFilter
-from .skeleton import NUM_JOINTS
+from .skeleton import MIRROR_JOINTS, NUM_JOINTS
 
 VISUAL_TOKEN_DIM: Final = NUM_JOINTS * 4 + 2
+X_MIRROR_SIGNS: Final = np.array([-1.0, 1.0, 1.0])  # a vector reflected through x = 0
+SIXD_MIRROR_SIGNS: Final = np.array([1.0, -1.0, -1.0, -1.0, 1.0, 1.0])  # rot6d of M R M from R's
 DEPTH_SCALE_M: Final = 2.0  # depth channel = metres / 2: the body sits 0.3-2 m from the camera
 MAX_FRAME_AGE_S: Final = 0.5  # camera frames older than this leave the visual window
 VISIBILITY_THRESHOLD: Final = 0.5
@@ -250,3 +258,41 @@ def visual_tokens(
     tokens[window - k :, -2] = 1.0
     tokens[window - k :, -1] = age_s
     return tokens
+
+
+def _hmd_mirror() -> tuple[np.ndarray, np.ndarray]:
+    """HMD_MIRROR_ORDER, HMD_MIRROR_SIGNS over x_t and the tracking state (FEATURE_DIM + VALIDITY_DIM,)."""
+    order = np.arange(FEATURE_DIM + VALIDITY_DIM)
+    signs = np.ones(FEATURE_DIM + VALIDITY_DIM)
+    vector, sixd = X_MIRROR_SIGNS, SIXD_MIRROR_SIGNS
+    for base in (0, 18, 36):  # position, rotation, velocity, angular velocity of head, left, right
+        signs[base : base + 18] = np.concatenate([vector, sixd, vector, sixd])
+    for base in (54, 63):  # each controller in the head's frame: position, rotation
+        signs[base : base + 9] = np.concatenate([vector, sixd])
+    swaps = [(slice(18, 36), slice(36, 54)), (slice(54, 63), slice(63, 72))]  # left <-> right
+    swaps += [(slice(FEATURE_DIM + 1, FEATURE_DIM + 2), slice(FEATURE_DIM + 2, FEATURE_DIM + 3))]  # valid
+    swaps += [(slice(FEATURE_DIM + 4, FEATURE_DIM + 5), slice(FEATURE_DIM + 5, FEATURE_DIM + 6))]  # age
+    for left, right in swaps:
+        order[left], order[right] = order[right].copy(), order[left].copy()
+    return order, signs
+
+
+def _visual_mirror() -> tuple[np.ndarray, np.ndarray]:
+    """VISUAL_MIRROR_ORDER, VISUAL_MIRROR_SIGNS over a visual token (VISUAL_TOKEN_DIM,)."""
+    joints = NUM_JOINTS * 3
+    order = np.concatenate(
+        [
+            (3 * MIRROR_JOINTS[:, None] + np.arange(3)).ravel(),
+            joints + MIRROR_JOINTS,
+            np.arange(joints + NUM_JOINTS, VISUAL_TOKEN_DIM),
+        ]
+    )
+    signs = np.ones(VISUAL_TOKEN_DIM)
+    signs[:joints] = np.tile(X_MIRROR_SIGNS, NUM_JOINTS)
+    return order, signs
+
+
+# The mirrored person's inputs from this one's: x[..., ORDER] * SIGNS (see the module docstring). A net
+# without the tracking state reads the first FEATURE_DIM of the HMD pair.
+HMD_MIRROR_ORDER, HMD_MIRROR_SIGNS = _hmd_mirror()
+VISUAL_MIRROR_ORDER, VISUAL_MIRROR_SIGNS = _visual_mirror()

@@ -28,13 +28,9 @@ import numpy as np
 
 from ..rig import TRACKED_JOINTS
 from ..rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from ..skeleton import ARM_JOINTS, SHOULDERS, forward_kinematics, rest_offsets
+from ..skeleton import ARM_JOINTS, MIRROR_JOINTS, SHOULDERS, forward_kinematics, rest_offsets
 from ..synth.headset import HeadsetRig, held_longer_than, hold_last_tracked, out_of_view
 
-# SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
-MIRROR_JOINTS: Final = np.array(
-    [0, 2, 1, 3, 5, 4, 6, 8, 7, 9, 11, 10, 12, 14, 13, 15, 17, 16, 19, 18, 21, 20]
-)
 MIRROR_DEVICES: Final = np.array([0, 2, 1])
 _QUAT_SIGNS: Final = np.array([1.0, -1.0, -1.0, 1.0])
 _X_SIGNS: Final = np.array([-1.0, 1.0, 1.0])

@@ -10,6 +10,7 @@ is self-describing. Every export is checked against torch on random inputs: the 
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import warnings
 from pathlib import Path
@@ -37,7 +38,7 @@ from ..rig import DEFAULT_OFFSETS_M
 from ..runtime.body import regressor_path
 from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
-from .nets.fusion import ContactOutputs, FusionNet, SeedEnsemble
+from .nets.fusion import ContactOutputs, FusionNet, MirrorAveraged, SeedEnsemble
 from .train import InitialWeights, build_net, load_checkpoint
 
 PARITY_TOL = 1e-4
@@ -236,12 +237,29 @@ def _rig_offsets(ckpts: list[dict[str, Any]], paths: list[Path]) -> tuple[tuple[
     return offsets.pop()
 
 
-def _served_module(nets: list[FusionNet]) -> torch.nn.Module:
+def _served_module(nets: list[FusionNet], mirror_averaged: bool = False) -> torch.nn.Module:
     """The module a model file serves: several nets' :class:`SeedEnsemble`, or one net (with its contact
-    probabilities where it has a contact head)."""
+    probabilities where it has a contact head); with ``mirror_averaged``, that module's
+    :class:`MirrorAveraged` (the file's training record says ``mirror_averaged``)."""
     if len(nets) > 1:
-        return SeedEnsemble(nets).eval()
-    return ContactOutputs(nets[0]).eval() if nets[0].cfg.contact_head else nets[0]
+        module = SeedEnsemble(nets).eval()
+    else:
+        module = ContactOutputs(nets[0]).eval() if nets[0].cfg.contact_head else nets[0]
+    return MirrorAveraged(module, nets[0].cfg).eval() if mirror_averaged else module
+
+
+def export_mirror_averaged(path: Path, out_path: Path) -> float:
+    """A model file -> the same nets served :class:`MirrorAveraged` at ``out_path``, its metadata kept but
+    for ``training["mirror_averaged"] = True``; returns the parity error against torch (batches 1 and 8).
+    Raises ValueError for a file that is not an EgoPoseVR model or is mirror-averaged already."""
+    _, metadata, nets = load_served_nets(path)
+    if metadata.training.get("mirror_averaged"):
+        raise ValueError(f"{path} is mirror-averaged already")
+    module = _served_module(nets, mirror_averaged=True)
+    _export_fusion(module, metadata.config, out_path)
+    training = {**metadata.training, "mirror_averaged": True}
+    _set_metadata(out_path, dataclasses.replace(metadata, training=training))
+    return max(_parity(module, out_path, _fusion_inputs(metadata.config, batch)) for batch in (1, 8))
 
 
 def _export_fusion(module: torch.nn.Module, cfg: FusionConfig, out_path: Path) -> None:
@@ -335,7 +353,7 @@ def load_served_nets(path: Path) -> tuple[onnx.ModelProto, ModelMetadata, list[F
         raise ValueError(f"{path}: not an EgoPoseVR model file ({error})") from error
     members = len(metadata.training.get("ensemble", [None]))
     nets = [FusionNet(metadata.config).eval() for _ in range(members)]
-    module = _served_module(nets)
+    module = _served_module(nets, bool(metadata.training.get("mirror_averaged")))
     module.load_state_dict(_state_dict_from_graph(original, module, path))
     return original, metadata, nets
 
@@ -363,7 +381,7 @@ def reexport_model(path: Path) -> float:
     raises ValueError when the file's weights do not fill the net its config describes, or when the two
     graphs disagree by more than ``PARITY_TOL`` (the file is then left as it was)."""
     original, metadata, nets = load_served_nets(path)
-    module = _served_module(nets)
+    module = _served_module(nets, bool(metadata.training.get("mirror_averaged")))
     rewritten = path.with_name(f".{path.name}.reexport")
     try:
         _export_fusion(module, metadata.config, rewritten)

@@ -23,7 +23,15 @@ from torch import nn
 
 from ...config import FusionConfig
 from ...hmd import hmd_input_dim
-from ...inputs import VISUAL_TOKEN_DIM
+from ...inputs import (
+    HMD_MIRROR_ORDER,
+    HMD_MIRROR_SIGNS,
+    SIXD_MIRROR_SIGNS,
+    VISUAL_MIRROR_ORDER,
+    VISUAL_MIRROR_SIGNS,
+    VISUAL_TOKEN_DIM,
+)
+from ...skeleton import MIRROR_JOINTS
 from ..plausibility import FEET  # left, right foot joints: the contact head reads their tokens
 
 
@@ -195,6 +203,46 @@ class SeedEnsemble(nn.Module):
             return torch.stack([orthonormal_sixd(o) for o in outputs]).mean(0)
         sixd = torch.stack([orthonormal_sixd(o[0]) for o in outputs]).mean(0)
         return sixd, torch.stack([o[1] for o in outputs]).mean(0)
+
+
+class MirrorAveraged(nn.Module):
+    """A served fusion module (one net or a :class:`SeedEnsemble`) that also reads the mirrored person's
+    inputs (inputs.py: the world reflected through the heading frame's x = 0, left and right swapped) and
+    serves the mean of its two answers: its own, and the mirrored person's reflected back. Training mirrors
+    every sequence, so both are answers the net learnt to give; averaging them cancels the part of each
+    guess that is not the person's (as two seeds do). One batch of 2B through the nets; rotations each made
+    orthonormal first, as :class:`SeedEnsemble` does, contact probabilities with the feet swapped back."""
+
+    def __init__(self, served: nn.Module, cfg: FusionConfig) -> None:
+        super().__init__()
+        self.served, self.cfg = served, cfg
+        width = hmd_input_dim(cfg.device_validity)
+        self.register_buffer("hmd_order", torch.as_tensor(HMD_MIRROR_ORDER[:width]), persistent=False)
+        self.register_buffer("hmd_signs", torch.as_tensor(HMD_MIRROR_SIGNS[:width], dtype=torch.float32),
+                             persistent=False)  # fmt: skip
+        self.register_buffer("visual_order", torch.as_tensor(VISUAL_MIRROR_ORDER), persistent=False)
+        self.register_buffer("visual_signs", torch.as_tensor(VISUAL_MIRROR_SIGNS, dtype=torch.float32),
+                             persistent=False)  # fmt: skip
+        self.register_buffer("joints", torch.as_tensor(MIRROR_JOINTS), persistent=False)
+        self.register_buffer("sixd_signs", torch.as_tensor(SIXD_MIRROR_SIGNS, dtype=torch.float32),
+                             persistent=False)  # fmt: skip
+
+    def forward(
+        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        batch = hmd.shape[0]
+        hmd = torch.cat([hmd, hmd[..., self.hmd_order] * self.hmd_signs])
+        if visual is None:
+            out = self.served(hmd)
+        else:
+            out = self.served(hmd, torch.cat([visual, visual[..., self.visual_order] * self.visual_signs]))
+        sixd = out[0] if self.cfg.contact_head else out
+        back = sixd[batch:][:, self.joints] * self.sixd_signs
+        mean = (orthonormal_sixd(sixd[:batch]) + orthonormal_sixd(back)) / 2
+        if not self.cfg.contact_head:
+            return mean
+        contact = out[1]
+        return mean, (contact[:batch] + contact[batch:].flip(-1)) / 2
 
 
 def orthonormal_sixd(sixd: torch.Tensor) -> torch.Tensor:
