@@ -32,7 +32,9 @@ LOWER_BODY: Final = np.array([0, 1, 2, 4, 5, 7, 8, 10, 11])
 ARM_JOINTS: Final = np.array([13, 14, 16, 17, 18, 19, 20, 21])
 SHOULDERS: Final = (16, 17)  # left, right
 # SMPL-22 with left and right swapped: hips, knees, ankles, feet, collars, shoulders, elbows, wrists.
-MIRROR_JOINTS: Final = np.array([0, 2, 1, 3, 5, 4, 6, 8, 7, 9, 11, 10, 12, 14, 13, 15, 17, 16, 19, 18, 21, 20])
+MIRROR_JOINTS: Final = np.array(
+    [0, 2, 1, 3, 5, 4, 6, 8, 7, 9, 11, 10, 12, 14, 13, 15, 17, 16, 19, 18, 21, 20]
+)
 
 
 def _depth_levels(parents: np.ndarray) -> tuple[np.ndarray, ...]:
