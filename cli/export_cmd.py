@@ -17,12 +17,18 @@ so that their fusion net takes a batch axis, checked against the original row by
 forward pass) from the weights they hold, without their checkpoints; metadata is kept, and the new graph
 must agree with the old one within 1e-4. The bundled models were last rewritten so (MODEL_CARD).
 
+--mirror-average rewrites model files in place so that each also answers for the mirrored person (the world
+reflected, left and right swapped: a person its nets were trained on too) and serves the mean of its
+answer and that one reflected back; twice the fusion net's work per sample (MODEL_CARD, "Each answer
+averaged with the mirrored person's").
+
 Examples:
   egoposevr export --runs runs/cpu16 --out model/weights
   egoposevr export --runs runs/temporal --out runs/temporal-weights --model egoposevr --encoders model/weights
   egoposevr export --runs runs/lock runs/lock2 --out runs/pair-weights --model egoposevr --encoders model/weights
   egoposevr export --add-batch-axis model/weights/egoposevr.onnx model/weights/hmd.onnx
   egoposevr export --reexport model/weights/hmd*.onnx model/weights/egoposevr*.onnx
+  egoposevr export --mirror-average runs/pair-weights/egoposevr.onnx
 """
 
 from __future__ import annotations
@@ -45,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="give these fusion graphs a batch axis, in place (no --runs/--out)")  # fmt: skip
     parser.add_argument("--reexport", type=Path, nargs="+", metavar="ONNX",
                         help="rewrite these model files in today's graph form, in place (no --runs/--out)")  # fmt: skip
+    parser.add_argument("--mirror-average", type=Path, nargs="+", metavar="ONNX",
+                        help="rewrite these model files to average each answer with the mirrored person's, "
+                             "in place (no --runs/--out)")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,6 +71,14 @@ def run(args: argparse.Namespace) -> int:
 
         return _rewrite_in_place(
             args.reexport, reexport_model, "re-exported; against the old graph (batches of 1 and 8)"
+        )
+    if args.mirror_average:
+        from ..model.training.export import export_mirror_averaged
+
+        return _rewrite_in_place(
+            args.mirror_average,
+            lambda path: export_mirror_averaged(path, path),
+            "mirror-averaged; against torch (batches of 1 and 8)",
         )
     if args.runs is None or args.out is None:
         print("egoposevr export: --runs and --out are required", file=sys.stderr)

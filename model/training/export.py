@@ -249,17 +249,26 @@ def _served_module(nets: list[FusionNet], mirror_averaged: bool = False) -> torc
 
 
 def export_mirror_averaged(path: Path, out_path: Path) -> float:
-    """A model file -> the same nets served :class:`MirrorAveraged` at ``out_path``, its metadata kept but
-    for ``training["mirror_averaged"] = True``; returns the parity error against torch (batches 1 and 8).
-    Raises ValueError for a file that is not an EgoPoseVR model or is mirror-averaged already."""
+    """A model file -> the same nets served :class:`MirrorAveraged` at ``out_path`` (which may be ``path``),
+    its metadata kept but for ``training["mirror_averaged"] = True``; returns the parity error against
+    torch (batches 1 and 8). Raises ValueError for a file that is not an EgoPoseVR model, is
+    mirror-averaged already, or whose graph misses parity (``out_path`` is then left as it was)."""
     _, metadata, nets = load_served_nets(path)
     if metadata.training.get("mirror_averaged"):
         raise ValueError(f"{path} is mirror-averaged already")
     module = _served_module(nets, mirror_averaged=True)
-    _export_fusion(module, metadata.config, out_path)
-    training = {**metadata.training, "mirror_averaged": True}
-    _set_metadata(out_path, dataclasses.replace(metadata, training=training))
-    return max(_parity(module, out_path, _fusion_inputs(metadata.config, batch)) for batch in (1, 8))
+    written = out_path.with_name(f".{out_path.name}.mirror")  # out_path may be path: replaced when checked
+    try:
+        _export_fusion(module, metadata.config, written)
+        training = {**metadata.training, "mirror_averaged": True}
+        _set_metadata(written, dataclasses.replace(metadata, training=training))
+        worst = max(_parity(module, written, _fusion_inputs(metadata.config, batch)) for batch in (1, 8))
+        if worst > PARITY_TOL:
+            raise ValueError(f"{path}: the mirror-averaged graph differs from torch by {worst:.2e}")
+        written.replace(out_path)
+    finally:
+        written.unlink(missing_ok=True)
+    return worst
 
 
 def _export_fusion(module: torch.nn.Module, cfg: FusionConfig, out_path: Path) -> None:

@@ -6,14 +6,27 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from egoposevr.model.inputs import lift_keypoints
+from egoposevr.model.hmd import hmd_features, tracking_features
+from egoposevr.model.inputs import (
+    HMD_MIRROR_ORDER,
+    HMD_MIRROR_SIGNS,
+    SIXD_MIRROR_SIGNS,
+    VISUAL_MIRROR_ORDER,
+    VISUAL_MIRROR_SIGNS,
+    canonicalize_hmd,
+    heading_frame,
+    lift_keypoints,
+    visual_tokens,
+)
 from egoposevr.model.rig import DEFAULT_OFFSETS_M, DEVICE_FROM_JOINT, TRACKED_JOINTS, joints_from_devices
+from egoposevr.model.rotations import matrix_to_sixd
 from egoposevr.model.skeleton import LOWER_BODY, NUM_JOINTS, forward_kinematics, rest_offsets
 from egoposevr.model.training.augment import (
     MIRROR_JOINTS,
     crop_and_flip,
     lose_hanging_arms,
     mirror_sequence,
+    mirror_world_keypoints,
     narrow_tracking_cone,
     retime_sequence,
     swap_arms,
@@ -192,3 +205,39 @@ def test_cropped_and_flipped_frames_lift_to_their_joints(crop_p: float, flip_p: 
         np.testing.assert_array_equal(rgb2[:, :, ::-1], rgb)
     if crop_p:
         assert (wh2[:, 1] < cam_wh[:, 1]).all() and visible2.sum() < visible.sum()
+
+
+def test_the_mirrored_persons_net_inputs_are_the_served_ones_reordered_and_signed() -> None:
+    """inputs.py's mirror layouts give exactly what the featurisation gives the mirrored sequence (lost
+    controllers included), so a net served both answers for two people it was trained on."""
+    rng = np.random.default_rng(4)
+    seq = _sequence(rng, n=60)
+    mirrored = mirror_sequence(seq)
+
+    def window(s: dict, i: int) -> np.ndarray:
+        poses, valid = np.asarray(s["hmd_poses"], np.float64), np.asarray(s["hmd_valid"])
+        x = np.concatenate(
+            [hmd_features(s["hmd_t_us"], poses, valid), tracking_features(s["hmd_t_us"], valid)], -1
+        )
+        return canonicalize_hmd(x[i - 11 : i + 1], *heading_frame(poses[i, 0]))
+
+    assert (~seq["hmd_valid"][:, 1:]).any() and (seq["hmd_valid"][:, 1] != seq["hmd_valid"][:, 2]).any()
+    for i in (11, 30, 59):
+        np.testing.assert_allclose(
+            window(seq, i)[..., HMD_MIRROR_ORDER] * HMD_MIRROR_SIGNS, window(mirrored, i), atol=1e-5
+        )
+    kp, confidence = rng.normal(size=(3, NUM_JOINTS, 3)), rng.random((3, NUM_JOINTS))
+    age_s, head = np.array([0.07, 0.03, 0.0]), (seq["hmd_poses"][7, 0], mirrored["hmd_poses"][7, 0])
+    tokens = visual_tokens(kp, confidence, age_s, 4, *heading_frame(head[0]))
+    tokens_mirrored = visual_tokens(
+        *mirror_world_keypoints(kp, confidence), age_s, 4, *heading_frame(head[1])
+    )
+    np.testing.assert_allclose(
+        tokens[..., VISUAL_MIRROR_ORDER] * VISUAL_MIRROR_SIGNS, tokens_mirrored, atol=1e-5
+    )
+    sixd = [
+        matrix_to_sixd(Rotation.from_quat(s["gt_local_quat"].reshape(-1, 4)).as_matrix())
+        for s in (seq, mirrored)
+    ]
+    sixd = [x.reshape(-1, NUM_JOINTS, 6) for x in sixd]
+    np.testing.assert_allclose(sixd[0][:, MIRROR_JOINTS] * SIXD_MIRROR_SIGNS, sixd[1], atol=1e-6)

@@ -66,3 +66,41 @@ def test_a_block_asked_for_its_newest_token_alone_gives_that_token_of_the_full_b
     (grad_full,) = torch.autograd.grad(full.square().sum(), x)
     (grad_newest,) = torch.autograd.grad(newest.square().sum(), x)
     torch.testing.assert_close(grad_newest, grad_full, atol=1e-6, rtol=1e-5)  # earlier tokens still learn
+
+
+def test_a_mirror_averaged_net_gives_the_mirrored_person_the_mirrored_answer():
+    """MirrorAveraged's answer is symmetric whatever the weights: the mirrored person's inputs get this
+    person's answer reflected (rotations) and swapped (feet), which a net alone does not give."""
+    from egoposevr.model.inputs import (
+        HMD_MIRROR_ORDER,
+        HMD_MIRROR_SIGNS,
+        SIXD_MIRROR_SIGNS,
+        VISUAL_MIRROR_ORDER,
+        VISUAL_MIRROR_SIGNS,
+    )
+    from egoposevr.model.skeleton import MIRROR_JOINTS
+    from egoposevr.model.training.nets.fusion import ContactOutputs, MirrorAveraged, orthonormal_sixd
+
+    cfg = FusionConfig(
+        window=12, visual_window=4, d_model=32, joint_dim=16, contact_head=True, device_validity=True
+    )
+    torch.manual_seed(0)
+    net = FusionNet(cfg).eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 0.2)  # away from the identity start, whose answers are symmetric already
+    single, served = ContactOutputs(net), MirrorAveraged(ContactOutputs(net), cfg).eval()
+    hmd, visual = torch.randn(3, 12, 78), torch.randn(3, 4, VISUAL_TOKEN_DIM)
+    hmd_m = hmd[..., HMD_MIRROR_ORDER] * torch.as_tensor(HMD_MIRROR_SIGNS, dtype=torch.float32)
+    visual_m = visual[..., VISUAL_MIRROR_ORDER] * torch.as_tensor(VISUAL_MIRROR_SIGNS, dtype=torch.float32)
+    signs = torch.as_tensor(SIXD_MIRROR_SIGNS, dtype=torch.float32)
+    with torch.no_grad():
+        (sixd, contact), (sixd_m, contact_m) = served(hmd, visual), served(hmd_m, visual_m)
+        alone_sixd, _ = single(hmd, visual)
+        alone_m, _ = single(hmd_m, visual_m)
+        first, _ = served(hmd[:1], visual[:1])
+    torch.testing.assert_close(sixd_m, sixd[:, MIRROR_JOINTS] * signs, atol=1e-5, rtol=0)
+    torch.testing.assert_close(contact_m, contact.flip(-1), atol=1e-6, rtol=0)
+    torch.testing.assert_close(first, sixd[:1], atol=1e-5, rtol=0)  # each person answered on their own
+    reflected = orthonormal_sixd(alone_sixd)[:, MIRROR_JOINTS] * signs
+    assert (orthonormal_sixd(alone_m) - reflected).abs().max() > 1e-2  # a net alone is not symmetric

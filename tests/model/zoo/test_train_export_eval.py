@@ -1182,3 +1182,47 @@ def test_fusion_nets_learn_foot_contact_and_the_runtime_reads_it(tiny_runs, tiny
     contact_p = pending[0].contact_p
     assert contact_p.shape == (2,) and ((contact_p >= 0.0) & (contact_p <= 1.0)).all()
     pipeline.finish_hmd(pending[0], sixd)  # the feet read it
+
+
+def test_a_model_file_mirror_averaged_keeps_its_weights_and_answers_the_mirrored_person_in_kind(
+    tiny_weights, tmp_path, capsys
+):
+    """export --mirror-average rewrites a file in place: the same nets (re-export reads them back), the
+    same metadata but for the record that says so, a mirrored person's inputs answered with the reflected
+    answer; a second pass is refused."""
+    import dataclasses
+    import shutil
+
+    import onnxruntime as ort
+
+    from egoposevr.model.inputs import (
+        HMD_MIRROR_ORDER,
+        HMD_MIRROR_SIGNS,
+        SIXD_MIRROR_SIGNS,
+        VISUAL_MIRROR_ORDER,
+        VISUAL_MIRROR_SIGNS,
+    )
+    from egoposevr.model.training.export import _fusion_inputs, load_served_nets, reexport_model
+
+    path = tmp_path / "egoposevr.onnx"
+    for name in ("egoposevr.onnx", "visual-rgbd.onnx"):
+        shutil.copy(tiny_weights / name, tmp_path / name)
+    assert main(["export", "--mirror-average", str(path)]) == 0
+    assert "mirror-averaged" in capsys.readouterr().out
+    _, plain, _ = load_served_nets(tiny_weights / "egoposevr.onnx")
+    _, mirrored, _ = load_served_nets(path)
+    assert mirrored == dataclasses.replace(plain, training={**plain.training, "mirror_averaged": True})
+    assert LoadedModel.load(path).info.kpo  # served as the model it was
+    assert reexport_model(path) <= 1e-5  # the nets read back from the graph are the ones it serves
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    inputs = _fusion_inputs(plain.config, 2, seed=3)
+    width = inputs["hmd"].shape[-1]
+    flipped = {
+        "hmd": inputs["hmd"][..., HMD_MIRROR_ORDER[:width]] * HMD_MIRROR_SIGNS[:width].astype(np.float32),
+        "visual": inputs["visual"][..., VISUAL_MIRROR_ORDER] * VISUAL_MIRROR_SIGNS.astype(np.float32),
+    }
+    (sixd, contact), (sixd_m, contact_m) = session.run(None, inputs), session.run(None, flipped)
+    np.testing.assert_allclose(sixd_m, sixd[:, MIRROR_JOINTS] * SIXD_MIRROR_SIGNS, atol=1e-5)
+    np.testing.assert_allclose(contact_m, contact[:, ::-1], atol=1e-6)
+    assert main(["export", "--mirror-average", str(path)]) == 2
+    assert "mirror-averaged already" in capsys.readouterr().err
