@@ -10,9 +10,11 @@ is self-describing. Every export is checked against torch on random inputs: the 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -257,18 +259,26 @@ def export_mirror_averaged(path: Path, out_path: Path) -> float:
     if metadata.training.get("mirror_averaged"):
         raise ValueError(f"{path} is mirror-averaged already")
     module = _served_module(nets, mirror_averaged=True)
-    written = out_path.with_name(f".{out_path.name}.mirror")  # out_path may be path: replaced when checked
-    try:
+    with _replaced_if_checked(out_path, "mirror") as written:  # out_path may be path
         _export_fusion(module, metadata.config, written)
         training = {**metadata.training, "mirror_averaged": True}
         _set_metadata(written, dataclasses.replace(metadata, training=training))
         worst = max(_parity(module, written, _fusion_inputs(metadata.config, batch)) for batch in (1, 8))
         if worst > PARITY_TOL:
             raise ValueError(f"{path}: the mirror-averaged graph differs from torch by {worst:.2e}")
-        written.replace(out_path)
+    return worst
+
+
+@contextlib.contextmanager
+def _replaced_if_checked(path: Path, tag: str) -> Iterator[Path]:
+    """A file beside ``path`` for a graph to be written and checked in the block: it replaces ``path`` when
+    the block ends, and is removed if the block raises (``path`` is then left as it was)."""
+    written = path.with_name(f".{path.name}.{tag}")
+    try:
+        yield written
+        written.replace(path)
     finally:
         written.unlink(missing_ok=True)
-    return worst
 
 
 def _export_fusion(module: torch.nn.Module, cfg: FusionConfig, out_path: Path) -> None:
@@ -391,8 +401,7 @@ def reexport_model(path: Path) -> float:
     graphs disagree by more than ``PARITY_TOL`` (the file is then left as it was)."""
     original, metadata, nets = load_served_nets(path)
     module = _served_module(nets, bool(metadata.training.get("mirror_averaged")))
-    rewritten = path.with_name(f".{path.name}.reexport")
-    try:
+    with _replaced_if_checked(path, "reexport") as rewritten:
         _export_fusion(module, metadata.config, rewritten)
         model = onnx.load(str(rewritten))
         model.metadata_props.extend(original.metadata_props)
@@ -402,9 +411,6 @@ def reexport_model(path: Path) -> float:
         worst = _graphs_differ(original, model, [_fusion_inputs(metadata.config, b) for b in batches])
         if worst > PARITY_TOL:
             raise ValueError(f"{path}: the re-exported graph differs from the original by {worst:.2e}")
-        rewritten.replace(path)
-    finally:
-        rewritten.unlink(missing_ok=True)
     return worst
 
 
