@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+MIN_PIECE_S = 2.0  # a clip's last piece shorter than this (or --seconds) is dropped
+
 
 def _resolution(text: str) -> tuple[int, int]:
     try:
@@ -184,6 +186,11 @@ def run(args: argparse.Namespace) -> int:
     if args.mixed > 0 and len(files) < 2:
         print("egoposevr synth: --mixed needs two --motion files or more to mix", file=sys.stderr)
         return 2
+    try:
+        pairs = _pairs(files, args)
+    except ValueError as error:
+        print(f"egoposevr synth: {error}", file=sys.stderr)
+        return 2
     if (not files or args.no_files) and args.procedural <= 0 and args.mixed <= 0:
         print("egoposevr synth: nothing to do: give --motion files and/or --procedural N", file=sys.stderr)
         return 2
@@ -215,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
         [] if args.no_files else [(i, "file", f) for i, f in enumerate(files)]
     )
     jobs += [(len(files) + i, "procedural", families[i % len(families)]) for i in range(args.procedural)]
-    jobs += [(len(files) + args.procedural + i, "mixed", pair) for i, pair in enumerate(_pairs(files, args))]
+    jobs += [(len(files) + args.procedural + i, "mixed", pair) for i, pair in enumerate(pairs)]
     writer = None if args.sessions else DatasetWriter(args.out, args.split)
     sources: list[dict] = []
     failures: list[str] = []
@@ -341,13 +348,17 @@ def _job(job: tuple[int, str, object]) -> tuple[list, list[dict], str | None]:
             on = Body.from_scale(bank.bone_scale(body)) if bank is not None else None
             motion = generate(str(what), args.seconds, 60.0, rng, on)
             motion = motion.replace(name=f"{what}-{index:04d}")
-    except (BvhError, AmassError, ValueError) as error:
+    except (BvhError, AmassError) as error:
         return [], [], f"{what.path}: {error}" if kind == "file" else f"{kind} {index}: {error}"
+    except ValueError as error:  # a clip too short to mix; anything else is a bug and stops the run
+        if kind != "mixed":
+            raise
+        return [], [], f"mixed {index}: {error}"
     seqs, sources = [], []
     chunk = max(2, round(args.seconds * motion.fps))
     for start in range(0, motion.num_frames, chunk):
         piece = motion.slice(start, start + chunk)
-        if piece.duration_s < min(2.0, args.seconds):
+        if piece.duration_s < min(MIN_PIECE_S, args.seconds):
             continue
         name = (
             motion.name
@@ -398,7 +409,13 @@ def _pairs(files: list, args: argparse.Namespace) -> list[tuple]:
     from ..model.synth.library import motion_seconds
 
     rng = np.random.default_rng([args.seed, len(files), args.mixed])
+    # legs shorter than a sequence's shortest piece would make nothing (as such a file makes nothing itself)
     seconds = np.array([motion_seconds(item.path) for item in files])
+    seconds[seconds < min(MIN_PIECE_S, args.seconds)] = 0.0
+    if not seconds.any():
+        raise ValueError(
+            f"--mixed: no --motion file is {min(MIN_PIECE_S, args.seconds):g} s long, to take legs from"
+        )
     pairs = []
     for _ in range(args.mixed):
         legs = files[int(rng.choice(len(files), p=seconds / seconds.sum()))]
