@@ -36,15 +36,14 @@ def mix_halves(
 
     Where each clip starts is drawn (so two mixes of the same pair differ), and ``upper`` is played at a
     speed drawn from SPEED_RANGE, played back and forth if it is shorter than the result (a loop would jump
-    from its last pose to its first). ValueError if either clip is
-    empty.
+    from its last pose to its first). ValueError if either clip has fewer than two frames.
     """
     if legs.num_frames < 2 or upper.num_frames < 2:
         raise ValueError(f"mixing needs clips of two frames or more ({legs.name}, {upper.name})")
     frames = min(legs.num_frames, max(2, round(seconds * legs.fps)))
     start = int(rng.integers(0, legs.num_frames - frames + 1))
     body = legs.slice(start, start + frames)
-    upper = resample(upper, legs.fps) if upper.fps != legs.fps else upper
+    upper = resample(upper, legs.fps)
     speed = float(rng.uniform(*SPEED_RANGE))
     span_s = upper.duration_s - 1.0 / upper.fps
     t_s = float(rng.uniform(0.0, span_s)) + speed * np.arange(frames) / legs.fps
