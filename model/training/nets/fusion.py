@@ -217,15 +217,14 @@ class MirrorAveraged(nn.Module):
         super().__init__()
         self.served, self.cfg = served, cfg
         width = hmd_input_dim(cfg.device_validity)
-        self.register_buffer("hmd_order", torch.as_tensor(HMD_MIRROR_ORDER[:width]), persistent=False)
-        self.register_buffer("hmd_signs", torch.as_tensor(HMD_MIRROR_SIGNS[:width], dtype=torch.float32),
-                             persistent=False)  # fmt: skip
-        self.register_buffer("visual_order", torch.as_tensor(VISUAL_MIRROR_ORDER), persistent=False)
-        self.register_buffer("visual_signs", torch.as_tensor(VISUAL_MIRROR_SIGNS, dtype=torch.float32),
-                             persistent=False)  # fmt: skip
-        self.register_buffer("joints", torch.as_tensor(MIRROR_JOINTS), persistent=False)
-        self.register_buffer("sixd_signs", torch.as_tensor(SIXD_MIRROR_SIGNS, dtype=torch.float32),
-                             persistent=False)  # fmt: skip
+        layouts = {
+            "hmd_order": HMD_MIRROR_ORDER[:width], "hmd_signs": HMD_MIRROR_SIGNS[:width],
+            "visual_order": VISUAL_MIRROR_ORDER, "visual_signs": VISUAL_MIRROR_SIGNS,
+            "joints": MIRROR_JOINTS, "sixd_signs": SIXD_MIRROR_SIGNS,
+        }  # fmt: skip
+        for name, layout in layouts.items():  # signs in the inputs' float32, orders as indices
+            value = torch.as_tensor(layout, dtype=torch.float32 if name.endswith("signs") else torch.long)
+            self.register_buffer(name, value, persistent=False)
 
     def forward(
         self, hmd: torch.Tensor, visual: torch.Tensor | None = None
