@@ -404,10 +404,10 @@ def _pairs(files: list, args: argparse.Namespace) -> list[tuple]:
     the files have two or more (one person's arms on their own legs teach little new)."""
     import numpy as np
 
-    if args.mixed <= 0:
-        return []
     from ..model.synth.library import motion_seconds
 
+    if args.mixed <= 0:
+        return []
     rng = np.random.default_rng([args.seed, len(files), args.mixed])
     # legs shorter than a sequence's shortest piece would make nothing (as such a file makes nothing itself)
     seconds = np.array([motion_seconds(item.path) for item in files])

@@ -26,6 +26,7 @@ from typing import Any, Final
 import cv2
 import numpy as np
 
+from ..inputs import X_MIRROR_SIGNS
 from ..rig import TRACKED_JOINTS
 from ..rotations import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from ..skeleton import ARM_JOINTS, MIRROR_JOINTS, SHOULDERS, forward_kinematics, rest_offsets
@@ -33,7 +34,6 @@ from ..synth.headset import HeadsetRig, held_longer_than, hold_last_tracked, out
 
 MIRROR_DEVICES: Final = np.array([0, 2, 1])
 _QUAT_SIGNS: Final = np.array([1.0, -1.0, -1.0, 1.0])
-_X_SIGNS: Final = np.array([-1.0, 1.0, 1.0])
 
 
 def mirror_sequence(seq: dict[str, Any]) -> dict[str, Any]:
@@ -41,18 +41,18 @@ def mirror_sequence(seq: dict[str, Any]) -> dict[str, Any]:
     source's: ``mirror_of`` is it, ``images_key`` its key, and stage-2 mirrors the keypoints it predicts from them)."""
     out = dict(seq)
     poses = np.array(seq["hmd_poses"], dtype=np.float64)[:, MIRROR_DEVICES]
-    poses[..., :3] *= _X_SIGNS
+    poses[..., :3] *= X_MIRROR_SIGNS
     poses[..., 3:] *= _QUAT_SIGNS
     out["hmd_poses"] = poses.astype(seq["hmd_poses"].dtype)
     out["hmd_valid"] = np.asarray(seq["hmd_valid"])[:, MIRROR_DEVICES]
     out["gt_local_quat"] = (np.asarray(seq["gt_local_quat"])[:, MIRROR_JOINTS] * _QUAT_SIGNS).astype(
         seq["gt_local_quat"].dtype
     )
-    out["gt_joints_m"] = (np.asarray(seq["gt_joints_m"])[:, MIRROR_JOINTS] * _X_SIGNS).astype(
+    out["gt_joints_m"] = (np.asarray(seq["gt_joints_m"])[:, MIRROR_JOINTS] * X_MIRROR_SIGNS).astype(
         seq["gt_joints_m"].dtype
     )
     if "gt_root_m" in seq:
-        out["gt_root_m"] = (np.asarray(seq["gt_root_m"]) * _X_SIGNS).astype(seq["gt_root_m"].dtype)
+        out["gt_root_m"] = (np.asarray(seq["gt_root_m"]) * X_MIRROR_SIGNS).astype(seq["gt_root_m"].dtype)
     out["bone_scale"] = np.asarray(seq["bone_scale"])[MIRROR_JOINTS]
     out["mirror_of"] = seq
     out["images_key"] = seq.get("images_key", seq["key"])
@@ -62,7 +62,7 @@ def mirror_sequence(seq: dict[str, Any]) -> dict[str, Any]:
 
 def mirror_world_keypoints(kp_world: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Stage-1 keypoints (K, J, 3) in the world and their confidence (K, J), as the mirrored body's."""
-    return kp_world[:, MIRROR_JOINTS] * _X_SIGNS, confidence[:, MIRROR_JOINTS]
+    return kp_world[:, MIRROR_JOINTS] * X_MIRROR_SIGNS, confidence[:, MIRROR_JOINTS]
 
 
 def retime_sequence(seq: dict[str, Any], speed: float) -> dict[str, Any]:
@@ -221,6 +221,6 @@ def crop_and_flip(
         rgb[b], depth[b] = rgb[b, :, ::-1], depth[b, :, ::-1]
         uv[b] = uv[b, MIRROR_JOINTS] * (-1.0, 1.0) + (1.0, 0.0)
         visible[b] = visible[b, MIRROR_JOINTS]
-        joints_cam_m[b] = joints_cam_m[b, MIRROR_JOINTS] * _X_SIGNS
+        joints_cam_m[b] = joints_cam_m[b, MIRROR_JOINTS] * X_MIRROR_SIGNS
         intrinsics[b, 2] = size_wh[b, 0] - 1.0 - intrinsics[b, 2]
     return rgb, depth, uv.astype(np.float32), visible, intrinsics, size_wh, joints_cam_m
