@@ -25,6 +25,11 @@ from pathlib import Path
 MIN_PIECE_S = 2.0  # a clip's last piece shorter than this (or --seconds) is dropped
 
 
+def _shortest_piece_s(seconds: float) -> float:
+    """The shortest piece of a clip that becomes a sequence, for sequences of ``seconds`` (--seconds)."""
+    return min(MIN_PIECE_S, seconds)
+
+
 def _resolution(text: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in text.lower().split("x"))
@@ -358,7 +363,7 @@ def _job(job: tuple[int, str, object]) -> tuple[list, list[dict], str | None]:
     chunk = max(2, round(args.seconds * motion.fps))
     for start in range(0, motion.num_frames, chunk):
         piece = motion.slice(start, start + chunk)
-        if piece.duration_s < min(MIN_PIECE_S, args.seconds):
+        if piece.duration_s < _shortest_piece_s(args.seconds):
             continue
         name = (
             motion.name
@@ -411,11 +416,10 @@ def _pairs(files: list, args: argparse.Namespace) -> list[tuple]:
     rng = np.random.default_rng([args.seed, len(files), args.mixed])
     # legs shorter than a sequence's shortest piece would make nothing (as such a file makes nothing itself)
     seconds = np.array([motion_seconds(item.path) for item in files])
-    seconds[seconds < min(MIN_PIECE_S, args.seconds)] = 0.0
+    shortest_s = _shortest_piece_s(args.seconds)
+    seconds[seconds < shortest_s] = 0.0
     if not seconds.any():
-        raise ValueError(
-            f"--mixed: no --motion file is {min(MIN_PIECE_S, args.seconds):g} s long, to take legs from"
-        )
+        raise ValueError(f"--mixed: no --motion file is {shortest_s:g} s long, to take legs from")
     pairs = []
     for _ in range(args.mixed):
         legs = files[int(rng.choice(len(files), p=seconds / seconds.sum()))]
