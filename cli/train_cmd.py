@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ..model.training.train import InitialWeights, TrainConfig
+    from ..model.training.train import InitialVisual, InitialWeights, TrainConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -161,6 +161,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="leave the train split's subjects of fold K of N out (whole subjects, by duration), to judge a "
         "training choice on them with `eval --split train --fold K/N` instead of on val or test",
     )  # fmt: skip
+    parser.add_argument(
+        "--init-visual", type=Path, default=None, metavar="FILE",
+        help="fine-tune: the run's encoder of this file's kind starts from the exported encoder FILE (e.g. "
+        "the bundled visual-rgbd.onnx) instead of a random draw, its batch norms' statistics frozen and at a "
+        "fifth of the preset's learning rate",
+    )  # fmt: skip
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -217,6 +223,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as error:
         print(f"egoposevr train: --init-from: {error}", file=sys.stderr)
         return 2
+    try:
+        initial_visual = _initial_encoder(args.init_visual, config)
+    except ValueError as error:
+        print(f"egoposevr train: --init-visual: {error}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
     try:
         paths = train_zoo(
@@ -229,6 +240,7 @@ def run(args: argparse.Namespace) -> int:
             args.encoders,
             args.teachers,
             initial,
+            initial_visual,
         )
     except (DatasetError, ModelError, DeviceError, TeacherError, CheckpointError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)
@@ -255,6 +267,22 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
     )  # fmt: skip
     return next((needs for bad, needs in checks if bad), None)
+
+
+def _initial_encoder(source: Path | None, config: TrainConfig) -> dict[str, InitialVisual] | None:
+    """--init-visual: {kind: the weights the encoder of that kind starts from}, or None (raises ValueError)."""
+    if source is None:
+        return None
+    from ..model.runtime.loading import ModelError, load_encoder
+    from ..model.training.export import initial_visual_state
+    from ..model.training.train import visual_config
+
+    try:
+        _, metadata = load_encoder(source)
+    except (ModelError, OSError) as error:
+        raise ValueError(str(error)) from error
+    kind = "rgbd" if metadata.config.channels == 4 else "rgb"
+    return {kind: initial_visual_state(source, visual_config(kind, config))}
 
 
 def _initial_weights(

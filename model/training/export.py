@@ -30,6 +30,7 @@ from ..config import (
     EncoderMetadata,
     FusionConfig,
     ModelMetadata,
+    VisualConfig,
     from_properties,
     parse,
     to_properties,
@@ -38,10 +39,12 @@ from ..hmd import hmd_input_dim
 from ..inputs import VISUAL_TOKEN_DIM
 from ..rig import DEFAULT_OFFSETS_M
 from ..runtime.body import regressor_path
+from ..runtime.loading import ModelError, load_encoder
 from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
 from .nets.fusion import ContactOutputs, FusionNet, MirrorAveraged, SeedEnsemble
-from .train import InitialWeights, build_net, load_checkpoint
+from .nets.visual import KeypointNet
+from .train import InitialVisual, InitialWeights, build_net, load_checkpoint
 
 PARITY_TOL = 1e-4
 OPSET = 23  # the first with an Attention operator (onnxruntime >= 1.23 runs it)
@@ -185,6 +188,49 @@ def export_visual(ckpt_path: Path, out_path: Path) -> float:
     rng = np.random.default_rng(0)
     image = rng.uniform(-0.5, 0.5, (3, cfg.channels, cfg.height, cfg.width)).astype(np.float32)
     return _parity(module, out_path, {"image": image})
+
+
+# Each batch norm of KeypointNet and the convolution before it, whose weights the exporter folded together.
+_CONV_BEFORE_NORM = (("stem.1", "stem.0"), ("smooth.1", "smooth.0"), (".bn1", ".conv1"), (".bn2", ".conv2"),
+                     (".shortcut.1", ".shortcut.0"))  # fmt: skip
+
+
+def initial_visual_state(path: Path, cfg: VisualConfig) -> InitialVisual:
+    """Where ``egoposevr train --init-visual`` starts an encoder: the weights of the exported encoder
+    ``path``, read back into a :class:`KeypointNet` of ``cfg`` (the run's flags). The exporter folded each
+    batch norm into its convolution, so each norm comes back as the identity on the stored statistics with
+    the folded bias as its shift: exactly the exported function, in eval mode and with the statistics frozen
+    (``KeypointNet.freeze_statistics``). Raises ValueError for a file that is not an encoder, one of another
+    config, or one whose graph lacks a weight."""
+    try:
+        _, metadata = load_encoder(path)
+    except ModelError as error:
+        raise ValueError(str(error)) from error
+    if metadata.config != cfg:
+        raise ValueError(f"{path}: its encoder is configured otherwise than this run's flags make it")
+    arrays = {i.name: onnx.numpy_helper.to_array(i) for i in onnx.load(str(path)).graph.initializer}
+    net = KeypointNet(cfg)
+    state = {}
+    for key, want in net.state_dict().items():
+        module, _, field = key.rpartition(".")
+        conv = next((module.replace(norm, before) for norm, before in _CONV_BEFORE_NORM if module.endswith(norm)),
+                    None)  # fmt: skip
+        if conv is None:
+            found = arrays.get(f"net.{key}")
+        elif field == "weight":
+            found = np.ones(want.shape, np.float32)
+        elif field == "bias":
+            found = arrays.get(f"net.{conv}.weight_bias")
+        elif field == "running_mean":
+            found = np.zeros(want.shape, np.float32)
+        elif field == "running_var":  # (x - 0) / sqrt(var + eps) = x
+            found = np.full(want.shape, 1.0 - net.get_submodule(module).eps, np.float32)
+        else:  # num_batches_tracked
+            found = np.zeros(want.shape, np.int64)
+        if found is None or tuple(found.shape) != tuple(want.shape):
+            raise ValueError(f"{path}: no weight for {key} {tuple(want.shape)} in the graph")
+        state[key] = torch.from_numpy(np.array(found, copy=True))
+    return InitialVisual(str(path), state)
 
 
 def copy_encoder(source: Path, out_path: Path) -> None:

@@ -459,8 +459,10 @@ def train_visual(
     resume: bool = False,
     progress: bool = True,
     seqs: list[dict[str, Any]] | None = None,
+    initial: InitialVisual | None = None,
 ) -> Path:
-    """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``."""
+    """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``; with ``initial``, a fine-tune of that
+    encoder (its batch norms' statistics frozen, the learning rate FINE_TUNE_LR_SCALE of the preset's)."""
     path = out_dir / f"visual-{kind}.pt"
     data_dirs = dataset_dirs(data)
     seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
@@ -473,6 +475,11 @@ def train_visual(
     frames = load_visual_data(seqs, (cfg.width, cfg.height))
     meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
             "data": _data_field(data_dirs, tc, seqs, frames=len(frames.rgb))}  # fmt: skip
+    if initial is not None:
+        net.load_state_dict(initial.state_dict)
+        net.freeze_statistics()
+        meta["init"] = {"from": initial.source}
+        tc = dataclasses.replace(tc, lr=tc.lr * FINE_TUNE_LR_SCALE)
     _run_steps(net, visual_loss_fn(net, frames, tc), path, tc.visual_steps, tc, meta, resume, progress)
     return path
 
@@ -830,6 +837,20 @@ def train_fusion(
 
 
 @dataclasses.dataclass(frozen=True)
+class InitialVisual:
+    """Where an encoder starts instead of a random draw (``egoposevr train --init-visual``): the weights of
+    an exported encoder, its batch norms as folded (export.initial_visual_state)."""
+
+    source: str  # the encoder file
+    state_dict: dict[str, torch.Tensor]
+
+
+# A fine-tuned encoder's learning rate against the preset's: it starts from a trained net, whose features a
+# full-size first step (after the warm-up) would shake loose before the new data could shape them.
+FINE_TUNE_LR_SCALE: Final = 0.2
+
+
+@dataclasses.dataclass(frozen=True)
 class InitialWeights:
     """Where a fusion net starts instead of a random draw (``egoposevr train --init-from``): the weights of
     one net of an exported model file (export.initial_fusion_state)."""
@@ -1018,11 +1039,13 @@ def train_zoo(
     encoders_dir: Path | None = None,
     teachers: Sequence[Path] = (),
     initial: dict[str, InitialWeights] | None = None,
+    initial_visual: dict[str, InitialVisual] | None = None,
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
     ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained; with
     ``teachers`` each fusion net also learns the mean output of those runs folders' nets of its kind;
-    ``initial`` maps a fusion net's name to the weights it starts from."""
+    ``initial`` maps a fusion net's name to the weights it starts from, ``initial_visual`` an encoder's kind
+    ("rgb", "rgbd") to the exported encoder it is fine-tuned from."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -1038,7 +1061,10 @@ def train_zoo(
     paths = {}
     if encoders_dir is None:
         paths = {
-            f"visual-{k}": train_visual(k, data_dirs, out_dir, tc, resume, progress, seqs) for k in visuals
+            f"visual-{k}": train_visual(
+                k, data_dirs, out_dir, tc, resume, progress, seqs, (initial_visual or {}).get(k)
+            )
+            for k in visuals
         }
     cache: dict[Any, Any] = {}  # HMD features and stage-1 keypoints, shared by the fusion nets
     for f in fusions:

@@ -79,6 +79,23 @@ class KeypointNet(nn.Module):
         self.register_buffer("grid_u", (torch.arange(hw, dtype=torch.float32) + 0.5) / hw, persistent=False)
         self.register_buffer("grid_v", (torch.arange(hh, dtype=torch.float32) + 0.5) / hh, persistent=False)
 
+    frozen_statistics = False  # freeze_statistics(): batch norm keeps its running statistics in training
+
+    def freeze_statistics(self) -> None:
+        """Batch norm normalises by its stored statistics in training too (its scale and shift still learn):
+        a net fine-tuned from an exported file, whose statistics are folded into the convolutions, keeps
+        the function it starts from instead of renormalising every batch."""
+        self.frozen_statistics = True
+        self.train(self.training)
+
+    def train(self, mode: bool = True) -> KeypointNet:
+        super().train(mode)
+        if self.frozen_statistics:
+            for module in self.modules():
+                if isinstance(module, nn.BatchNorm2d):
+                    module.eval()
+        return self
+
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         feats, x = [], self.stem(image)
         for stage in self.stages:
