@@ -259,6 +259,59 @@ def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
     assert "not an ONNX file" in capsys.readouterr().err
 
 
+def test_an_encoder_fine_tunes_from_the_weights_an_exported_encoder_holds(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    import torch
+
+    from egoposevr.model.runtime.loading import load_encoder
+    from egoposevr.model.training.export import initial_visual_state
+    from egoposevr.model.training.nets.visual import KeypointNet
+
+    encoder = tiny_weights / "visual-rgbd.onnx"
+    session, metadata = load_encoder(encoder)
+    start = initial_visual_state(encoder, metadata.config)
+    net = KeypointNet(metadata.config)
+    net.load_state_dict(start.state_dict)
+    net.freeze_statistics()
+    net.train()  # training mode, as a fine-tune runs it: the folded batch norms must not renormalise
+    image = (
+        np.random.default_rng(0)
+        .uniform(-0.5, 0.5, (2, *session.get_inputs()[0].shape[1:]))
+        .astype(np.float32)
+    )
+    with torch.no_grad():
+        read_back = [t.numpy() for t in net(torch.from_numpy(image))[:3]]
+    for ours, theirs in zip(read_back, session.run(["uv", "depth_m", "zeta"], {"image": image}), strict=True):
+        np.testing.assert_allclose(ours, theirs, atol=1e-5)
+
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--visual-steps", "1", "--fusion-steps", "1", "--seed", "5"]
+    assert main([*train, "--out", str(tmp_path / "ft"), "--init-visual", str(encoder)]) == 0
+    ckpt = load_checkpoint(tmp_path / "ft" / "visual-rgbd.pt")
+    assert ckpt["init"] == {"from": str(encoder)}
+    gap = max(
+        float((ckpt["state_dict"][k].float() - v.float()).abs().max()) for k, v in start.state_dict.items()
+    )
+    assert gap < 1e-3  # one small step away from the file's weights, its statistics as they were
+    torch.testing.assert_close(
+        ckpt["state_dict"]["stages.0.0.bn1.running_var"], start.state_dict["stages.0.0.bn1.running_var"]
+    )
+    out = tmp_path / "ft-weights"
+    assert main(["export", "--runs", str(tmp_path / "ft"), "--out", str(out), "--model", "hmd-rgbd"]) == 0
+    assert load_encoder(out / "visual-rgbd.onnx")[1].training["init"] == {"from": str(encoder)}
+
+    capsys.readouterr()
+    assert main([*train, "--out", str(tmp_path / "x"), "--init-visual", str(tiny_weights / "hmd.onnx")]) == 2
+    assert "--init-visual" in capsys.readouterr().err
+    wider = ["--init-visual", str(encoder), "--window", "5"]  # the encoder's flags are not the window's
+    assert main([*train, "--out", str(tmp_path / "y"), *wider]) == 0
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes(encoder.read_bytes()[:1000])
+    assert main([*train, "--out", str(tmp_path / "z"), "--init-visual", str(truncated)]) == 2
+    assert "--init-visual" in capsys.readouterr().err
+
+
 def test_a_fine_tune_starts_from_a_model_file_named_otherwise_than_its_net(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
