@@ -224,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"egoposevr train: --init-from: {error}", file=sys.stderr)
         return 2
     try:
-        initial_visual = _initial_encoder(args.init_visual, config)
+        initial_visual = _initial_encoder(args.init_visual, config, names, args.encoders)
     except ValueError as error:
         print(f"egoposevr train: --init-visual: {error}", file=sys.stderr)
         return 2
@@ -269,19 +269,26 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
     return next((needs for bad, needs in checks if bad), None)
 
 
-def _initial_encoder(source: Path | None, config: TrainConfig) -> dict[str, InitialVisual] | None:
-    """--init-visual: {kind: the weights the encoder of that kind starts from}, or None (raises ValueError)."""
+def _initial_encoder(
+    source: Path | None, config: TrainConfig, names: list[str], encoders: Path | None
+) -> dict[str, InitialVisual] | None:
+    """--init-visual: {kind: the weights the encoder of that kind starts from}, or None. Raises ValueError for
+    a file that is not an encoder, or one of a kind this run trains no encoder of (``names`` its models;
+    with ``encoders`` it trains none)."""
     if source is None:
         return None
     from ..model.runtime.loading import ModelError, load_encoder
     from ..model.training.export import initial_visual_state
-    from ..model.training.train import visual_config
+    from ..model.training.train import fusion_names, visual_config
+    from ..model.zoo import ZOO
 
     try:
         _, metadata = load_encoder(source)
     except (ModelError, OSError) as error:
         raise ValueError(str(error)) from error
     kind = "rgbd" if metadata.config.channels == 4 else "rgb"
+    if encoders is not None or all(ZOO[f].visual != kind for f in fusion_names(names)):
+        raise ValueError(f"{source} is a {kind} encoder, and this run trains none (--model, --encoders)")
     return {kind: initial_visual_state(source, visual_config(kind, config))}
 
 
