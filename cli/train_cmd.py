@@ -167,6 +167,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "the bundled visual-rgbd.onnx) instead of a random draw, its batch norms' statistics frozen and at a "
         "fifth of the preset's learning rate",
     )  # fmt: skip
+    parser.add_argument(
+        "--encoders-out-of-fold", nargs="+", type=Path, default=(), metavar="DIR",
+        help="train only fusion nets, each training sequence's keypoints from the one of these folders' "
+        "exported encoders that left its person out (each trained with --hold-out K/N on the same --data): "
+        "keypoints as far off as a new person's; export with --encoders (the encoder to serve)",
+    )  # fmt: skip
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -241,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
             args.teachers,
             initial,
             initial_visual,
+            args.encoders_out_of_fold,
         )
     except (DatasetError, ModelError, DeviceError, TeacherError, CheckpointError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)

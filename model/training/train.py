@@ -62,7 +62,16 @@ from .augment import (
     retime_sequence,
     swap_arms,
 )
-from .dataset import DatasetError, Fold, decode_frames, load_splits, split_camera, subjects
+from .dataset import (
+    DatasetError,
+    Fold,
+    decode_frames,
+    fold_members,
+    load_splits,
+    sequence_subject,
+    split_camera,
+    subjects,
+)
 from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
@@ -511,10 +520,51 @@ class ExportedEncoder:
     def __init__(self, path: Path, threads: int = 0) -> None:
         self.session, metadata = load_encoder(path, threads)
         self.cfg = metadata.config
+        self.training = metadata.training  # its training record (data, steps, ...)
 
     def __call__(self, image: np.ndarray) -> list[np.ndarray]:
         """image (B, C, h, w) float32 -> [uv (B, J, 2), depth_m (B, J), zeta (B, J)]."""
         return self.session.run(["uv", "depth_m", "zeta"], {"image": image})
+
+
+class OutOfFoldEncoders:
+    """Exported encoders that each left one fold of the training people out (``train --hold-out K/N``):
+    each training sequence's keypoints come from the encoder that never saw its person, so that fusion nets
+    learn from keypoints as far off as a new person's, not from the encoder's own training frames
+    (MODEL_CARD.md, "Folds hide a new person from the nets, not from the camera").
+
+    Built over the run's training sequences, which must be the data the encoders split: each encoder's
+    recorded people (the digest of those it trained on) must be what its fold leaves of them, and every
+    person must be left out by one of them. Raises DatasetError otherwise."""
+
+    def __init__(self, paths: Sequence[Path], seqs: list[dict[str, Any]], threads: int = 0) -> None:
+        encoders = [ExportedEncoder(p, threads) for p in paths]
+        self.cfg = encoders[0].cfg
+        self._by_person: dict[str, ExportedEncoder] = {}
+        for path, encoder in zip(paths, encoders, strict=True):
+            data = encoder.training.get("data") or {}
+            if encoder.cfg != self.cfg:
+                raise DatasetError(f"{path}: configured otherwise than {paths[0]}")
+            if not data.get("held_out_fold"):
+                raise DatasetError(f"{path}: it left no fold of people out (train --hold-out K/N)")
+            held = fold_members(seqs, Fold.parse(data["held_out_fold"]))
+            if _people_digest([s for s, h in zip(seqs, held, strict=True) if not h]) != data.get(
+                "trained_subjects_sha256"
+            ):
+                raise DatasetError(
+                    f"{path}: it trained on other people than fold {data['held_out_fold']} of this data leaves"
+                )
+            for seq in (s for s, h in zip(seqs, held, strict=True) if h):
+                self._by_person.setdefault(sequence_subject(seq), encoder)
+        unseen = sorted({sequence_subject(s) for s in seqs} - set(self._by_person))
+        if unseen:
+            raise DatasetError(
+                f"no encoder left out {', '.join(unseen)}: each person needs one that did not see them"
+            )
+
+    def for_sequence(self, seq: dict[str, Any]) -> ExportedEncoder:
+        """The encoder that never saw this sequence's person."""
+        return self._by_person[sequence_subject(seq)]
 
 
 @torch.no_grad()
@@ -579,7 +629,7 @@ def prepare_fusion_sequence(
     seq: dict[str, Any],
     rng: np.random.Generator,
     tc: TrainConfig,
-    visual: KeypointNet | None,
+    visual: KeypointNet | ExportedEncoder | OutOfFoldEncoders | None,
     cache: dict[Any, Any] | None = None,
     rig_offsets_m: np.ndarray = DEFAULT_OFFSETS_M,
 ) -> FusionSequence:
@@ -596,10 +646,11 @@ def prepare_fusion_sequence(
     if visual is not None and K:
         size = (visual.cfg.width, visual.cfg.height)
         shot = seq.get("mirror_of", seq)  # whose headset the images were taken from
+        encoder = visual.for_sequence(shot) if isinstance(visual, OutOfFoldEncoders) else visual
         uv, depth_m, zeta = _cached(
             cache,
             (visual.cfg.channels, seq.get("images_key", seq["key"])),
-            lambda: predict_keypoints(visual, *decode_frames(shot, size)),
+            lambda: predict_keypoints(encoder, *decode_frames(shot, size)),
         )
         gain = tc.keypoint_error_gain
         truth_cam_m = None if gain == 1.0 else np.asarray(shot["joints_cam_m"], dtype=np.float64)
@@ -797,9 +848,12 @@ def train_fusion(
     encoders_dir: Path | None = None,
     teacher: Teacher | None = None,
     initial: InitialWeights | None = None,
+    out_of_fold: Sequence[Path] = (),
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
-    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``. With ``teacher``
+    checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``, or with
+    ``out_of_fold`` those folders' encoders, each sequence read by the one that never saw its person
+    (:class:`OutOfFoldEncoders`). With ``teacher``
     (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output. With
     ``initial`` the net starts from those weights (its input statistics included) instead of a random
     draw: a fine-tune, with this run's own warmup and schedule. The net is anchored at
@@ -812,7 +866,7 @@ def train_fusion(
     entry = ZOO[name]
     visual: KeypointNet | ExportedEncoder | None = None
     if entry.visual:
-        visual = _stage_one(entry.visual, out_dir, encoders_dir, tc)
+        visual = _stage_one(entry.visual, out_dir, encoders_dir, tc, out_of_fold, seqs)
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
@@ -929,8 +983,15 @@ def training_offsets(initial: InitialWeights | None, teacher: Teacher | None) ->
 
 
 def _stage_one(
-    kind: str, out_dir: Path, encoders_dir: Path | None, tc: TrainConfig
-) -> KeypointNet | ExportedEncoder:
+    kind: str,
+    out_dir: Path,
+    encoders_dir: Path | None,
+    tc: TrainConfig,
+    out_of_fold: Sequence[Path] = (),
+    seqs: list[dict[str, Any]] | None = None,
+) -> KeypointNet | ExportedEncoder | OutOfFoldEncoders:
+    if out_of_fold:
+        return OutOfFoldEncoders([d / f"visual-{kind}.onnx" for d in out_of_fold], seqs or [], tc.threads)
     if encoders_dir is not None:
         return ExportedEncoder(encoders_dir / f"visual-{kind}.onnx", tc.threads)
     return load_net(out_dir / f"visual-{kind}.pt").to(tc.device)
@@ -1040,12 +1101,15 @@ def train_zoo(
     teachers: Sequence[Path] = (),
     initial: dict[str, InitialWeights] | None = None,
     initial_visual: dict[str, InitialVisual] | None = None,
+    out_of_fold: Sequence[Path] = (),
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
     ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained; with
     ``teachers`` each fusion net also learns the mean output of those runs folders' nets of its kind;
     ``initial`` maps a fusion net's name to the weights it starts from, ``initial_visual`` an encoder's kind
-    ("rgb", "rgbd") to the exported encoder it is fine-tuned from."""
+    ("rgb", "rgbd") to the exported encoder it is fine-tuned from; with ``out_of_fold`` (folders of encoders
+    that each left a fold of people out) the fusion nets read each sequence's keypoints from the one that
+    never saw its person, and none is trained."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -1057,9 +1121,13 @@ def train_zoo(
     for f in fusions:  # a fine-tune and teachers at different head offsets: refused now, too
         training_offsets((initial or {}).get(f), taught[f])
     data_dirs = dataset_dirs(data)
+    if out_of_fold and (tc.hold_out or len(data_dirs) > 1):
+        raise DatasetError(
+            "out-of-fold encoders read one dataset's whole train split (no --hold-out, one --data)"
+        )
     seqs = training_sequences(data_dirs, tc)
     paths = {}
-    if encoders_dir is None:
+    if encoders_dir is None and not out_of_fold:
         paths = {
             f"visual-{k}": train_visual(
                 k, data_dirs, out_dir, tc, resume, progress, seqs, (initial_visual or {}).get(k)
@@ -1070,6 +1138,6 @@ def train_zoo(
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
             f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f],
-            (initial or {}).get(f),
+            (initial or {}).get(f), out_of_fold,
         )  # fmt: skip
     return paths

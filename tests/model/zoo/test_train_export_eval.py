@@ -315,6 +315,40 @@ def test_an_encoder_fine_tunes_from_the_weights_an_exported_encoder_holds(
         assert "trains none" in capsys.readouterr().err
 
 
+def test_fusion_nets_read_each_persons_keypoints_from_the_encoder_that_never_saw_them(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    from egoposevr.model.training.train import OutOfFoldEncoders
+
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    halves = []
+    for k in range(2):
+        runs, weights = tmp_path / f"h{k}", tmp_path / f"h{k}-weights"
+        steps = ["--visual-steps", "1", "--fusion-steps", "1", "--hold-out", f"{k}/2"]
+        assert main([*train, *steps, "--out", str(runs)]) == 0
+        assert main(["export", "--runs", str(runs), "--out", str(weights), "--model", "hmd-rgbd"]) == 0
+        halves.append(weights)
+    seqs = load_split(tiny_data, "train")
+    chooser = OutOfFoldEncoders([h / "visual-rgbd.onnx" for h in halves], seqs)
+    for k in range(2):  # each person's encoder is the one whose fold held them out
+        for seq, held in zip(seqs, fold_members(seqs, Fold(k, 2)), strict=True):
+            if held:
+                assert chooser.for_sequence(seq).training["data"]["held_out_fold"] == f"{k}/2"
+    fusion = [*train, "--fusion-steps", "1", "--encoders-out-of-fold", *map(str, halves)]
+    assert main([*fusion, "--out", str(tmp_path / "oof")]) == 0
+    assert (tmp_path / "oof" / "fusion-hmd-rgbd.pt").exists()
+    assert not (tmp_path / "oof" / "visual-rgbd.pt").exists()  # no encoder of its own
+
+    capsys.readouterr()
+    for flags, said in (
+        (["--encoders-out-of-fold", str(halves[0])], "no encoder left out"),  # half the people unseen
+        (["--encoders-out-of-fold", str(halves[0]), str(tiny_weights)], "left no fold"),
+        ([*fusion[-3:], "--hold-out", "0/2"], "whole train split"),
+    ):
+        assert main([*train, "--fusion-steps", "1", *flags, "--out", str(tmp_path / "x")]) == 2
+        assert said in capsys.readouterr().err
+
+
 def test_a_fine_tune_starts_from_a_model_file_named_otherwise_than_its_net(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
