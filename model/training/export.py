@@ -166,7 +166,7 @@ def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
         "seed": ckpt["train_config"]["seed"],
         "train_seconds": round(ckpt["train_seconds"], 1),
         "final_losses": ckpt["history"][-1] if ckpt["history"] else {},
-    } | {key: ckpt[key] for key in ("teachers", "init") if key in ckpt}
+    } | {key: ckpt[key] for key in ("teachers", "init", "keypoints_out_of_fold") if key in ckpt}
 
 
 def export_visual(ckpt_path: Path, out_path: Path) -> float:

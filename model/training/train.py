@@ -885,6 +885,8 @@ def train_fusion(
         meta["teachers"] = list(teacher.runs_dirs)
     if initial is not None:
         meta["init"] = {"from": initial.source, "member": initial.member}
+    if out_of_fold and entry.visual:
+        meta["keypoints_out_of_fold"] = [str(d) for d in out_of_fold]
     loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None)
     _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress)
     return path

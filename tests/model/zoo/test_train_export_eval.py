@@ -336,8 +336,14 @@ def test_fusion_nets_read_each_persons_keypoints_from_the_encoder_that_never_saw
                 assert chooser.for_sequence(seq).training["data"]["held_out_fold"] == f"{k}/2"
     fusion = [*train, "--fusion-steps", "1", "--encoders-out-of-fold", *map(str, halves)]
     assert main([*fusion, "--out", str(tmp_path / "oof")]) == 0
-    assert (tmp_path / "oof" / "fusion-hmd-rgbd.pt").exists()
+    recorded = load_checkpoint(tmp_path / "oof" / "fusion-hmd-rgbd.pt")["keypoints_out_of_fold"]
+    assert recorded == [str(h) for h in halves]
     assert not (tmp_path / "oof" / "visual-rgbd.pt").exists()  # no encoder of its own
+    served = tmp_path / "oof-weights"  # served with an encoder that saw everyone, as the bundled one
+    export = ["export", "--runs", str(tmp_path / "oof"), "--out", str(served), "--model", "hmd-rgbd"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    training = LoadedModel.load(served / "hmd-rgbd.onnx").info.metadata.training
+    assert training["keypoints_out_of_fold"] == [str(h) for h in halves]
 
     capsys.readouterr()
     for flags, said in (
