@@ -864,7 +864,7 @@ def train_fusion(
     if resume and _finished(path, tc, seqs):
         return path
     entry = ZOO[name]
-    visual: KeypointNet | ExportedEncoder | None = None
+    visual: KeypointNet | ExportedEncoder | OutOfFoldEncoders | None = None
     if entry.visual:
         visual = _stage_one(entry.visual, out_dir, encoders_dir, tc, out_of_fold, seqs)
     torch.manual_seed(tc.seed)
