@@ -230,7 +230,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"egoposevr train: --init-from: {error}", file=sys.stderr)
         return 2
     try:
-        initial_visual = _initial_encoder(args.init_visual, config, names, args.encoders)
+        initial_visual = _initial_encoder(
+            args.init_visual, config, names, args.encoders is not None or bool(args.encoders_out_of_fold)
+        )
     except ValueError as error:
         print(f"egoposevr train: --init-visual: {error}", file=sys.stderr)
         return 2
@@ -277,11 +279,12 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
 
 
 def _initial_encoder(
-    source: Path | None, config: TrainConfig, names: list[str], encoders: Path | None
+    source: Path | None, config: TrainConfig, names: list[str], reads_exported: bool
 ) -> dict[str, InitialVisual] | None:
     """--init-visual: {kind: the weights the encoder of that kind starts from}, or None. Raises ValueError for
     a file that is not an encoder, or one of a kind this run trains no encoder of (``names`` its models;
-    with ``encoders`` it trains none)."""
+    ``reads_exported``: its fusion nets read exported encoders, --encoders or --encoders-out-of-fold, and it
+    trains none)."""
     if source is None:
         return None
     from ..model.runtime.loading import ModelError, load_encoder
@@ -294,8 +297,10 @@ def _initial_encoder(
     except (ModelError, OSError) as error:
         raise ValueError(str(error)) from error
     kind = "rgbd" if metadata.config.channels == 4 else "rgb"
-    if encoders is not None or all(ZOO[f].visual != kind for f in fusion_names(names)):
-        raise ValueError(f"{source} is a {kind} encoder, and this run trains none (--model, --encoders)")
+    if reads_exported or all(ZOO[f].visual != kind for f in fusion_names(names)):
+        raise ValueError(
+            f"{source} is a {kind} encoder, and this run trains none (--model, --encoders, --encoders-out-of-fold)"
+        )
     return {kind: initial_visual_state(source, visual_config(kind, config))}
 
 

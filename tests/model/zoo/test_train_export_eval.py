@@ -310,7 +310,8 @@ def test_an_encoder_fine_tunes_from_the_weights_an_exported_encoder_holds(
     truncated.write_bytes(encoder.read_bytes()[:1000])
     assert main([*train, "--out", str(tmp_path / "z"), "--init-visual", str(truncated)]) == 2
     assert "--init-visual" in capsys.readouterr().err
-    for other in (["--model", "hmd-rgb"], ["--encoders", str(tiny_weights)]):  # no RGB-D encoder trains
+    exported = (["--encoders", str(tiny_weights)], ["--encoders-out-of-fold", str(tiny_weights)])
+    for other in (["--model", "hmd-rgb"], *exported):  # no RGB-D encoder trains
         assert main([*train, *other, "--out", str(tmp_path / "w"), "--init-visual", str(encoder)]) == 2
         assert "trains none" in capsys.readouterr().err
 
