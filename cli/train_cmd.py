@@ -53,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--window", type=int, default=None, metavar="T", help="fusion nets' HMD window, headset samples"
     )
+    parser.add_argument(
+        "--batch", type=int, default=None, metavar="B", help="windows (fusion) or frames (encoder) per step"
+    )
     _number(
         parser,
         "--skate-weight",
@@ -198,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
-            ("window", args.window),
+            ("window", args.window), ("batch", args.batch),
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("served_rotation_weight", args.served_rotation_weight),
             ("contact_weight", args.contact_weight), ("dropout", args.dropout),
@@ -274,6 +277,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
+        (args.batch is not None and not 1 <= args.batch <= 4096, "--batch B needs 1 <= B <= 4096"),
     )  # fmt: skip
     return next((needs for bad, needs in checks if bad), None)
 

@@ -136,6 +136,20 @@ def test_the_hmd_window_is_a_training_choice_the_checkpoint_keeps(tiny_data, tmp
     assert "--window T needs T >= 1" in capsys.readouterr().err
 
 
+def test_the_batch_is_a_training_choice_the_checkpoint_keeps(tiny_data, tmp_path, capsys):
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny"]
+    first_loss = {}
+    for batch in (8, 3):
+        out = tmp_path / f"b{batch}"
+        assert main([*args, "--out", str(out), "--fusion-steps", "1", "--batch", str(batch), "--no-progress"]) == 0
+        ckpt = load_checkpoint(out / "fusion-hmd.pt")
+        assert ckpt["train_config"]["batch"] == batch
+        first_loss[batch] = ckpt["history"][0]["pos"]
+    assert first_loss[8] != first_loss[3]  # another batch is other windows, so another first loss
+    assert main([*args, "--out", str(tmp_path / "b0"), "--batch", "0", "--no-progress"]) == 2
+    assert "--batch B needs 1 <= B <= 4096" in capsys.readouterr().err
+
+
 def test_fusion_nets_train_on_an_exported_encoders_keypoints(
     tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
 ):
