@@ -141,7 +141,10 @@ def test_the_batch_is_a_training_choice_the_checkpoint_keeps(tiny_data, tmp_path
     first_loss = {}
     for batch in (8, 3):
         out = tmp_path / f"b{batch}"
-        assert main([*args, "--out", str(out), "--fusion-steps", "1", "--batch", str(batch), "--no-progress"]) == 0
+        assert (
+            main([*args, "--out", str(out), "--fusion-steps", "1", "--batch", str(batch), "--no-progress"])
+            == 0
+        )
         ckpt = load_checkpoint(out / "fusion-hmd.pt")
         assert ckpt["train_config"]["batch"] == batch
         first_loss[batch] = ckpt["history"][0]["pos"]
