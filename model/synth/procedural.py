@@ -193,12 +193,45 @@ def _walk(
         stance_left = (lands[nxt] - swing_s) - t  # seconds until lift-off
         heel = np.clip(1.0 - stance_left / (0.35 * step_s), 0, 1) * 30.0 * (into <= 0)
         plan.foot_pitch[side] = heel + np.where((into > 0) & (into < 1), 25.0 * (1 - into) - 12 * into, 0.0)
-    plan.pelvis_pos[:] = path
-    plan.pelvis_pos[:, 1] = body.stand_pelvis_y - 0.03 - 0.015 * (1 - np.cos(2 * np.pi * t / step_s))
-    plan.pelvis_yaw[:] = facing + 4.0 * np.sin(np.pi * t / step_s)
-    plan.pelvis_roll[:] = 3.0 * np.sin(np.pi * t / step_s)
-    plan.upper["arm_swing"] = np.sin(np.pi * t / step_s) * rng.uniform(10, 30)
+    _gait_coupling(rng, plan, facing, (t - t[0]) / step_s, sideways_deg, arm_swing_deg=rng.uniform(10, 30))
+    plan.pelvis_pos[:, [0, 2]] += path[:, [0, 2]]
     return plan
+
+
+def _gait_coupling(
+    rng: np.random.Generator,
+    plan: Plan,
+    facing_deg: np.ndarray,
+    steps: np.ndarray,
+    sideways_deg: float,
+    arm_swing_deg: float,
+) -> None:
+    """The body's part of a walk that a headset sees, in phase with the feet as people walk (the captured
+    walks' profiles, MODEL_CARD "Procedural walks in step with their feet"). ``steps`` (F,): time in steps
+    since the first left landing (the left foot lands at even values, the right at odd ones; each foot's
+    swing ends at its landing and lasts 0.8 step, so single support on the left is 0.2-1.0).
+
+    - The pelvis is lowest just after a landing (double support, 0.1 step) and highest at mid single
+      support (0.6): an inverted pendulum.
+    - It shifts toward the standing foot, most at mid single support, and drops on the swinging side; the
+      trunk leans against that drop, past upright, so the head sways toward the standing foot by about as
+      much as captured walkers' heads do (2-3 cm each way).
+    - The swinging side's hip turns forward, most at that foot's landing, and the chest turns back against
+      it, so the head keeps facing the way it looks.
+    - Each arm swings opposite its leg, most forward just before the other side's foot lands (the right
+      arm at 1.9 steps, ``arm_swing_deg`` > 0 for the right arm forward)."""
+    bob_m, sway_m = rng.uniform(0.008, 0.02), rng.uniform(0.012, 0.032) * np.cos(np.deg2rad(sideways_deg))
+    yaw_deg, roll_deg = rng.uniform(2.0, 6.0), rng.uniform(1.5, 4.0)
+    yaw_rad = np.deg2rad(facing_deg)
+    left = np.stack([np.cos(yaw_rad), np.zeros_like(yaw_rad), -np.sin(yaw_rad)], -1)
+    plan.pelvis_pos[:, 1] = plan.pelvis_pos[:, 1] - 0.03 - bob_m * (1 + np.cos(2 * np.pi * (steps - 0.1)))
+    plan.pelvis_pos += left * (sway_m * np.cos(np.pi * (steps - 0.6)))[:, None]
+    hip_turn_deg = -yaw_deg * np.cos(np.pi * steps)  # < 0: the left hip forward (its landing at even steps)
+    plan.pelvis_yaw[:] = facing_deg + hip_turn_deg
+    plan.pelvis_roll[:] = roll_deg * np.sin(np.pi * steps)  # > 0: the right hip lower (it swings in 0.2-1.0)
+    plan.upper["torso_turn"] = -hip_turn_deg
+    plan.upper["torso_lean"] = -2.0 * plan.pelvis_roll
+    plan.upper["arm_swing"] = arm_swing_deg * np.cos(np.pi * (steps + 0.1))
 
 
 def walk(rng, t, body):
@@ -486,7 +519,8 @@ def _upper_body(rng: np.random.Generator, t: np.ndarray, plan: Plan) -> np.ndarr
     )
     head_yaw = keyframes(rng, t, -35, 35, (0.8, 2.5))
     local = np.broadcast_to(np.eye(3), (f, NUM_JOINTS, 3, 3)).copy()
-    lean = wobble(rng, t, 0.2, 3)  # drawn before the turn: the random stream of every family stays as it was
+    # drawn before the turn: the random stream of every family stays as it was
+    lean = wobble(rng, t, 0.2, 3) + u.get("torso_lean", zero) / 3  # shared by the three spine joints
     turn = wobble(rng, t, 0.2, 5) + u.get("torso_turn", zero) / 3  # shared by the three spine joints
     spine = _rot("x", spine_flex / 3) @ _rot("z", lean) @ _rot("y", turn)
     for j in (3, 6, 9):

@@ -114,3 +114,43 @@ def test_evaluation_reads_the_motion_category_from_the_truth(family, category):
     motion = generate(family, 6.0, 60.0, np.random.default_rng(11))
     seq = {"gt_joints_m": motion.joints(), "hmd_t_us": np.arange(motion.num_frames) * 16_667}
     assert motion_category(seq) == category
+
+
+def _single_support(joints: np.ndarray) -> np.ndarray:
+    """(F,) +1 while only the left foot is on the floor, -1 only the right, 0 otherwise."""
+    down = joints[:, [10, 11], 1] < FOOT_JOINT_HEIGHT_M + 0.01
+    return down[:, 0].astype(int) - down[:, 1].astype(int)
+
+
+def _landings(joints: np.ndarray, foot: int) -> np.ndarray:
+    """Samples where a foot (10 left, 11 right) comes down after being in the air."""
+    down = joints[:, foot, 1] < FOOT_JOINT_HEIGHT_M + 0.01
+    return np.nonzero(down[1:] & ~down[:-1])[0] + 1
+
+
+@pytest.mark.parametrize("family", ["walk", "crouch_walk"])
+def test_a_walk_moves_head_and_hands_in_step_with_the_feet(family):
+    """What a headset sees of a walk keeps the feet's phase as captured walks do: the head sways toward the
+    standing foot, is lower just after a landing than in mid single support, and each hand is furthest
+    forward when the other side's foot lands."""
+    sway, low, high, right_hand = [], [], [], {10: [], 11: []}
+    for seed in range(8):
+        joints = generate(family, 8.0, FPS, np.random.default_rng(seed)).joints()
+        left = joints[:, 1] - joints[:, 2]
+        left[:, 1] = 0.0
+        left /= np.linalg.norm(left, axis=-1, keepdims=True)
+        forward = np.cross(left, [0.0, 1.0, 0.0])
+        path = np.stack([np.convolve(joints[:, 0, k], np.ones(61) / 61, mode="same") for k in range(3)], -1)
+        head_left = np.einsum("ni,ni->n", joints[:, 15] - path, left)[40:-40]
+        support = _single_support(joints)[40:-40]
+        sway.append(np.mean(head_left[support == 1]) - np.mean(head_left[support == -1]))
+        head_y = joints[:, 15, 1] - np.convolve(joints[:, 15, 1], np.ones(61) / 61, mode="same")
+        for foot in (10, 11):
+            for n in _landings(joints, foot):
+                if 40 <= n < len(joints) - 40:
+                    low.append(head_y[n : n + 6].mean())
+                    high.append(head_y[n + 12 : n + 24].mean())
+                    right_hand[foot].append(np.dot(joints[n, 21] - joints[n, 0], forward[n]))
+    assert np.mean(sway) > 0.02  # metres toward the standing foot
+    assert np.mean(low) < np.mean(high) - 0.005
+    assert np.mean(right_hand[10]) > np.mean(right_hand[11]) + 0.03
