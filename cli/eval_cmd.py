@@ -13,7 +13,9 @@ keypoint error on joints in view and not occluded, overall and per body part (to
 arms, head and shoulders) with how often each part is seen; --calibrate serves each sequence after the T-pose
 calibration (PROTOCOL.md §4.1) that its own rig and body would give. A held-out rig split (`egoposevr synth
 --rig-pool heldout --split NAME`) is evaluated like any split. --fold K/N serves only the split's subjects of
-fold K of N (with --split train, the people `train --hold-out K/N` left out; --json names them).
+fold K of N (with --split train, the people `train --hold-out K/N` left out; --json names them). --source
+captured (or procedural) serves only the split's sequences whose motion was captured (or made by synth's
+procedural families).
 
 --intervals R adds 95 % intervals over R resamples of the split's people (model/training/intervals.py: a
 person is drawn with all their sequences) for each model, and each later model's paired difference from the
@@ -60,6 +62,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--fold", default=None, metavar="K/N",
         help="only the split's subjects of fold K of N: with --split train, the ones `train --hold-out K/N` "
         "left out",
+    )  # fmt: skip
+    parser.add_argument(
+        "--source", default="all", metavar="WHICH",
+        help="captured: only the sequences whose motion is captured; procedural: only synth's procedural "
+        "ones; all (default)",
     )  # fmt: skip
     parser.add_argument(
         "--by-category", action="store_true", help="also MPJPE per motion category (read from the truth)"
@@ -117,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from ..model.runtime.procedural import NAME as PROCEDURAL
     from ..model.training.dataset import DatasetError, Fold, subjects
     from ..model.training.evaluate import (
+        SOURCES,
         category_difference_table,
         category_table,
         evaluate,
@@ -156,8 +164,11 @@ def run(args: argparse.Namespace) -> int:
         if not args.no_progress:
             print(f"\r{name}: {done}/{total} sequences", end="" if done < total else "\n", file=sys.stderr)
 
+    if args.source not in SOURCES:
+        print(f"egoposevr eval: --source must be one of {', '.join(SOURCES)}", file=sys.stderr)
+        return 2
     try:
-        loaded = split_sequences(args.data, args.split, args.limit, fold)  # read once for both reports
+        loaded = split_sequences(args.data, args.split, args.limit, fold, args.source)  # read once for both
         results = evaluate(
             args.data,
             args.split,

@@ -185,6 +185,7 @@ def measure_fps(
 # Motion categories read from the truth (not from names, which captured clips do not carry): thresholds on the
 # pelvis's horizontal speed, its height below the clip's standing height, how fast the ankles move, and, for
 # still legs, how high the pelvis is above the ankles for the legs' length (standing or seated).
+SOURCES: Final = ("all", "captured", "procedural")  # eval --source: which sequences' motion is served
 CATEGORIES: Final = ("stand, upper body", "sit, upper body", "walk", "crouch, bend", "legs", "other")
 WALK_SPEED_M_S = 0.3  # mean pelvis speed over the floor
 CROUCH_DROP_M = 0.2  # the pelvis this far below its highest (90th percentile) height at some point
@@ -275,8 +276,10 @@ def evaluate(
     resamples: int = 0,
     seed: int = 0,
     per_sequence: bool = False,
+    source: str = "all",
 ) -> dict[str, dict[str, Any]]:
-    """{model name: metrics} over a split (with ``fold``, only its subjects': dataset.Fold) for each model
+    """{model name: metrics} over a split (with ``fold``, only its subjects': dataset.Fold; with ``source``,
+    only its captured or its procedural sequences: :func:`split_sequences`) for each model
     file given as {name: path} (None: the procedural baseline); with ``by_category``,
     each model's metrics also under ``categories`` {category: metrics (without fps) and ``sequences``}.
     With ``calibrate`` every sequence is served after the T-pose calibration its rig and body would give
@@ -296,7 +299,7 @@ def evaluate(
     − 1}; with ``by_category`` each category's metrics too, over that category's people. With
     ``per_sequence``, each model's ``sequences``: [{``name``, ``person``, ``category``, its metrics}] in the
     split's order (where a model's error comes from)."""
-    seqs, indices = loaded or split_sequences(data_dir, split, limit, fold)
+    seqs, indices = loaded or split_sequences(data_dir, split, limit, fold, source)
     rigs = sequence_rigs(data_dir, split, seqs, indices) if calibrate else []
     categories = [motion_category(s) for s in seqs]
     shared: dict[Path, Any] = {}
@@ -393,17 +396,32 @@ KEYPOINT_PARTS: Final = {
 }
 
 
+def is_procedural(seq: dict[str, Any]) -> bool:
+    """Whether a dataset sequence's motion was made by synth's procedural families (not captured)."""
+    return str(seq["source"]).startswith("procedural:")
+
+
 def split_sequences(
-    data_dir: Path, split: str, limit: int | None = None, fold: Fold | None = None
+    data_dir: Path, split: str, limit: int | None = None, fold: Fold | None = None, source: str = "all"
 ) -> tuple[list[dict[str, Any]], np.ndarray]:
-    """The split's sequences (at most ``limit``; with ``fold`` only its subjects') and their indices in
-    the split (n,)."""
+    """The split's sequences (with ``fold`` only its subjects'; with ``source`` one of SOURCES, only those
+    whose motion is captured or procedural; at most ``limit`` of them) and their indices in the split
+    (n,)."""
+    if source not in SOURCES:
+        raise ValueError(f"source must be one of {', '.join(SOURCES)}, not {source!r}")
     if fold is None:
-        seqs = load_split(data_dir, split, limit)
-        return seqs, np.arange(len(seqs))
-    seqs, places = load_fold(data_dir, split, fold, True, limit)
+        seqs = load_split(data_dir, split, None if source != "all" else limit)
+        places = np.arange(len(seqs))
+    else:
+        seqs, places = load_fold(data_dir, split, fold, True, None if source != "all" else limit)
+    if source != "all":
+        kept = [i for i, seq in enumerate(seqs) if is_procedural(seq) == (source == "procedural")][:limit]
+        seqs, places = [seqs[i] for i in kept], places[kept]
     if not seqs:
-        raise DatasetError(f"{data_dir}: split {split!r} has no sequence in fold {fold}")
+        within = f" in fold {fold}" if fold is not None else ""
+        raise DatasetError(
+            f"{data_dir}: split {split!r} has no {source} sequence{within}".replace(" all", "")
+        )
     return seqs, places
 
 

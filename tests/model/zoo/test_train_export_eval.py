@@ -1067,6 +1067,46 @@ def test_eval_refuses_unknown_models(tiny_data, tiny_weights, capsys):
     assert "nope" in capsys.readouterr().err
 
 
+def test_eval_serves_only_the_captured_or_only_the_procedural_motion_on_request(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    """A split that holds both: --source captured serves the captured sequence alone, procedural the other."""
+    from rigfamilies import FAMILY, Layout, reference_motion, write_family_bvh
+
+    (tmp_path / "lib" / "alice").mkdir(parents=True)
+    rot, trans = reference_motion(frames=150, fps=60.0)
+    (tmp_path / "lib" / "alice" / "take.bvh").write_text(
+        write_family_bvh(FAMILY["mixamo"], Layout(), rot, trans, 60.0)
+    )
+    data = tmp_path / "ds"
+    synth = ["synth", "--motion", str(tmp_path / "lib"), "--procedural", "1", "--families", "squat", "--split", "val",
+             "--seconds", "2", "--resolution", "80x64", "--hmd-rate", "60", "--no-progress", "--out", str(data)]  # fmt: skip
+    assert main(synth) == 0
+    served = {}
+    for source in ("all", "captured", "procedural"):
+        out = tmp_path / f"{source}.json"
+        args = [
+            "eval",
+            "--data",
+            str(data),
+            "--models-dir",
+            str(tiny_weights),
+            "--models",
+            "hmd",
+            "--no-progress",
+        ]
+        assert main([*args, "--source", source, "--per-sequence", "--json", str(out)]) == 0
+        served[source] = [s["name"] for s in json.loads(out.read_text())["models"]["hmd"]["sequences"]]
+    assert served["procedural"] == ["squat-0001"] and served["captured"] == ["take-00"]
+    assert sorted(served["all"]) == sorted(served["captured"] + served["procedural"])
+    capsys.readouterr()
+    only_procedural = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--models", "hmd"]
+    assert main([*only_procedural, "--source", "captured"]) == 2
+    assert "no captured sequence" in capsys.readouterr().err
+    assert main([*only_procedural, "--source", "mocap"]) == 2
+    assert "--source must be one of all, captured, procedural" in capsys.readouterr().err
+
+
 def test_body_size_follows_the_highest_head_unless_given(tiny_weights, val):
     seq, _ = val
     model = LoadedModel.load(tiny_weights / "hmd.onnx")
