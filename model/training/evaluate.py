@@ -418,10 +418,9 @@ def split_sequences(
         kept = [i for i, seq in enumerate(seqs) if is_procedural(seq) == (source == "procedural")][:limit]
         seqs, places = [seqs[i] for i in kept], places[kept]
     if not seqs:
+        kind = "" if source == "all" else f"{source} "
         within = f" in fold {fold}" if fold is not None else ""
-        raise DatasetError(
-            f"{data_dir}: split {split!r} has no {source} sequence{within}".replace(" all", "")
-        )
+        raise DatasetError(f"{data_dir}: split {split!r} has no {kind}sequence{within}")
     return seqs, places
 
 
