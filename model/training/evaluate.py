@@ -409,11 +409,12 @@ def split_sequences(
     (n,)."""
     if source not in SOURCES:
         raise ValueError(f"source must be one of {', '.join(SOURCES)}, not {source!r}")
+    read_limit = limit if source == "all" else None  # otherwise the limit counts the kept sequences
     if fold is None:
-        seqs = load_split(data_dir, split, None if source != "all" else limit)
+        seqs = load_split(data_dir, split, read_limit)
         places = np.arange(len(seqs))
     else:
-        seqs, places = load_fold(data_dir, split, fold, True, None if source != "all" else limit)
+        seqs, places = load_fold(data_dir, split, fold, True, read_limit)
     if source != "all":
         kept = [i for i, seq in enumerate(seqs) if is_procedural(seq) == (source == "procedural")][:limit]
         seqs, places = [seqs[i] for i in kept], places[kept]
