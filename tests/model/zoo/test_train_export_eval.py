@@ -1085,10 +1085,10 @@ def test_eval_serves_only_the_captured_or_only_the_procedural_motion_on_request(
              "--seconds", "2", "--resolution", "80x64", "--hmd-rate", "60", "--no-progress", "--out", str(data)]  # fmt: skip
     assert main(synth) == 0
     served = {}
-    args = ["eval", "--data", str(data), "--models-dir", str(tiny_weights), "--models", "hmd"]
+    args = ["eval", "--data", str(data), "--models-dir", str(tiny_weights), "--models", "hmd", "--no-progress"]  # fmt: skip
     for source in ("all", "captured", "procedural"):
         out = tmp_path / f"{source}.json"
-        assert main([*args, "--no-progress", "--source", source, "--per-sequence", "--json", str(out)]) == 0
+        assert main([*args, "--source", source, "--per-sequence", "--json", str(out)]) == 0
         served[source] = [s["name"] for s in json.loads(out.read_text())["models"]["hmd"]["sequences"]]
     assert served["procedural"] == ["squat-0001"] and served["captured"] == ["take-00"]
     assert sorted(served["all"]) == sorted(served["captured"] + served["procedural"])
