@@ -160,6 +160,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --init-from: which net of a file that serves several (default 0)",
     )
     parser.add_argument(
+        "--head-offsets-from", type=Path, default=None, metavar="FILE",
+        help="train the fusion nets at the head offsets the model file FILE records (e.g. the bundled "
+        "hmd-rgbd.onnx's legacy ones) instead of today's default; --init-from and --teachers must agree",
+    )  # fmt: skip
+    parser.add_argument(
         "--hold-out", default=None, metavar="K/N",
         help="leave the train split's subjects of fold K of N out (whole subjects, by duration), to judge a "
         "training choice on them with `eval --split train --fold K/N` instead of on val or test",
@@ -239,6 +244,15 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as error:
         print(f"egoposevr train: --init-visual: {error}", file=sys.stderr)
         return 2
+    head_offsets_m = None
+    if args.head_offsets_from is not None:
+        from ..model.training.export import recorded_offsets
+
+        try:
+            head_offsets_m = recorded_offsets(args.head_offsets_from)
+        except ValueError as error:
+            print(f"egoposevr train: --head-offsets-from: {error}", file=sys.stderr)
+            return 2
     started = time.perf_counter()
     try:
         paths = train_zoo(
@@ -253,6 +267,7 @@ def run(args: argparse.Namespace) -> int:
             initial,
             initial_visual,
             args.encoders_out_of_fold,
+            head_offsets_m,
         )
     except (DatasetError, ModelError, DeviceError, TeacherError, CheckpointError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)

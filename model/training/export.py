@@ -403,19 +403,30 @@ def _drop_unread(graph: onnx.GraphProto) -> None:
     graph.value_info.extend(shapes)
 
 
+def _model_file(path: Path) -> tuple[onnx.ModelProto, ModelMetadata]:
+    """A model file's graph and metadata; ValueError for a file that is not an EgoPoseVR model."""
+    try:
+        graph = onnx.load(str(path))
+    except (OSError, DecodeError) as error:  # missing, truncated, or not ONNX at all
+        raise ValueError(f"{path}: not an ONNX file ({error})") from error
+    properties = {p.key.removeprefix("egoposevr."): p.value for p in graph.metadata_props}
+    try:
+        return graph, from_properties(ModelMetadata, properties)
+    except ValueError as error:
+        raise ValueError(f"{path}: not an EgoPoseVR model file ({error})") from error
+
+
+def recorded_offsets(path: Path) -> np.ndarray:
+    """(3, 3) the device -> joint offsets the model file ``path``'s nets were trained at (``egoposevr train
+    --head-offsets-from``); ValueError for a file that is not an EgoPoseVR model."""
+    return np.array(_model_file(path)[1].rig_offsets_m, dtype=np.float64)
+
+
 def load_served_nets(path: Path) -> tuple[onnx.ModelProto, ModelMetadata, list[FusionNet]]:
     """A model file's graph, its metadata and its fusion nets (one, or each member of its ensemble) holding
     the weights it holds; raises ValueError for a file that is not an EgoPoseVR model or whose weights do
     not fill the nets its config describes."""
-    try:
-        original = onnx.load(str(path))
-    except (OSError, DecodeError) as error:  # missing, truncated, or not ONNX at all
-        raise ValueError(f"{path}: not an ONNX file ({error})") from error
-    properties = {p.key.removeprefix("egoposevr."): p.value for p in original.metadata_props}
-    try:
-        metadata = from_properties(ModelMetadata, properties)
-    except ValueError as error:
-        raise ValueError(f"{path}: not an EgoPoseVR model file ({error})") from error
+    original, metadata = _model_file(path)
     members = len(metadata.training.get("ensemble", [None]))
     nets = [FusionNet(metadata.config).eval() for _ in range(members)]
     module = _served_module(nets, bool(metadata.training.get("mirror_averaged")))

@@ -318,8 +318,8 @@ def _run_steps(
         ):
             raise CheckpointError(
                 f"{ckpt_path} cannot be resumed: it was trained at head offsets {ckpt['rig_offsets_m']}, and "
-                f"these flags train at {meta['rig_offsets_m']} (--init-from and --teachers decide them); "
-                "train into another --out, or resume with the flags it began with"
+                f"these flags train at {meta['rig_offsets_m']} (--head-offsets-from, --init-from and --teachers "
+                "decide them); train into another --out, or resume with the flags it began with"
             )
         try:
             net.load_state_dict(ckpt["state_dict"])
@@ -849,6 +849,7 @@ def train_fusion(
     teacher: Teacher | None = None,
     initial: InitialWeights | None = None,
     out_of_fold: Sequence[Path] = (),
+    head_offsets_m: np.ndarray | None = None,
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
     checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``, or with
@@ -857,7 +858,8 @@ def train_fusion(
     (:func:`load_teacher`, for this entry's fusion net) it also learns the teacher's mean output. With
     ``initial`` the net starts from those weights (its input statistics included) instead of a random
     draw: a fine-tune, with this run's own warmup and schedule. The net is anchored at
-    :func:`training_offsets` (the initial net's head offset, else the teachers', else the default)."""
+    :func:`training_offsets` (``head_offsets_m`` where given, else the initial net's head offset, else the
+    teachers', else the default)."""
     path = out_dir / f"fusion-{name}.pt"
     data_dirs = dataset_dirs(data)
     seqs = seqs if seqs is not None else training_sequences(data_dirs, tc)
@@ -871,7 +873,7 @@ def train_fusion(
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     rng = np.random.default_rng([tc.seed, 7])
-    offsets_m = training_offsets(initial, teacher)
+    offsets_m = training_offsets(initial, teacher, head_offsets_m)
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache, offsets_m) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     if initial is not None:
@@ -967,19 +969,30 @@ def load_teacher(
     return Teacher(ensemble.eval().requires_grad_(False).to(device), tuple(map(str, runs_dirs)), offsets)
 
 
-def training_offsets(initial: InitialWeights | None, teacher: Teacher | None) -> np.ndarray:
-    """(3, 3) the head offsets a fusion net trains at (its anchor, recorded in its checkpoint and export): a
-    net has learnt the body under its own head joint, so a fine-tune keeps the offsets of the net it starts
-    from, and a student takes its teachers' (their joints, which it learns, hang from their head joint);
-    otherwise today's default. TeacherError when the two are given and disagree."""
+def training_offsets(
+    initial: InitialWeights | None, teacher: Teacher | None, chosen_m: np.ndarray | None = None
+) -> np.ndarray:
+    """(3, 3) the head offsets a fusion net trains at (its anchor, recorded in its checkpoint and export): the
+    offsets ``chosen_m`` (``--head-offsets-from``) where given; a net has learnt the body under its own head
+    joint, so a fine-tune keeps the offsets of the net it starts from, and a student takes its teachers'
+    (their joints, which it learns, hang from their head joint); otherwise today's default. TeacherError when
+    two of them are given and disagree."""
     theirs = None if teacher is None or teacher.rig_offsets_m is None else np.asarray(teacher.rig_offsets_m)
-    if initial is not None:
-        mine = np.asarray(initial.rig_offsets_m, dtype=np.float64)
-        if theirs is not None and not np.allclose(mine, theirs):
-            raise TeacherError(
-                f"{initial.source} was trained at other head offsets than the teachers "
-                f"{', '.join(teacher.runs_dirs)}: a student would learn joints hung from another head joint"
-            )
+    mine = None if initial is None else np.asarray(initial.rig_offsets_m, dtype=np.float64)
+    if mine is not None and theirs is not None and not np.allclose(mine, theirs):
+        raise TeacherError(
+            f"{initial.source} was trained at other head offsets than the teachers "
+            f"{', '.join(teacher.runs_dirs)}: a student would learn joints hung from another head joint"
+        )
+    if chosen_m is not None:
+        for given, what in ((mine, "the net it starts from"), (theirs, "its teachers")):
+            if given is not None and not np.allclose(given, chosen_m):
+                raise TeacherError(
+                    f"--head-offsets-from gives other head offsets than {what} were trained at: a net "
+                    "has learnt the body under its own head joint"
+                )
+        return np.asarray(chosen_m, dtype=np.float64)
+    if mine is not None:
         return mine
     return DEFAULT_OFFSETS_M if theirs is None else theirs.astype(np.float64)
 
@@ -1104,6 +1117,7 @@ def train_zoo(
     initial: dict[str, InitialWeights] | None = None,
     initial_visual: dict[str, InitialVisual] | None = None,
     out_of_fold: Sequence[Path] = (),
+    head_offsets_m: np.ndarray | None = None,
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
     ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained; with
@@ -1111,7 +1125,8 @@ def train_zoo(
     ``initial`` maps a fusion net's name to the weights it starts from, ``initial_visual`` an encoder's kind
     ("rgb", "rgbd") to the exported encoder it is fine-tuned from; with ``out_of_fold`` (folders of encoders
     that each left a fold of people out) the fusion nets read each sequence's keypoints from the one that
-    never saw its person, and none is trained."""
+    never saw its person, and none is trained; ``head_offsets_m`` (3, 3) the offsets the fusion nets train
+    at instead of :func:`training_offsets`' choice."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -1121,7 +1136,7 @@ def train_zoo(
     # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
     taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
     for f in fusions:  # a fine-tune and teachers at different head offsets: refused now, too
-        training_offsets((initial or {}).get(f), taught[f])
+        training_offsets((initial or {}).get(f), taught[f], head_offsets_m)
     data_dirs = dataset_dirs(data)
     if out_of_fold and (tc.hold_out or len(data_dirs) > 1):
         raise DatasetError(
@@ -1140,6 +1155,6 @@ def train_zoo(
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
             f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f],
-            (initial or {}).get(f), out_of_fold,
+            (initial or {}).get(f), out_of_fold, head_offsets_m,
         )  # fmt: skip
     return paths

@@ -447,6 +447,34 @@ def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, 
     np.testing.assert_allclose(gap_m, np.linalg.norm(other[0] - DEFAULT_OFFSETS_M[0]), atol=1e-5)
 
 
+def test_a_net_trains_from_scratch_at_the_head_offsets_a_model_file_records(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    """`--head-offsets-from FILE`: a net drawn at random trains anchored at the offsets FILE records (the
+    bundled RGB-D nets' legacy ones), and its export says so; a fine-tune from a net at other offsets, or a
+    file that is not a model, is refused before any training."""
+    start, other = _weights_at_the_bundled_head_offset(tiny_weights, tmp_path / "start")
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--encoders", str(tiny_weights), "--fusion-steps", "1"]
+    legacy = ["--head-offsets-from", str(start / "hmd-rgbd.onnx")]
+    assert main([*train, "--out", str(tmp_path / "legacy"), *legacy]) == 0
+    assert load_checkpoint(tmp_path / "legacy" / "fusion-hmd-rgbd.pt")["rig_offsets_m"] == other.tolist()
+    out = tmp_path / "legacy-weights"
+    export = ["export", "--runs", str(tmp_path / "legacy"), "--out", str(out), "--model", "hmd-rgbd"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    np.testing.assert_array_equal(LoadedModel.load(out / "hmd-rgbd.onnx").info.rig_offsets_m, other)
+
+    capsys.readouterr()
+    at_default = [*legacy, "--init-from", str(tiny_weights)]
+    assert main([*train, "--out", str(tmp_path / "x"), *at_default]) == 2
+    assert "other head offsets than the net it starts from" in capsys.readouterr().err
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    junk = ["--head-offsets-from", str(tmp_path / "junk.onnx")]
+    assert main([*train, "--out", str(tmp_path / "y"), *junk]) == 2
+    assert "--head-offsets-from" in capsys.readouterr().err
+    assert not (tmp_path / "x" / "fusion-hmd-rgbd.pt").exists() and not (tmp_path / "y").exists()
+
+
 def test_a_student_hangs_its_joints_from_its_teachers_head_joint(tiny_data, tiny_weights, tmp_path, capsys):
     """Teachers trained at another head offset than today's default (the bundled RGB-D nets') teach a student
     anchored at theirs, and its export says so; a fine-tune from a net at other offsets than its teachers',
