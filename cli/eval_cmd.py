@@ -23,13 +23,15 @@ first one named: whether a gap between two models is more than the people in the
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
-@no-steady-stance, @no-leg-hold), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage
-of the runtime changes.
+@no-steady-stance, @no-leg-hold, @no-camera), so --models egoposevr@no-leg-hold,egoposevr says, paired, what
+one stage of the runtime changes. --no-camera (or @no-camera) sends no RGB-D frame: what a headset without
+the camera is served (the RGB-D models run on the headset stream alone, as PROTOCOL.md's `camera: false`).
 
 Examples:
   egoposevr eval --data data/dev --split val --json eval.json
   egoposevr eval --data data/dev --split val --models egoposevr,mine=runs/x-weights/egoposevr.onnx --intervals 2000
   egoposevr eval --data data/dev --split val --models egoposevr@no-leg-hold,egoposevr --intervals 2000
+  egoposevr eval --data data/dev --split val --models procedural,egoposevr@no-camera,egoposevr --by-category
 """
 
 from __future__ import annotations
@@ -43,8 +45,13 @@ from typing import Any
 # Each resample is a row of weights over the split's sequences (intervals.py): 100 000 rows of a few hundred
 # sequences are a few hundred MB; the percentiles are steady to 0.01 cm long before that (2 000 is plenty).
 MAX_RESAMPLES = 100_000
-# --models' @SWITCH: the runtime stage it turns off for that model, as evaluate's pipeline option
-SWITCHES = {"no-foot-contacts": "contacts", "no-steady-stance": "steady_stance", "no-leg-hold": "leg_hold"}
+# --models' @SWITCH: the runtime stage it turns off for that model (or the camera), as evaluate's option
+SWITCHES = {
+    "no-foot-contacts": "contacts",
+    "no-steady-stance": "steady_stance",
+    "no-leg-hold": "leg_hold",
+    "no-camera": "send_frames",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold)",
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold), or without the camera (@no-camera)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -103,6 +110,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the pelvis, hips and knees wander with the network while both feet are down and the headset "
         "is quiet (model/runtime/stance.py, LegHold): the runtime before the leg hold",
+    )
+    parser.add_argument(
+        "--no-camera",
+        action="store_true",
+        help="send no RGB-D frame: every model as a headset without the camera is served (the RGB-D models on "
+        "the headset stream alone)",
     )
     parser.add_argument(
         "--providers",
@@ -181,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
+            send_frames=not args.no_camera,
             runtime=runtime,
             fold=fold,
             loaded=loaded,

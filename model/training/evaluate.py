@@ -56,14 +56,15 @@ FACING: Final = np.array(TRACKED_JOINTS)
 
 
 def replay_sequence(
-    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any] | None = None
+    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any] | None = None, send_frames: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence, its frames sent with
-    its own camera (or ``camera``)."""
+    its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
+    camera (every pose then has ``camera = False``)."""
     camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
-    uses_camera = pipeline.model.visual is not None
+    uses_camera = send_frames and pipeline.model.visual is not None
     joints, rots, k = [], [], 0
     for i, t_us in enumerate(seq["hmd_t_us"]):
         while uses_camera and k < len(seq["cam_t_us"]) and seq["cam_t_us"][k] + CAMERA_LATENCY_US <= t_us:
@@ -163,11 +164,16 @@ def summarize_totals(totals: list[dict[str, np.ndarray]]) -> dict[str, float]:
 
 
 def measure_fps(
-    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any] | None = None, samples: int = FPS_SAMPLES
+    pipeline: Pipeline,
+    seq: dict[str, Any],
+    camera: dict[str, Any] | None = None,
+    samples: int = FPS_SAMPLES,
+    send_frames: bool = True,
 ) -> float:
-    """Headset samples per second with a new RGB-D frame decoded and pushed before each one (median run)."""
+    """Headset samples per second with a new RGB-D frame decoded and pushed before each one (median run); with
+    ``send_frames`` False, the headset stream alone."""
     n = min(samples, len(seq["hmd_t_us"]))
-    frames = len(seq["rgb_jpeg"])
+    frames = len(seq["rgb_jpeg"]) if send_frames else 0
     rates = []
     for _ in range(FPS_REPEATS):
         pipeline.reset()
@@ -270,6 +276,7 @@ def evaluate(
     foot_contacts: bool = True,
     steady_stance: bool = True,
     leg_hold: bool = True,
+    send_frames: bool = True,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
@@ -287,9 +294,10 @@ def evaluate(
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
-    both feet are down (stance.LegHold). ``runtime`` {label: {option: bool}} serves a label with some of
-    those three (as ``contacts``, ``steady_stance``, ``leg_hold``) set otherwise: one file served twice, with
-    and without a runtime stage, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
+    both feet are down (stance.LegHold); ``send_frames`` False sends no camera frame, as a headset without
+    the camera (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of
+    those four (as ``contacts``, ``steady_stance``, ``leg_hold``, ``send_frames``) set otherwise: one file
+    served twice, with and without a runtime stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
     these arguments, when the caller has already read the split (``eval --keypoints`` reads it once for
     both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
@@ -315,16 +323,18 @@ def evaluate(
     for name, model in served_models.items():
         options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold}
         options |= (runtime or {}).get(name, {})
+        frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
         pipeline = pipeline_for(model, **options)
         errors = []
         for i, seq in enumerate(seqs):
             if calibrate:
                 calibrate_like_a_user(pipeline, seq, rigs[i])
-            errors.append(sequence_errors(*replay_sequence(pipeline, seq), seq))
+            errors.append(sequence_errors(*replay_sequence(pipeline, seq, send_frames=frames), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
         totals[name] = [sequence_totals(e) for e in errors]  # each view below pools these
-        results[name] = {**summarize_totals(totals[name]), "fps": measure_fps(pipeline, seqs[0])}
+        fps = measure_fps(pipeline, seqs[0], send_frames=frames)
+        results[name] = {**summarize_totals(totals[name]), "fps": fps}
         if per_sequence:
             results[name]["sequences"] = [
                 {"name": str(seq["name"]), "person": sequence_subject(seq), "category": category,

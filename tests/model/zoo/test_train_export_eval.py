@@ -1046,6 +1046,32 @@ def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
         assert said in capsys.readouterr().err
 
 
+def test_eval_serves_a_headset_without_the_camera_on_request(tiny_data, tiny_weights, val, tmp_path):
+    """--no-camera (or NAME@no-camera beside NAME) sends no RGB-D frame: the RGB-D model runs on the headset
+    stream alone, as it serves a headset without the camera; a model that reads no camera is served the same."""
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    served = {}
+    for name, chosen in (
+        ("switch", ["--models", "hmd,egoposevr@no-camera,egoposevr"]),
+        ("flag", ["--models", "hmd,egoposevr", "--no-camera"]),
+    ):
+        out = tmp_path / f"{name}.json"
+        assert main([*args, *chosen, "--json", str(out)]) == 0
+        served[name] = json.loads(out.read_text())["models"]
+    keys = ("mpjpe_u_cm", "mpjpe_l_cm", "hpe_cm", "mpjre_l_deg")
+    without, flag, camera = served["switch"]["egoposevr@no-camera"], served["flag"], served["switch"]
+    assert all(without[key] == flag["egoposevr"][key] for key in keys)
+    assert any(without[key] != camera["egoposevr"][key] for key in keys)  # the frames did reach the net
+    assert all(flag["hmd"][key] == camera["hmd"][key] for key in keys)
+
+    seq, rig = val
+    pipeline = Pipeline(LoadedModel.load(tiny_weights / "egoposevr.onnx"))
+    replay_sequence(pipeline, seq, rig, send_frames=False)
+    assert pipeline.frames_encoded == 0
+    replay_sequence(pipeline, seq, rig)
+    assert pipeline.frames_encoded > 0
+
+
 def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between_people(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
