@@ -4,10 +4,12 @@ The baseline every learned model is compared with, and a fallback that never wan
 avatar legs that VR users know):
 
 - the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
-- the neck hangs under the head joint; standing, the pelvis stays over the planted feet (a hip hinge:
-  bending over tilts the spine with straight legs, a squat bends the knees), walking it goes along under
-  the head; the body's yaw follows the head's, lagging by ``TURN_TIME_S`` (a glance over
-  the shoulder does not turn the hips);
+- the neck hangs under the head joint; standing, the pelvis stays over the planted feet (bending over
+  tilts the spine with straight legs, a squat bends the knees), walking it goes along under the head;
+- the chest turns with the head, lagging by ``TURN_TIME_S``; the hips turn after it only by as much as the
+  head is turned more than ``TURN_DEAD_ZONE_DEG`` from them (a glance, a torso twist or a reach to the side
+  turns the shoulders, not the hips or the feet); walking, the dead zone shrinks with speed to none at
+  ``WALKING_M_S``, so the hips face the way the walker goes;
 - each foot stays planted where it was put. When a foot is more than ``STEP_TRIGGER_M`` (scaled by the
   body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
   stood, it steps in ``STEP_S`` along a low arc to where its hip will be when the step ends (the pelvis's
@@ -64,10 +66,13 @@ from .pipeline import (
 NAME: Final = "procedural"
 DESCRIPTION: Final = "no network: pelvis under the head, planted feet that step, IK knees and arms (baseline)"
 TURN_TIME_S: Final = 0.4
+# Standing, the head turns this far from the hips before they follow: arms-only motion turned the served hips
+# and stepped the feet (leg leakage 6.7 -> 3.9 cm on the still choice set; MODEL_CARD.md, "The procedural
+# baseline's legs stay still while the upper body turns").
+TURN_DEAD_ZONE_DEG: Final = 30.0
 STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
 STEP_TURN_DEG: Final = 35.0
 STEP_S: Final = 0.28
-HIP_BACK: Final = 0.3  # standing, the hips move back by this share of how far the neck leans forward
 STEP_LEAN: Final = 0.5  # standing, the feet step after the head once the neck leans this share of the torso
 WALKING_M_S: Final = 0.5  # from this head speed on, the pelvis follows the head all the way
 MAX_LEAN: Final = 0.95  # the neck at most this fraction of the torso's length ahead of the pelvis
@@ -77,6 +82,22 @@ FOOT_SPREAD_M: Final = 0.02  # feet this much wider than the hips
 LEG_CHAINS: Final = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot
 ARM_CHAINS: Final = ((16, 18, 20), (17, 19, 21))  # shoulder, elbow, wrist
 FEET_AND_ANKLES: Final = [7, 8, 10, 11]
+
+
+# the joints that turn with the chest: neck, collars, head, arms
+_CHEST: Final = [12, 13, 14, 15, *ARM_CHAINS[0], *ARM_CHAINS[1]]
+
+
+def _wrapped(angle: float) -> float:
+    """angle (rad) in [-pi, pi)."""
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def _yaw_rotation(yaw: float) -> np.ndarray:
+    """(3, 3) the body turned to a headset yaw (heading_frame's convention), with the half turn between them:
+    devices look along -z, SMPL faces +z."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.diag([-1.0, 1.0, -1.0])
 
 
 class ProceduralModel:
@@ -165,7 +186,8 @@ class ProceduralPipeline:
         <egoposevr.model.runtime.pipeline.Pipeline._restart_stream>`): the stream starts again from the next
         sample; the body's size and the device filter (which already restarted the jumped devices) stay."""
         self.feet: list[_Foot] | None = None
-        self.yaw: float | None = None
+        self.yaw: float | None = None  # the hips'
+        self.chest_yaw = 0.0
         self.stood_yaw = 0.0
         self.last_t_us: int | None = None
         self.last_head = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
@@ -249,25 +271,30 @@ class ProceduralPipeline:
         stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
         return (feet_mid - stance) * [1.0, 0.0, 1.0]
 
-    def _turn(self, dt_s: float) -> np.ndarray:
-        """The body's yaw rotation (3, 3), following the head's with a lag."""
+    def _turn(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The hips' and the chest's yaw rotations (3, 3) each: the chest follows the head's yaw with a lag,
+        the hips only beyond a dead zone (TURN_DEAD_ZONE_DEG, none at walking speed)."""
         head_rot, _ = heading_frame(self.last_head)
         head_yaw = math.atan2(head_rot[0, 2], head_rot[0, 0])
         if self.yaw is None:
-            self.yaw = self.stood_yaw = head_yaw
-        gap = (head_yaw - self.yaw + math.pi) % (2 * math.pi) - math.pi
-        self.yaw += gap * (1.0 - math.exp(-dt_s / TURN_TIME_S))
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        # heading_frame's yaw convention, and a half turn: devices look along -z, SMPL faces +z
-        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.diag([-1.0, 1.0, -1.0])
+            self.yaw = self.stood_yaw = self.chest_yaw = head_yaw
+        follow = 1.0 - math.exp(-dt_s / TURN_TIME_S)
+        self.chest_yaw += _wrapped(head_yaw - self.chest_yaw) * follow
+        gap = _wrapped(head_yaw - self.yaw)
+        walking = min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
+        dead_zone = math.radians(TURN_DEAD_ZONE_DEG) * (1.0 - walking)
+        self.yaw += math.copysign(max(abs(gap) - dead_zone, 0.0), gap) * follow
+        return _yaw_rotation(self.yaw), _yaw_rotation(self.chest_yaw)
 
     def _solve(
         self, t_us: int, dt_s: float, tracked: np.ndarray, valid: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         now_s = t_us * 1e-6
-        body_rot = self._turn(dt_s)
+        body_rot, chest_rot = self._turn(dt_s)
         offsets, rest = self.offsets, self._rest
         rest_world = rest @ body_rot.T  # upright, at the pelvis
+        # the neck, collars and arms twisted about spine3 with the chest; the spine and legs with the hips
+        rest_world[_CHEST] = (rest[_CHEST] - rest[9]) @ chest_rot.T + rest_world[9]
         upright = rest_world + (tracked[0] - rest_world[15])  # hanging from the head joint
         if self.last_pelvis is not None and dt_s > 0:
             blend = 1.0 - math.exp(-dt_s / VELOCITY_TIME_S)
@@ -297,16 +324,15 @@ class ProceduralPipeline:
             else:  # hanging by the side
                 target = joints[shoulder] + np.array([0.0, -(upper + lower) * 0.98, 0.0])
             target = _reach(joints[shoulder], target, upper + lower - 1e-6)
-            pole = body_rot @ np.array([0.0, -1.0, -0.5])
+            pole = chest_rot @ np.array([0.0, -1.0, -0.5])
             joints[elbow] = _two_bone(joints[shoulder], target, upper, lower, pole)
             joints[wrist] = target
         return joints, body_rot
 
     def _torso(self, upright: np.ndarray, rest_world: np.ndarray, head: np.ndarray) -> np.ndarray:
         """The upper body (J, 3). The neck hangs under the head joint. While the body stands, the pelvis stays
-        over the planted feet and moves back by HIP_BACK of the way the neck leans forward (a hip hinge), at
-        most at its standing height and at the torso's length from the neck: bending over tilts the spine with
-        straight legs, a squat (the head going straight down) bends the knees. Walking (from WALKING_M_S) the
+        over the planted feet, at most at its standing height and at the torso's length from the neck: bending
+        over tilts the spine with straight legs, a squat (the head going straight down) bends the knees. Walking (from WALKING_M_S) the
         pelvis goes along under the head. The spine lies on the line from the pelvis to the neck."""
         joints = upright.copy()
         self.standing_pelvis_y = max(self.standing_pelvis_y, float(upright[0, 1]))
@@ -315,9 +341,8 @@ class ProceduralPipeline:
         neck, pelvis_upright = upright[12], upright[0]
         flat = np.array([1.0, 0.0, 1.0])
         over_feet = self._over_feet(rest_world)
-        standing = over_feet - HIP_BACK * (neck - over_feet) * flat
         walking = min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
-        pelvis = standing + walking * (pelvis_upright * flat - standing)
+        pelvis = over_feet + walking * (pelvis_upright * flat - over_feet)
         torso = float(np.linalg.norm(rest_world[12] - rest_world[0]))
         # Where the feet should be: under the hips when walking, or once the neck leans so far (more than
         # STEP_LEAN of the torso's length) that standing there would topple; otherwise where they are.

@@ -5,7 +5,12 @@ import pytest
 
 from egoposevr.model.rig import joints_from_devices
 from egoposevr.model.runtime.hands import REACQUIRE_S
-from egoposevr.model.runtime.procedural import ProceduralModel, ProceduralPipeline, pipeline_for
+from egoposevr.model.runtime.procedural import (
+    TURN_DEAD_ZONE_DEG,
+    ProceduralModel,
+    ProceduralPipeline,
+    pipeline_for,
+)
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 from egoposevr.model.synth.headset import simulate_headset
 from egoposevr.model.synth.procedural import generate
@@ -45,6 +50,45 @@ def test_walking_makes_it_step_after_the_body(model):
     assert pelvis_travel > 1.0 and (travelled > 0.6 * pelvis_travel).all()
     final_gap = np.linalg.norm((poses[-1].joints[0] - track.joints_m[-1, 0])[[0, 2]])
     assert final_gap < 0.25  # the body keeps up with the walker
+
+
+def turning_stander(yaw_deg: np.ndarray, rate_hz: float = 90.0) -> tuple[np.ndarray, np.ndarray]:
+    """A headset track (t_us (N,), poses (N, 3, 7)) of a person standing on one spot whose head and hands turn
+    to ``yaw_deg`` (N,) about the vertical: the controllers in front of the chest, turning with the head."""
+    t_us = (np.arange(len(yaw_deg)) * 1e6 / rate_hz).astype(np.int64)
+    poses = np.zeros((len(yaw_deg), 3, 7))
+    for i, yaw in enumerate(np.radians(yaw_deg)):
+        turn = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0], [-np.sin(yaw), 0.0, np.cos(yaw)]])
+        quat = [0.0, np.sin(yaw / 2), 0.0, np.cos(yaw / 2)]  # devices look along -z at yaw 0
+        for device, at in enumerate(([0.0, 1.65, 0.0], [-0.2, 1.1, -0.35], [0.2, 1.1, -0.35])):
+            poses[i, device] = [*(turn @ np.array(at)), *quat]
+    return t_us, poses
+
+
+def test_a_stander_who_turns_the_head_and_torso_keeps_the_hips_and_feet_still_until_the_turn_is_large(model):
+    """Within TURN_DEAD_ZONE_DEG of the hips (a glance, a torso twist) the served pelvis, hips and feet stay
+    where they are; a head that stays turned farther turns the hips after it and steps the feet round."""
+    t = np.arange(6 * 90) / 90
+    glancing = 0.8 * TURN_DEAD_ZONE_DEG * np.sin(2 * np.pi * 0.5 * t)
+    t_us, poses = turning_stander(glancing)
+    pipeline = ProceduralPipeline(model)
+    joints = np.array(
+        [pipeline.push_hmd(int(u), poses[i], np.ones(3, bool)).joints for i, u in enumerate(t_us)]
+    )
+    settled = joints[90:]  # once the height estimate has settled
+    moved_m = np.linalg.norm(settled[:, [0, 1, 2, 10, 11]] - settled[:1, [0, 1, 2, 10, 11]], axis=-1).max()
+    assert moved_m < 0.01  # the hips turned with it would move ~4 cm
+
+    turned = np.concatenate([np.zeros(90), np.full(4 * 90, 2.5 * TURN_DEAD_ZONE_DEG)])
+    t_us, poses = turning_stander(turned)
+    pipeline = ProceduralPipeline(model)
+    for i, u in enumerate(t_us):
+        pose = pipeline.push_hmd(int(u), poses[i], np.ones(3, bool))
+    hips = pose.joints[2] - pose.joints[1]  # left to right hip: +x at yaw 0, facing -z as the devices
+    hips_yaw = np.degrees(np.arctan2(-hips[2], hips[0]))
+    assert 2.5 * TURN_DEAD_ZONE_DEG - hips_yaw <= TURN_DEAD_ZONE_DEG + 1.0
+    feet = pose.joints[11] - pose.joints[10]
+    assert np.degrees(np.arctan2(-feet[2], feet[0])) > 10.0  # the feet stepped round after them
 
 
 def test_served_rotations_give_the_served_joints_and_lost_controllers_let_the_arms_hang(model):
