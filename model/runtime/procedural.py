@@ -9,7 +9,8 @@ avatar legs that VR users know):
 - the chest turns with the head, lagging by ``TURN_TIME_S``; the hips turn after it only by as much as the
   head is turned more than ``TURN_DEAD_ZONE_DEG`` from them (a glance, a torso twist or a reach to the side
   turns the shoulders, not the hips or the feet); walking, the dead zone shrinks with speed to none at
-  ``WALKING_M_S``, so the hips face the way the walker goes;
+  ``WALKING_M_S``, so the hips face the way the walker goes; the twist between them is shared by the three
+  spine joints;
 - each foot stays planted where it was put. When a foot is more than ``STEP_TRIGGER_M`` (scaled by the
   body) from where it would stand under its hip, or the body turned more than ``STEP_TURN_DEG`` since it
   stood, it steps in ``STEP_S`` along a low arc to where its hip will be when the step ends (the pelvis's
@@ -93,11 +94,18 @@ def _wrapped(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
+_HALF_TURN: Final = np.diag([-1.0, 1.0, -1.0])  # devices look along -z, SMPL faces +z
+
+
+def _about_vertical(angle: float) -> np.ndarray:
+    """(3, 3) a turn by angle (rad) about +y, heading_frame's yaw convention."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
 def _yaw_rotation(yaw: float) -> np.ndarray:
-    """(3, 3) the body turned to a headset yaw (heading_frame's convention), with the half turn between them:
-    devices look along -z, SMPL faces +z."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.diag([-1.0, 1.0, -1.0])
+    """(3, 3) the body turned to a headset yaw, with the half turn between them."""
+    return _about_vertical(yaw) @ _HALF_TURN
 
 
 class ProceduralModel:
@@ -245,7 +253,8 @@ class ProceduralPipeline:
             self.hands.lost_wrist(int(device), joints[TRACKED_JOINTS[device]])
         local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
         local[0] = body_rot
-        glob = np.broadcast_to(body_rot, (NUM_JOINTS, 3, 3))  # FK of identity joints under the pelvis
+        local[[3, 6, 9]] = _about_vertical(_wrapped(self.chest_yaw - self.yaw) / 3)  # the chest's twist
+        _, glob = kernels.forward_kinematics_one(local, np.zeros(3), self.offsets, PARENTS.astype(np.int64))
         local = rederive_rotations(local, joints, self.offsets, glob)
         joints, glob = kernels.forward_kinematics_one(
             local, joints[0].copy(), self.offsets, PARENTS.astype(np.int64)
