@@ -67,9 +67,9 @@ from .pipeline import (
 NAME: Final = "procedural"
 DESCRIPTION: Final = "no network: pelvis under the head, planted feet that step, IK knees and arms (baseline)"
 TURN_TIME_S: Final = 0.4
-# Standing, the head turns this far from the hips before they follow: arms-only motion turned the served hips
-# and stepped the feet (leg leakage 6.7 -> 3.9 cm on the still choice set; MODEL_CARD.md, "The procedural
-# baseline's legs stay still while the upper body turns").
+# Standing, the head turns this far from the hips before they follow: without it a glance or a reach turned the
+# served hips and stepped the feet (chosen on the training split's still streams; MODEL_CARD.md, "The procedural
+# baseline: hips that turn only past a dead zone").
 TURN_DEAD_ZONE_DEG: Final = 30.0
 STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
 STEP_TURN_DEG: Final = 35.0
@@ -341,8 +341,9 @@ class ProceduralPipeline:
     def _torso(self, upright: np.ndarray, rest_world: np.ndarray, head: np.ndarray) -> np.ndarray:
         """The upper body (J, 3). The neck hangs under the head joint. While the body stands, the pelvis stays
         over the planted feet, at most at its standing height and at the torso's length from the neck: bending
-        over tilts the spine with straight legs, a squat (the head going straight down) bends the knees. Walking (from WALKING_M_S) the
-        pelvis goes along under the head. The spine lies on the line from the pelvis to the neck."""
+        over tilts the spine with straight legs, a squat (the head going straight down) bends the knees.
+        Walking (from WALKING_M_S) the pelvis goes along under the head. The spine lies on the line from the
+        pelvis to the neck."""
         joints = upright.copy()
         self.standing_pelvis_y = max(self.standing_pelvis_y, float(upright[0, 1]))
         if self.feet is None:
