@@ -95,6 +95,7 @@ def _wrapped(angle: float) -> float:
 
 
 _HALF_TURN: Final = np.diag([-1.0, 1.0, -1.0])  # devices look along -z, SMPL faces +z
+_PARENTS: Final = PARENTS.astype(np.int64)  # the compiled kernels' index type, converted once
 
 
 def _about_vertical(angle: float) -> np.ndarray:
@@ -254,11 +255,9 @@ class ProceduralPipeline:
         local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
         local[0] = body_rot
         local[[3, 6, 9]] = _about_vertical(_wrapped(self.chest_yaw - self.yaw) / 3)  # the chest's twist
-        _, glob = kernels.forward_kinematics_one(local, np.zeros(3), self.offsets, PARENTS.astype(np.int64))
+        _, glob = kernels.forward_kinematics_one(local, np.zeros(3), self.offsets, _PARENTS)
         local = rederive_rotations(local, joints, self.offsets, glob)
-        joints, glob = kernels.forward_kinematics_one(
-            local, joints[0].copy(), self.offsets, PARENTS.astype(np.int64)
-        )
+        joints, glob = kernels.forward_kinematics_one(local, joints[0].copy(), self.offsets, _PARENTS)
         orient_leaves(local, glob, *self.hands.orientations(t_us, valid, tracked_rot, glob))
         axis_angle = kernels.matrices_to_rotvecs(local)
         return PoseResult(
@@ -280,6 +279,10 @@ class ProceduralPipeline:
         stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
         return (feet_mid - stance) * [1.0, 0.0, 1.0]
 
+    def _walking(self) -> float:
+        """How far the body is walking, 0 (standing) to 1 (from WALKING_M_S): the pelvis's smoothed speed."""
+        return min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
+
     def _turn(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The hips' and the chest's yaw rotations (3, 3) each: the chest follows the head's yaw with a lag,
         the hips only beyond a dead zone (TURN_DEAD_ZONE_DEG, none at walking speed)."""
@@ -290,8 +293,7 @@ class ProceduralPipeline:
         follow = 1.0 - math.exp(-dt_s / TURN_TIME_S)
         self.chest_yaw += _wrapped(head_yaw - self.chest_yaw) * follow
         gap = _wrapped(head_yaw - self.yaw)
-        walking = min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
-        dead_zone = math.radians(TURN_DEAD_ZONE_DEG) * (1.0 - walking)
+        dead_zone = math.radians(TURN_DEAD_ZONE_DEG) * (1.0 - self._walking())
         self.yaw += math.copysign(max(abs(gap) - dead_zone, 0.0), gap) * follow
         return _yaw_rotation(self.yaw), _yaw_rotation(self.chest_yaw)
 
@@ -351,7 +353,7 @@ class ProceduralPipeline:
         neck, pelvis_upright = upright[12], upright[0]
         flat = np.array([1.0, 0.0, 1.0])
         over_feet = self._over_feet(rest_world)
-        walking = min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
+        walking = self._walking()
         pelvis = over_feet + walking * (pelvis_upright * flat - over_feet)
         torso = float(np.linalg.norm(rest_world[12] - rest_world[0]))
         # Where the feet should be: under the hips when walking, or once the neck leans so far (more than
