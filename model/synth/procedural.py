@@ -426,6 +426,31 @@ def still_sit(rng, t, body):
     return _upper_body_only(plan, rng, t)
 
 
+def _leaning(
+    plan: Plan, rng: np.random.Generator, t: np.ndarray, flex_deg: tuple[float, float], side_deg: float
+) -> Plan:
+    """The trunk bends over still hips: held leans forward or back (reaching, looking down, sitting back)
+    and to the side, with the quicker sway that arm exercises and punches give it. The head and both
+    controllers travel several centimetres while the legs stay where they are."""
+    plan.upper["spine_flex"] = keyframes(rng, t, *flex_deg, (0.8, 2.5)) + wobble(
+        rng, t, rng.uniform(0.5, 1.2), 4
+    )
+    plan.upper["torso_lean"] = keyframes(rng, t, -side_deg, side_deg, (0.8, 2.5)) + wobble(rng, t, 0.8, 3)
+    return plan
+
+
+def lean_stand(rng, t, body):
+    """:func:`still_stand` with a trunk that leans and sways over the still hips (:func:`_leaning`): a
+    standing VR user reaching, ducking a little, punching; the pelvis and legs do not move."""
+    return _leaning(still_stand(rng, t, body), rng, t, (-10.0, 30.0), 15.0)
+
+
+def lean_sit(rng, t, body):
+    """:func:`still_sit` with a trunk that leans and sways over the seat (:func:`_leaning`): reaching
+    forward from a chair, sitting back, leaning to a side."""
+    return _leaning(still_sit(rng, t, body), rng, t, (-10.0, 40.0), 20.0)
+
+
 FAMILIES: Final[dict[str, Callable[[np.random.Generator, np.ndarray, Body], Plan]]] = {
     "walk": walk,
     "side_step": side_step,
@@ -441,6 +466,8 @@ FAMILIES: Final[dict[str, Callable[[np.random.Generator, np.ndarray, Body], Plan
     "stand_interact": stand_interact,
     "still_stand": still_stand,
     "still_sit": still_sit,
+    "lean_stand": lean_stand,
+    "lean_sit": lean_sit,
 }
 
 # Families whose arms follow the legs (swing, guard, balance); the others draw an independent arm program.

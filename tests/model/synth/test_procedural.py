@@ -77,6 +77,18 @@ def test_still_families_move_the_upper_body_only(family):
     assert (pelvis_y < 0.75) if family == "still_sit" else (pelvis_y > 0.8)
 
 
+@pytest.mark.parametrize("family", ["lean_stand", "lean_sit"])
+def test_leaning_families_move_the_head_over_still_legs(family):
+    """The trunk leans and sways: the head travels a hand's width over the floor (the still families' head
+    stays within a few centimetres) while pelvis, knees, ankles and feet stay put, standing or seated."""
+    joints = generate(family, 8.0, FPS, np.random.default_rng(3)).joints()
+    legs = joints[:, [0, 1, 2, 4, 5, 7, 8, 10, 11]]
+    assert np.abs(legs - legs[0]).max() < 1e-3
+    head_xz = joints[:, 15, [0, 2]]
+    assert np.linalg.norm(head_xz - head_xz[0], axis=-1).max() > 0.08
+    assert (joints[0, 0, 1] < 0.75) if family == "lean_sit" else (joints[0, 0, 1] > 0.8)
+
+
 def test_same_seed_same_motion_other_seed_other_motion():
     a = generate("lunge", 3.0, FPS, np.random.default_rng(5))
     b = generate("lunge", 3.0, FPS, np.random.default_rng(5))
@@ -106,6 +118,8 @@ def test_unknown_family_is_refused():
         ("kick", "legs"),
         ("still_stand", "stand, upper body"),
         ("still_sit", "sit, upper body"),
+        ("lean_stand", "stand, upper body"),
+        ("lean_sit", "sit, upper body"),
     ],
 )
 def test_evaluation_reads_the_motion_category_from_the_truth(family, category):
