@@ -116,6 +116,14 @@ def encode_images(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int) -> t
     return jpeg.tobytes(), png.tobytes()
 
 
+def nearest_pixel(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(..., 2) int pixel (column, row) inside a width x height image nearest each projection (..., 2) px.
+    A joint near the lens plane projects far off the image, beyond what an int holds, and a degenerate one to
+    NaN: neither is in view, so the pixel it is given is only there to keep the lookup in bounds."""
+    uv_finite = np.nan_to_num(uv, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(np.round(uv_finite), 0, [width - 1, height - 1]).astype(int)
+
+
 def render_frames(
     motion: Motion,
     track: HeadsetTrack,
@@ -181,7 +189,7 @@ def render_frames(
         uv = cam.project(joints_cam)
         visible = cam.in_view(joints_cam)
         frames.joints_cam_m[k], frames.joints_uv_px[k], frames.visible[k] = joints_cam, uv, visible
-        px = np.clip(np.round(uv).astype(int), 0, [cam.width - 1, cam.height - 1])
+        px = nearest_pixel(uv, cam.width, cam.height)
         surface = depth[px[:, 1], px[:, 0]]
         if body_face is None:  # capsules: something lies in front of the joint's own (radius + 3 cm of slack)
             hidden = surface < joints_cam[:, 2] - JOINT_RADIUS_M * look.girth * 1.3 - 0.03

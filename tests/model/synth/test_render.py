@@ -6,7 +6,7 @@ import pytest
 from egoposevr.model.rotations import axis_angle_to_matrix
 from egoposevr.model.skeleton import NUM_JOINTS, forward_kinematics
 from egoposevr.model.synth.headset import CameraModel, HeadsetRig, device_poses
-from egoposevr.model.synth.pipeline import SynthConfig, synthesize_sequence
+from egoposevr.model.synth.pipeline import SynthConfig, nearest_pixel, synthesize_sequence
 from egoposevr.model.synth.procedural import Body, generate
 from egoposevr.model.synth.render import JOINT_RADIUS_M, Renderer, body_capsules, random_appearance
 
@@ -132,3 +132,17 @@ def test_motion_blur_smears_moving_frames(small_renderer):
     b = synthesize_sequence(generate("high_knees", 1.0, 60.0, rng_b), blurred, rng_b, small_renderer)
     assert a.frames.rgb_jpeg != b.frames.rgb_jpeg
     assert np.allclose(a.frames.joints_cam_m, b.frames.joints_cam_m)  # labels are for mid-exposure
+
+
+def test_a_joint_at_the_lens_plane_gets_an_in_bounds_pixel_without_a_cast_warning():
+    """A joint a hair in front of a distorting lens projects beyond what an int holds (numpy warns on that
+    cast, and the tests turn warnings into errors); a degenerate one to NaN. Both get an in-bounds pixel;
+    pixels in the image are rounded as before."""
+    camera = CameraModel(width=40, height=32, hfov_deg=90.0, pitch_down_deg=70.0, k1=0.05)
+    points = np.array([[0.3, -0.2, 1e-9], [0.0, 0.0, 1.0], [0.1, 0.05, 0.5]])
+    uv = camera.project(points)
+    assert np.abs(uv[0]).max() > 1e19  # off any int64
+    uv[1, 0] = np.nan
+    px = nearest_pixel(uv, camera.width, camera.height)
+    assert px.dtype.kind == "i" and (px >= 0).all() and (px[:, 0] < 40).all() and (px[:, 1] < 32).all()
+    assert px[2].tolist() == np.round(uv[2]).astype(int).tolist()
