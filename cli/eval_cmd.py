@@ -23,8 +23,8 @@ first one named: whether a gap between two models is more than the people in the
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
-@no-steady-stance, @no-leg-hold, @no-camera), so --models egoposevr@no-leg-hold,egoposevr says, paired, what
-one stage of the runtime changes. --no-camera (or @no-camera) sends no RGB-D frame: what a headset without
+@no-steady-stance, @no-leg-hold, @no-lean-gate, @no-camera), so --models egoposevr@no-leg-hold,egoposevr
+says, paired, what one stage of the runtime changes. --no-camera (or @no-camera) sends no RGB-D frame: what a headset without
 the camera is served (the RGB-D models run on the headset stream alone, as PROTOCOL.md's `camera: false`).
 
 Examples:
@@ -50,6 +50,7 @@ SWITCHES = {
     "no-foot-contacts": "contacts",
     "no-steady-stance": "steady_stance",
     "no-leg-hold": "leg_hold",
+    "no-lean-gate": "lean_gate",
     "no-camera": "send_frames",
 }
 
@@ -61,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold), or without the camera (@no-camera)",
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate), or without the camera "
+        "(@no-camera)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -110,6 +112,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the pelvis, hips and knees wander with the network while both feet are down and the headset "
         "is quiet (model/runtime/stance.py, LegHold): the runtime before the leg hold",
+    )
+    parser.add_argument(
+        "--no-lean-gate",
+        action="store_true",
+        help="a head that leans over still hips lets the legs and feet follow the network, as one that moves "
+        "at that speed (model/runtime/stance.py): the runtime before the lean gate",
     )
     parser.add_argument(
         "--no-camera",
@@ -194,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
+            lean_gate=not args.no_lean_gate,
             send_frames=not args.no_camera,
             runtime=runtime,
             fold=fold,

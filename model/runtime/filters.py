@@ -209,6 +209,21 @@ class WindowSpeed:
             return 0.0
         return float(np.linalg.norm(history[-1][1] - position0)) / ((t_us - t0_us) * 1e-6)
 
+    def about(self, pivot_m: np.ndarray) -> tuple[float, float]:
+        """The window's move split about a pivot (3,) m: (radial, around) speed, m/s. Radial is how fast the
+        point's distance from the pivot changed; around is the rest of its move (a point on a rigid arm that
+        turns about the pivot moves only around it). Both 0 until time has passed."""
+        if not self._history:
+            return 0.0, 0.0
+        (t0_us, position0), (t_us, position) = self._history[0], self._history[-1]
+        if t_us <= t0_us:
+            return 0.0, 0.0
+        span_s = (t_us - t0_us) * 1e-6
+        move = position - position0
+        radial_m = float(np.linalg.norm(position - pivot_m) - np.linalg.norm(position0 - pivot_m))
+        around_m = math.sqrt(max(float(move @ move) - radial_m * radial_m, 0.0))
+        return abs(radial_m) / span_s, around_m / span_s
+
     @property
     def span_s(self) -> float:
         """How long the speed was measured over: up to a little more than ``window_s``."""

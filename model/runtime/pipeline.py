@@ -91,11 +91,14 @@ class Pipeline:
         contacts: bool = True,
         steady_stance: bool = True,
         leg_hold: bool = True,
+        lean_gate: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
         self.steady_stance = steady_stance  # with contacts: feet stay down while the head is still
         self.leg_hold = leg_hold  # with contacts: pelvis, hips and knees stay while both feet are down
+        # with the leg hold: a head that leans about the served pelvis is quiet for both gates (stance.py)
+        self.lean_gate = lean_gate
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -141,7 +144,7 @@ class Pipeline:
         self.cache.forget()
         self.position_filter.reset()
         self.feet, self.stance, self.hands = FootContacts(), SteadyStance(), LostHandPolicy()
-        self.legs = LegHold()
+        self.legs = LegHold(lean=self.lean_gate)
 
     @property
     def frames_encoded(self) -> int:
@@ -301,7 +304,10 @@ class Pipeline:
                 bones = self.bone_scale if self.fixed_body else self.served_scale.scale
                 leg_scale = float(bones[_LEG_BONES].mean())
                 still_m = self._stillness_point(pending)
-                steady = self.steady_stance and self.stance.observe_head(t_us, still_m, bool(valid[0]))
+                pivot_m = self.legs.pelvis_m if self.leg_hold and self.lean_gate else None
+                steady = self.steady_stance and self.stance.observe_head(
+                    t_us, still_m, bool(valid[0]), pivot_m
+                )
                 self.feet.targets(t_us, joints, leg_scale, targets, observed, pending.contact_p, steady)
                 self.stance.observe_feet(self.feet.planted)
                 if self.leg_hold:

@@ -434,5 +434,6 @@ def pipeline_for(model, **kwargs):
         kwargs.pop("contacts", None)  # it plants its own feet
         kwargs.pop("steady_stance", None)
         kwargs.pop("leg_hold", None)
+        kwargs.pop("lean_gate", None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

@@ -3,20 +3,27 @@ only when the network lifts it (:mod:`.contact`), so a user who only moves the a
 slide with the network's wandering guess of the legs; and (:class:`LegHold`) the pelvis, hips and knees stay
 where they were served instead of wandering with it.
 
-- **steady** while both feet are planted and the headset moved slower than ``QUIET_SPEED_M_S`` over the
-  last ``QUIET_WINDOW_S``;
-- **not steady** as soon as a foot steps, the headset is lost or moves faster (walking, a lunge, a jump: the
-  feet follow the network again).
+- **steady** while both feet are planted and the headset is **quiet** over the last ``QUIET_WINDOW_S``;
+- **not steady** as soon as a foot steps, the headset is lost or stops being quiet (walking, a lunge, a
+  jump: the feet follow the network again).
+
+The head is quiet while it moves slower than ``QUIET_SPEED_M_S``, or, given a pivot (the served pelvis),
+while it **leans**: it moves around the pivot at most ``LEAN_SPEED_M_S`` while its distance from it changes
+slower than ``LEAN_RADIAL_M_S``. A trunk that leans or sways over still hips moves the head round them, at
+a median 11-16 cm/s for the lean families (``synth``'s ``lean_stand`` / ``lean_sit``), which the speed alone
+called a step; a squat, a bend, a jump or a rise from a chair moves it towards or away from them; a side
+step moves it round them too, but faster (a median 25-35 cm/s) and with its distance changing more; and a
+step that lifts a foot ends the stance anyway.
 
 The head is the gate because it is the one body part the devices track: arms that move while the head
 stays say nothing about the legs, and a step needs a weight shift that moves the head. A stance whose head
 leaves slowly stays steady: the feet of a slow squat or bend stay where they are too. The constants were
-chosen on the training split's sequences and procedural still-standing streams, never on a validation split
-(MODEL_CARD.md).
+chosen on the training split's sequences and procedural still-standing, leaning and stepping streams, never
+on a validation split (MODEL_CARD.md).
 
-:class:`LegHold` has a quicker gate of its own: both feet planted and the headset slower than
-``QUIET_SPEED_M_S`` over the last ``HOLD_WINDOW_S``. A still stretch is often a pause of a second or so
-between movements, and a hold that waited for the steady stance's 0.3 s of quiet held too little of it.
+:class:`LegHold` has a quicker gate of its own: both feet planted and the headset quiet over the last
+``HOLD_WINDOW_S``, about the pelvis it holds. A still stretch is often a pause of a second or so between
+movements, and a hold that waited for the steady stance's 0.3 s of quiet held too little of it.
 """
 
 from __future__ import annotations
@@ -30,6 +37,10 @@ import numpy as np
 from .filters import WindowSpeed
 
 QUIET_SPEED_M_S: Final = 0.10
+# A head that leans: round the pelvis at most this fast, while its distance from it changes slower than
+# LEAN_RADIAL_M_S (chosen on training people's leaning, still and stepping streams: MODEL_CARD.md, rule 37)
+LEAN_SPEED_M_S: Final = 0.30
+LEAN_RADIAL_M_S: Final = 0.05
 QUIET_WINDOW_S: Final = 0.3
 MAX_GAP_S: Final = 0.5  # a longer pause between samples forgets the stance
 HELD_JOINTS: Final = (0, 1, 2, 4, 5)  # pelvis, hips, knees: the ankles and feet are the planted feet's
@@ -41,6 +52,17 @@ SETTLE_SPEED_M_S: Final = 0.0025
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
 _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
 _HELD: Final = np.array(HELD_JOINTS)
+
+
+def _head_quiet(window: WindowSpeed, speed_m_s: float, pivot_m: np.ndarray | None) -> bool:
+    """Whether a head that moved at speed_m_s over the window (pushed this sample) is quiet: slower than
+    QUIET_SPEED_M_S, or leaning about the pivot (3,) m (module docstring); None: by its speed alone."""
+    if speed_m_s < QUIET_SPEED_M_S:
+        return True
+    if pivot_m is None:
+        return False
+    radial_m_s, around_m_s = window.about(pivot_m)
+    return radial_m_s < LEAN_RADIAL_M_S and around_m_s < LEAN_SPEED_M_S
 
 
 def _stream_broke(last_us: int | None, t_us: int) -> bool:
@@ -66,12 +88,16 @@ class SteadyStance:
     def steady(self) -> bool:
         return self._quiet and self._both_planted
 
-    def observe_head(self, t_us: int, head_m: np.ndarray, head_valid: bool) -> bool:
-        """The headset's head joint (3,) m this sample -> whether the stance is steady now."""
+    def observe_head(
+        self, t_us: int, head_m: np.ndarray, head_valid: bool, pivot_m: np.ndarray | None = None
+    ) -> bool:
+        """The headset's head joint (3,) m this sample -> whether the stance is steady now. pivot_m (3,): the
+        pelvis as served the sample before, about which a head may lean and stay quiet; None: the head's
+        speed alone."""
         if _stream_broke(self._last_us, t_us):
             self._forget()
         self._last_us = t_us
-        self._quiet = head_valid and self._head_quiet(t_us, head_m)
+        self._quiet = head_valid and self._head_quiet(t_us, head_m, pivot_m)
         return self.steady
 
     def observe_feet(self, planted: tuple[bool, bool]) -> None:
@@ -79,10 +105,12 @@ class SteadyStance:
         one at the next sample."""
         self._both_planted = all(planted)
 
-    def _head_quiet(self, t_us: int, head_m: np.ndarray) -> bool:
-        """Record the head; whether it moved slower than QUIET_SPEED_M_S over the last QUIET_WINDOW_S."""
+    def _head_quiet(self, t_us: int, head_m: np.ndarray, pivot_m: np.ndarray | None) -> bool:
+        """Record the head; whether it was quiet over the last QUIET_WINDOW_S."""
         speed_m_s = self._head_speed.push(t_us, head_m)
-        return self._head_speed.span_s >= 0.9 * QUIET_WINDOW_S and speed_m_s < QUIET_SPEED_M_S
+        return self._head_speed.span_s >= 0.9 * QUIET_WINDOW_S and _head_quiet(
+            self._head_speed, speed_m_s, pivot_m
+        )
 
 
 class LegHold:
@@ -92,16 +120,22 @@ class LegHold:
     - **the hold begins** where those joints were served the sample before (a target at the network's guess
       of this sample would jump, and fight the planted feet: MODEL_CARD.md), then moves towards the mean of
       the network's placements since the hold began, at most ``SETTLE_SPEED_M_S``;
-    - **the hold ends** when a foot is let go, the headset moves faster than ``QUIET_SPEED_M_S`` over
-      ``HOLD_WINDOW_S`` or is lost: the targets are where KPO would serve those joints without the hold
-      (``unheld``) plus the offset that the hold had put on them, decaying with ``RELEASE_TAU_S``, so the
+    - **the hold ends** when a foot is let go, the headset stops being quiet over ``HOLD_WINDOW_S`` (with
+      ``lean``, it may lean about the pelvis as served the sample before) or is lost: the targets are where
+      KPO would serve those joints without the hold (``unheld``) plus the offset that the hold had put on them, decaying with ``RELEASE_TAU_S``, so the
       legs glide back instead of jumping. (Not the network's joints plus the offset: KPO with a target on
       the network's joint serves them there, and without one where the planted feet pull them, up to 2 cm
       away, which was a jump when the fade ended.)
     """
 
-    def __init__(self) -> None:
+    def __init__(self, lean: bool = True) -> None:
+        self.lean = lean  # the head may lean about the served pelvis and stay quiet; False: its speed alone
         self._forget()
+
+    @property
+    def pelvis_m(self) -> np.ndarray | None:
+        """The pelvis (3,) m as served last sample (None before the first, or after a broken stream)."""
+        return None if self._served is None else self._served[0]
 
     def _forget(self) -> None:
         self._head_speed = WindowSpeed(HOLD_WINDOW_S)
@@ -137,7 +171,9 @@ class LegHold:
             self._forget()
         dt_s = 0.0 if self._last_us is None else (t_us - self._last_us) * 1e-6
         self._last_us = t_us
-        quiet = head_valid and self._head_speed.push(t_us, head_m) < QUIET_SPEED_M_S
+        pivot_m = self.pelvis_m if self.lean else None
+        speed_m_s = self._head_speed.push(t_us, head_m)
+        quiet = head_valid and _head_quiet(self._head_speed, speed_m_s, pivot_m)
         network = joints[_HELD]
         if quiet and all(planted) and self._served is not None:
             target = self._hold(network, dt_s)

@@ -276,6 +276,7 @@ def evaluate(
     foot_contacts: bool = True,
     steady_stance: bool = True,
     leg_hold: bool = True,
+    lean_gate: bool = True,
     send_frames: bool = True,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
@@ -294,9 +295,10 @@ def evaluate(
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
-    both feet are down (stance.LegHold); ``send_frames`` False sends no camera frame, as a headset without
+    both feet are down (stance.LegHold), ``lean_gate`` False lets neither the hold nor the steady stance
+    through while the head leans over still hips (the runtime before it: stance.py); ``send_frames`` False sends no camera frame, as a headset without
     the camera (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of
-    those four (as ``contacts``, ``steady_stance``, ``leg_hold``, ``send_frames``) set otherwise: one file
+    those five (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``send_frames``) set otherwise: one file
     served twice, with and without a runtime stage or the camera, is a paired comparison. ``loaded``: what
     :func:`split_sequences` gave for these arguments, when the caller has already read the split
     (``eval --keypoints`` reads it once for both reports).
@@ -321,7 +323,8 @@ def evaluate(
         for name, path in models.items()
     }
     for name, model in served_models.items():
-        options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold}
+        options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold,
+                   "lean_gate": lean_gate}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
         pipeline = pipeline_for(model, **options)

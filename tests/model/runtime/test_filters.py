@@ -103,6 +103,27 @@ def test_a_window_speed_is_the_move_over_the_window_not_the_per_sample_jitter():
     assert 0.2 <= speed.span_s < 0.2 + 0.012 and speed.step_s == pytest.approx(0.011111)
 
 
+def test_a_move_about_a_pivot_splits_into_radial_and_around():
+    """A point on an arm that turns about the pivot moves only around it; one that slides straight away moves
+    only radially; both at the speed they were moved at."""
+    pivot, arm_m, rad_s = np.array([0.0, 1.0, 0.0]), 0.6, 0.5  # 0.3 m/s around
+    turning, sliding = WindowSpeed(0.2), WindowSpeed(0.2)
+    for i in range(45):
+        t_s = i / 90
+        turning.push(
+            int(t_s * 1e6), pivot + arm_m * np.array([np.sin(rad_s * t_s), np.cos(rad_s * t_s), 0.0])
+        )
+        sliding.push(int(t_s * 1e6), pivot + np.array([0.0, arm_m + 0.2 * t_s, 0.0]))
+    radial, around = turning.about(pivot)
+    assert radial < 1e-3 and around == pytest.approx(arm_m * rad_s, rel=0.01)
+    radial, around = sliding.about(pivot)
+    assert radial == pytest.approx(0.2, rel=1e-6) and around < 1e-6
+    once = WindowSpeed(0.2)
+    assert once.about(pivot) == (0.0, 0.0)  # nothing pushed
+    once.push(0, pivot + 1.0)
+    assert once.about(pivot) == (0.0, 0.0)  # no time has passed
+
+
 def _jerk(x: np.ndarray, dt_s: float) -> float:
     return float(np.abs(np.diff(x, n=3, axis=0)).mean() / dt_s**3)
 

@@ -9,6 +9,7 @@ from egoposevr.model.runtime.contact import ANCHOR_SPEED_M_S, FEET, RELEASE_HEIG
 from egoposevr.model.runtime.stance import (
     HELD_JOINTS,
     HOLD_WINDOW_S,
+    LEAN_SPEED_M_S,
     MAX_GAP_S,
     QUIET_SPEED_M_S,
     QUIET_WINDOW_S,
@@ -61,6 +62,42 @@ def test_a_stance_stays_steady_while_the_head_moves_slowly(speed_m_s):
         )
         stance.observe_feet((True, True))
     assert stance.steady is (speed_m_s < QUIET_SPEED_M_S)
+
+
+def head_path(
+    start_m: np.ndarray, pivot_m: np.ndarray, motion: str, speed_m_s: float, t_s: float
+) -> np.ndarray:
+    """The head (3,) m t_s after start_m: "lean" turns it about pivot_m (forward, in the x-y plane), "squat"
+    lowers it towards the pivot, each at speed_m_s."""
+    if motion == "squat":
+        return start_m - np.array([0.0, speed_m_s * t_s, 0.0])
+    arm_m = start_m - pivot_m
+    angle = speed_m_s * t_s / np.linalg.norm(arm_m)
+    turn = np.array(
+        [[np.cos(angle), np.sin(angle), 0.0], [-np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]]
+    )
+    return pivot_m + turn @ arm_m
+
+
+@pytest.mark.parametrize(
+    ("motion", "speed_m_s", "with_pivot", "steady"),
+    [
+        ("lean", 2 * QUIET_SPEED_M_S, True, True),  # a trunk leaning over still hips
+        ("lean", 2 * QUIET_SPEED_M_S, False, False),  # the same head by its speed alone: the runtime before
+        ("lean", 1.5 * LEAN_SPEED_M_S, True, False),  # too fast for a lean: a weight shift
+        ("squat", 2 * QUIET_SPEED_M_S, True, False),  # towards the hips: the legs bend
+    ],
+)
+def test_a_head_that_leans_about_the_pelvis_keeps_the_stance_and_one_that_drops_does_not(
+    motion, speed_m_s, with_pivot, steady
+):
+    stance, pelvis = SteadyStance(), HEAD - np.array([0.0, 0.6, 0.0])
+    t_us = settle(stance)
+    for i in range(1, 3 * QUIET_SAMPLES):
+        head = head_path(HEAD, pelvis, motion, speed_m_s, i * STEP_US * 1e-6)
+        stance.observe_head(t_us + i * STEP_US, head, True, pelvis if with_pivot else None)
+        stance.observe_feet((True, True))
+    assert stance.steady is steady
 
 
 def test_a_step_a_lost_headset_or_a_pause_ends_it():
@@ -184,8 +221,15 @@ def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_bac
             heads = [HEAD] * len(network)
         held = hold_legs(LegHold(), network, heads, planted)
         served = np.array([h if h is not None else n[HELD] for h, n in zip(held, network, strict=True)])
-        gap_m = np.linalg.norm(served[quiet - 1] - network[quiet - 1][HELD], axis=-1).max()
-        assert gap_m > 0.02, end  # the hold had kept the legs 2+ cm from the network's
+        assert np.linalg.norm(served[quiet - 1] - network[quiet - 1][HELD], axis=-1).max() > 0.02, end
+        # the hold had kept the legs 2+ cm from the network's, and the gap grows until the hold ends: within
+        # HOLD_WINDOW_S for a head (its speed is measured over that; a head that sets off over the pelvis
+        # moves round it at first, as a lean would), at once for a foot
+        window = int(HOLD_WINDOW_S * 1e6 / STEP_US) + 1
+        gap_m = max(
+            np.linalg.norm(served[i] - network[i][HELD], axis=-1).max()
+            for i in range(quiet - 1, quiet + window)
+        )
         step_m = np.linalg.norm(np.diff(served, axis=0), axis=-1).max()
         # No jump when the hold ends: a sample takes 1 - exp(-dt / tau) of the gap (17 % at 90 Hz), plus the
         # network's own move (at most 1.3 mm a sample here).
@@ -195,6 +239,27 @@ def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_bac
             assert held[quiet + gone] is None, end  # the legs are the network's again
         else:  # the head's speed is measured over HOLD_WINDOW_S: it ends the hold within that
             assert held[quiet + int(HOLD_WINDOW_S * 1e6 / STEP_US) + gone] is None, end
+
+
+@pytest.mark.parametrize("lean", [True, False])
+def test_legs_stay_held_while_the_head_leans_about_the_pelvis(lean):
+    """A head that leans forward over the held pelvis at twice the quiet speed (a reach, a bow): the hold
+    lasts through it with the lean gate, and without it ends as for any head that fast."""
+    quiet, leaning = int(2 * HOLD_WINDOW_S * 1e6 / STEP_US), 90
+    network = wandering_legs(quiet + leaning)
+    start, pelvis = standing_joints()[15], standing_joints()[0]
+    heads = [start] * quiet + [
+        head_path(start, pelvis, "lean", 2 * QUIET_SPEED_M_S, i * STEP_US * 1e-6) for i in range(leaning)
+    ]
+    hold = LegHold(lean=lean)
+    held = hold_legs(hold, network, heads, [(True, True)] * len(network))
+    assert held[quiet - 1] is not None
+    assert hold.holding is lean
+    if lean:
+        path = np.array(held[quiet:])
+        assert (
+            np.linalg.norm(path - path[0], axis=-1).max() < SETTLE_SPEED_M_S * leaning * STEP_US * 1e-6 + 1e-9
+        )
 
 
 def test_the_legs_glide_to_where_kpo_would_serve_them_without_the_hold_and_do_not_jump_there():
