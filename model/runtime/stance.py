@@ -54,9 +54,10 @@ _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hol
 _HELD: Final = np.array(HELD_JOINTS)
 
 
-def _head_quiet(window: WindowSpeed, speed_m_s: float, pivot_m: np.ndarray | None) -> bool:
+def _is_quiet(window: WindowSpeed, speed_m_s: float, pivot_m: np.ndarray | None) -> bool:
     """Whether a head that moved at speed_m_s over the window (pushed this sample) is quiet: slower than
-    QUIET_SPEED_M_S, or leaning about the pivot (3,) m (module docstring); None: by its speed alone."""
+    QUIET_SPEED_M_S, or leaning about the pivot (3,) m (module docstring); with pivot_m None, by its speed
+    alone."""
     if speed_m_s < QUIET_SPEED_M_S:
         return True
     if pivot_m is None:
@@ -108,7 +109,7 @@ class SteadyStance:
     def _head_quiet(self, t_us: int, head_m: np.ndarray, pivot_m: np.ndarray | None) -> bool:
         """Record the head; whether it was quiet over the last QUIET_WINDOW_S."""
         speed_m_s = self._head_speed.push(t_us, head_m)
-        return self._head_speed.span_s >= 0.9 * QUIET_WINDOW_S and _head_quiet(
+        return self._head_speed.span_s >= 0.9 * QUIET_WINDOW_S and _is_quiet(
             self._head_speed, speed_m_s, pivot_m
         )
 
@@ -122,8 +123,8 @@ class LegHold:
       the network's placements since the hold began, at most ``SETTLE_SPEED_M_S``;
     - **the hold ends** when a foot is let go, the headset stops being quiet over ``HOLD_WINDOW_S`` (with
       ``lean``, it may lean about the pelvis as served the sample before) or is lost: the targets are where
-      KPO would serve those joints without the hold (``unheld``) plus the offset that the hold had put on them, decaying with ``RELEASE_TAU_S``, so the
-      legs glide back instead of jumping. (Not the network's joints plus the offset: KPO with a target on
+      KPO would serve those joints without the hold (``unheld``) plus the offset that the hold had put on
+      them, decaying with ``RELEASE_TAU_S``, so the legs glide back instead of jumping. (Not the network's joints plus the offset: KPO with a target on
       the network's joint serves them there, and without one where the planted feet pull them, up to 2 cm
       away, which was a jump when the fade ended.)
     """
@@ -173,7 +174,7 @@ class LegHold:
         self._last_us = t_us
         pivot_m = self.pelvis_m if self.lean else None
         speed_m_s = self._head_speed.push(t_us, head_m)
-        quiet = head_valid and _head_quiet(self._head_speed, speed_m_s, pivot_m)
+        quiet = head_valid and _is_quiet(self._head_speed, speed_m_s, pivot_m)
         network = joints[_HELD]
         if quiet and all(planted) and self._served is not None:
             target = self._hold(network, dt_s)
