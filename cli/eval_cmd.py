@@ -23,8 +23,8 @@ first one named: whether a gap between two models is more than the people in the
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
-@no-steady-stance, @no-leg-hold, @no-lean-gate, @no-camera), so --models egoposevr@no-leg-hold,egoposevr
-says, paired, what one stage of the runtime changes. --no-camera (or @no-camera) sends no RGB-D frame: what a headset without
+@no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate on (@lean-gate, off by default), so
+--models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera (or @no-camera) sends no RGB-D frame: what a headset without
 the camera is served (the RGB-D models run on the headset stream alone, as PROTOCOL.md's `camera: false`).
 
 Examples:
@@ -45,13 +45,14 @@ from typing import Any
 # Each resample is a row of weights over the split's sequences (intervals.py): 100 000 rows of a few hundred
 # sequences are a few hundred MB; the percentiles are steady to 0.01 cm long before that (2 000 is plenty).
 MAX_RESAMPLES = 100_000
-# --models' @SWITCH: the runtime stage it turns off for that model (or the camera), as evaluate's option
+# --models' @SWITCH: the runtime stage it turns off (or on) for that model, or the camera it sends no frame
+# from, as (evaluate's option, its value)
 SWITCHES = {
-    "no-foot-contacts": "contacts",
-    "no-steady-stance": "steady_stance",
-    "no-leg-hold": "leg_hold",
-    "no-lean-gate": "lean_gate",
-    "no-camera": "send_frames",
+    "no-foot-contacts": ("contacts", False),
+    "no-steady-stance": ("steady_stance", False),
+    "no-leg-hold": ("leg_hold", False),
+    "lean-gate": ("lean_gate", True),
+    "no-camera": ("send_frames", False),
 }
 
 
@@ -62,8 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate), or without the camera "
-        "(@no-camera)",
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold) or on (@lean-gate), or without the "
+        "camera (@no-camera)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -114,10 +115,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "is quiet (model/runtime/stance.py, LegHold): the runtime before the leg hold",
     )
     parser.add_argument(
-        "--no-lean-gate",
+        "--lean-gate",
         action="store_true",
-        help="a head that leans over still hips lets the legs and feet follow the network, as one that moves "
-        "at that speed (model/runtime/stance.py): the runtime before the lean gate",
+        help="a head that leans round the served pelvis holds the legs and feet as a still one does "
+        "(model/runtime/stance.py; off by default: it failed its rule, MODEL_CARD.md rule 37)",
     )
     parser.add_argument(
         "--no-camera",
@@ -202,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
-            lean_gate=not args.no_lean_gate,
+            lean_gate=args.lean_gate,
             send_frames=not args.no_camera,
             runtime=runtime,
             fold=fold,
@@ -290,7 +291,7 @@ def _chosen_models(
             raise ValueError(f"--models names {label!r} twice")
         chosen[label] = path
         if switches:
-            runtime[label] = {SWITCHES[w]: False for w in switches}
+            runtime[label] = dict(SWITCHES[w] for w in switches)
     if not chosen:
         raise ValueError(f"no model named; have {sorted(available)}")
     return chosen, runtime

@@ -91,13 +91,14 @@ class Pipeline:
         contacts: bool = True,
         steady_stance: bool = True,
         leg_hold: bool = True,
-        lean_gate: bool = True,
+        lean_gate: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
         self.steady_stance = steady_stance  # with contacts: feet stay down while the head is still
         self.leg_hold = leg_hold  # with contacts: pelvis, hips and knees stay while both feet are down
-        # with the leg hold: a head that leans about the served pelvis is quiet for both gates (stance.py)
+        # with the leg hold: a head that leans about the served pelvis is quiet for both gates (stance.py).
+        # Off by default: it failed its rule, serving leaning legs further off (MODEL_CARD.md rule 37).
         self.lean_gate = lean_gate
         info = model.info
         self.window = info.config.window

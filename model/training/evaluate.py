@@ -276,7 +276,7 @@ def evaluate(
     foot_contacts: bool = True,
     steady_stance: bool = True,
     leg_hold: bool = True,
-    lean_gate: bool = True,
+    lean_gate: bool = False,
     send_frames: bool = True,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
@@ -295,11 +295,12 @@ def evaluate(
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
-    both feet are down (stance.LegHold), ``lean_gate`` False lets neither the hold nor the steady stance
-    through while the head leans over still hips (the runtime before it: stance.py); ``send_frames`` False sends no camera frame, as a headset without
-    the camera (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of
-    those five (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``send_frames``) set otherwise: one file
-    served twice, with and without a runtime stage or the camera, is a paired comparison. ``loaded``: what
+    both feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans
+    round the served pelvis too (stance.py; off by default); ``send_frames`` False sends no camera frame, as
+    a headset without the camera (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a
+    label with some of those five (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``,
+    ``send_frames``) set otherwise: one file served twice, with and without a runtime stage or the camera,
+    is a paired comparison. ``loaded``: what
     :func:`split_sequences` gave for these arguments, when the caller has already read the split
     (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R

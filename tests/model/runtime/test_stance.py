@@ -209,7 +209,8 @@ def test_legs_stay_where_they_were_served_while_both_feet_are_down_and_the_head_
     assert np.abs(np.array(network)[:, HELD, 0]).max() > 0.05  # while the network's moved 6 cm
 
 
-def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_back():
+@pytest.mark.parametrize("lean", [False, True])
+def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_back(lean):
     quiet = int(2 * HOLD_WINDOW_S * 1e6 / STEP_US)
     for end in ("head", "foot"):
         network = wandering_legs(quiet + 120)
@@ -219,7 +220,7 @@ def test_a_head_that_moves_or_a_foot_let_go_ends_the_hold_and_the_legs_glide_bac
             planted = [(True, True)] * len(network)
         else:
             heads = [HEAD] * len(network)
-        held = hold_legs(LegHold(), network, heads, planted)
+        held = hold_legs(LegHold(lean=lean), network, heads, planted)
         served = np.array([h if h is not None else n[HELD] for h, n in zip(held, network, strict=True)])
         assert np.linalg.norm(served[quiet - 1] - network[quiet - 1][HELD], axis=-1).max() > 0.02, end
         # the hold had kept the legs 2+ cm from the network's, and the gap grows until the hold ends: within

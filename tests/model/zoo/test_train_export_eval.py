@@ -1001,12 +1001,12 @@ def test_eval_says_where_the_error_comes_from_sequence_by_sequence(tiny_data, ti
     assert all(f"{ego[line.split('|')[1].strip()]['mpjpe_l_cm']:.2f}" in line for line in table)
 
 
-def test_eval_serves_the_runtime_before_the_steady_stance_the_leg_hold_or_the_lean_gate_on_request(
+def test_eval_serves_the_runtime_without_the_steady_stance_or_the_leg_hold_or_with_the_lean_gate_on_request(
     tiny_data, tiny_weights, tmp_path
 ):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
     runs = {}
-    for flag in ("", "--no-steady-stance", "--no-leg-hold", "--no-lean-gate"):
+    for flag in ("", "--no-steady-stance", "--no-leg-hold", "--lean-gate"):
         out = tmp_path / f"eval{flag}.json"
         chosen = [flag] if flag else []
         assert main([*args, "--models", "procedural,egoposevr", *chosen, "--json", str(out)]) == 0
