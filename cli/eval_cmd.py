@@ -24,8 +24,9 @@ that is not the bundled one is served under a label: --models egoposevr,candidat
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
 @no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate on (@lean-gate, off by default), so
---models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera (or @no-camera) sends no RGB-D frame: what a headset without
-the camera is served (the RGB-D models run on the headset stream alone, as PROTOCOL.md's `camera: false`).
+--models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera
+(or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
+the headset stream alone, as PROTOCOL.md's `camera: false`).
 
 Examples:
   egoposevr eval --data data/dev --split val --json eval.json

@@ -300,9 +300,8 @@ def evaluate(
     a headset without the camera (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a
     label with some of those five (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``,
     ``send_frames``) set otherwise: one file served twice, with and without a runtime stage or the camera,
-    is a paired comparison. ``loaded``: what
-    :func:`split_sequences` gave for these arguments, when the caller has already read the split
-    (``eval --keypoints`` reads it once for both reports).
+    is a paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the
+    caller has already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of
