@@ -1014,7 +1014,7 @@ def test_eval_serves_the_runtime_without_the_steady_stance_or_the_leg_hold_or_wi
     for flag in (
         "--no-steady-stance",
         "--no-leg-hold",
-        "--no-lean-gate",
+        "--lean-gate",
     ):  # it plants its own feet, holds no net
         assert runs[""]["procedural"]["mpjpe_l_cm"] == runs[flag]["procedural"]["mpjpe_l_cm"]
 
