@@ -305,7 +305,7 @@ class Pipeline:
                 bones = self.bone_scale if self.fixed_body else self.served_scale.scale
                 leg_scale = float(bones[_LEG_BONES].mean())
                 still_m = self._stillness_point(pending)
-                pivot_m = self.legs.pelvis_m if self.leg_hold and self.lean_gate else None
+                pivot_m = self.legs.pivot_m if self.leg_hold else None  # the hold's served pelvis, or None
                 steady = self.steady_stance and self.stance.observe_head(
                     t_us, still_m, bool(valid[0]), pivot_m
                 )

@@ -9,8 +9,8 @@ where they were served instead of wandering with it.
 
 The head is quiet while it moves slower than ``QUIET_SPEED_M_S``, or, given a pivot (the served pelvis:
 the lean gate, ``Pipeline(lean_gate=True)``, off by default because it failed its rule, MODEL_CARD.md rule
-37), while it **leans**: it moves around the pivot at most ``LEAN_SPEED_M_S`` while its distance from it changes
-slower than ``LEAN_RADIAL_M_S``. A trunk that leans or sways over still hips moves the head round them, at
+37), while it **leans**: it moves around the pivot at most ``LEAN_SPEED_M_S`` while its distance from it
+changes slower than ``LEAN_RADIAL_M_S``. A trunk that leans or sways over still hips moves the head round them, at
 a median 11-16 cm/s for the lean families (``synth``'s ``lean_stand`` / ``lean_sit``), which the speed alone
 called a step; a squat, a bend, a jump or a rise from a chair moves it towards or away from them; a side
 step moves it round them too, but faster (a median 25-35 cm/s) and with its distance changing more; and a
@@ -125,9 +125,9 @@ class LegHold:
     - **the hold ends** when a foot is let go, the headset stops being quiet over ``HOLD_WINDOW_S`` (with
       ``lean``, it may lean about the pelvis as served the sample before) or is lost: the targets are where
       KPO would serve those joints without the hold (``unheld``) plus the offset that the hold had put on
-      them, decaying with ``RELEASE_TAU_S``, so the legs glide back instead of jumping. (Not the network's joints plus the offset: KPO with a target on
-      the network's joint serves them there, and without one where the planted feet pull them, up to 2 cm
-      away, which was a jump when the fade ended.)
+      them, decaying with ``RELEASE_TAU_S``, so the legs glide back instead of jumping. (Not the network's
+      joints plus the offset: KPO with a target on the network's joint serves them there, and without one
+      where the planted feet pull them, up to 2 cm away, which was a jump when the fade ended.)
     """
 
     def __init__(self, lean: bool = False) -> None:
@@ -135,9 +135,11 @@ class LegHold:
         self._forget()
 
     @property
-    def pelvis_m(self) -> np.ndarray | None:
-        """The pelvis (3,) m as served last sample (None before the first, or after a broken stream)."""
-        return None if self._served is None else self._served[0]
+    def pivot_m(self) -> np.ndarray | None:
+        """What a head may lean about and stay quiet, for this hold's gate and the steady stance's: with
+        ``lean``, the pelvis (3,) m as served last sample; None without it, before the first sample or after a
+        broken stream (the head's speed alone)."""
+        return self._served[0] if self.lean and self._served is not None else None
 
     def _forget(self) -> None:
         self._head_speed = WindowSpeed(HOLD_WINDOW_S)
@@ -173,9 +175,8 @@ class LegHold:
             self._forget()
         dt_s = 0.0 if self._last_us is None else (t_us - self._last_us) * 1e-6
         self._last_us = t_us
-        pivot_m = self.pelvis_m if self.lean else None
         speed_m_s = self._head_speed.push(t_us, head_m)
-        quiet = head_valid and _is_quiet(self._head_speed, speed_m_s, pivot_m)
+        quiet = head_valid and _is_quiet(self._head_speed, speed_m_s, self.pivot_m)
         network = joints[_HELD]
         if quiet and all(planted) and self._served is not None:
             target = self._hold(network, dt_s)

@@ -1005,17 +1005,13 @@ def test_eval_serves_the_runtime_without_the_steady_stance_or_the_leg_hold_or_wi
     tiny_data, tiny_weights, tmp_path
 ):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
-    runs = {}
-    for flag in ("", "--no-steady-stance", "--no-leg-hold", "--lean-gate"):
+    runs, flags = {}, ("--no-steady-stance", "--no-leg-hold", "--lean-gate")
+    for flag in ("", *flags):
         out = tmp_path / f"eval{flag}.json"
         chosen = [flag] if flag else []
         assert main([*args, "--models", "procedural,egoposevr", *chosen, "--json", str(out)]) == 0
         runs[flag] = json.loads(out.read_text())["models"]
-    for flag in (
-        "--no-steady-stance",
-        "--no-leg-hold",
-        "--lean-gate",
-    ):  # it plants its own feet, holds no net
+    for flag in flags:  # it plants its own feet and has no net to hold
         assert runs[""]["procedural"]["mpjpe_l_cm"] == runs[flag]["procedural"]["mpjpe_l_cm"]
 
 
