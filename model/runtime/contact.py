@@ -47,7 +47,8 @@ from typing import Final
 import numpy as np
 
 from ..skeleton import FOOT_JOINT_HEIGHT_M
-from .filters import WindowSpeed, fade_left
+from .filters import WindowSpeed, fade_left, settle_step
+from .stance import reseat_of
 
 FEET: Final = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
 _FOOT_JOINTS: Final = [foot_j for _, foot_j in FEET]
@@ -126,8 +127,9 @@ class FloorEstimate:
 class FootContacts:
     """Per-session foot contact state; :meth:`targets` adds the feet's KPO targets for one sample."""
 
-    def __init__(self, floor_y_m: float = 0.0) -> None:
+    def __init__(self, floor_y_m: float = 0.0, reseat: bool = False) -> None:
         self.floor_y_m = floor_y_m  # the reference space's floor
+        self.reseat = reseat  # a steady anchor far from the network's mean placement moves to it faster
         self._estimate = FloorEstimate()  # the session's own, from the network's feet
         self._floor_now_m = floor_y_m
         self._feet = (_Foot(), _Foot())
@@ -207,7 +209,7 @@ class FootContacts:
                 self._switch(foot, t_us, predicted, BLEND_S)
             else:
                 if steady:
-                    self._settle(foot, predicted - np.array([0.0, lift_m, 0.0]))
+                    self._settle(foot, predicted - np.array([0.0, lift_m, 0.0]), self.reseat)
                 return self._serve(foot, t_us, foot.anchor, predicted, rest_y)
         elif self._plants(lift_m, speed_m_s, contact_p):
             foot.planted = True
@@ -265,18 +267,15 @@ class FootContacts:
         return None if target is None and foot.blend_m is None and not below.any() else out
 
     @staticmethod
-    def _settle(foot: _Foot, on_floor: np.ndarray) -> None:
+    def _settle(foot: _Foot, on_floor: np.ndarray, reseat: bool) -> None:
         """A planted foot in a steady stance: its anchor (2, 3) moves towards the mean of the network's
-        placements on the floor since the plant (``on_floor`` this sample's), at most ANCHOR_SPEED_M_S."""
+        placements on the floor since the plant (``on_floor`` this sample's), at most ANCHOR_SPEED_M_S, or,
+        with ``reseat`` and far from it, faster (stance.RESEAT_SLACK_M)."""
         assert foot.anchor is not None and foot.placed_sum is not None
         foot.placed_sum += on_floor
         foot.placed += 1
-        step_m = foot.placed_sum / foot.placed - foot.anchor
-        most_m = ANCHOR_SPEED_M_S * foot.speed.step_s
-        longest_m = float(np.linalg.norm(step_m, axis=1).max())
-        if longest_m > most_m:
-            step_m *= most_m / longest_m
-        foot.anchor = foot.anchor + step_m
+        gap_m = foot.placed_sum / foot.placed - foot.anchor
+        foot.anchor = foot.anchor + settle_step(gap_m, foot.speed.step_s, ANCHOR_SPEED_M_S, reseat_of(reseat))
 
     @staticmethod
     def _plants(lift_m: float, speed_m_s: float, contact_p: float | None) -> bool:

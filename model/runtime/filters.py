@@ -242,3 +242,20 @@ def fade_left(elapsed_s: float, duration_s: float) -> float | None:
     if not 0.0 <= share < 1.0:
         return None
     return 1.0 - share * share * (3.0 - 2.0 * share)
+
+
+def settle_step(
+    gap_m: np.ndarray, dt_s: float, speed_m_s: float, reseat: tuple[float, float] | None = None
+) -> np.ndarray:
+    """How far held points (a held leg, a planted foot's anchor) move this sample towards the mean of the
+    network's placements of them: gap_m (N, 3) from each point to its mean, moved at most speed_m_s × dt_s
+    (the longest row; the rows keep their proportions). With ``reseat = (slack_m, tau_s)``, a longest gap past
+    slack_m also closes at (gap − slack_m) / tau_s: a hold begun on a wrong guess reaches the mean in a few
+    tau_s instead of at speed_m_s. Returns the step (N, 3)."""
+    longest_m = float(np.linalg.norm(gap_m, axis=1).max())
+    most_m_s = speed_m_s
+    if reseat is not None:
+        slack_m, tau_s = reseat
+        most_m_s = max(most_m_s, (longest_m - slack_m) / tau_s)
+    most_m = most_m_s * dt_s
+    return gap_m * (most_m / longest_m) if longest_m > most_m else gap_m

@@ -92,6 +92,7 @@ class Pipeline:
         steady_stance: bool = True,
         leg_hold: bool = True,
         lean_gate: bool = False,
+        reseat: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -100,6 +101,9 @@ class Pipeline:
         # with the leg hold: a head that leans about the served pelvis is quiet for both gates (stance.py).
         # Off by default: it failed its rule, serving leaning legs further off (MODEL_CARD.md rule 37).
         self.lean_gate = lean_gate
+        # a held leg or a steady foot's anchor far from the network's mean placement moves to it faster
+        # (stance.RESEAT_SLACK_M); off by default, MODEL_CARD.md rule 38
+        self.reseat = reseat
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -144,8 +148,9 @@ class Pipeline:
         self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.cache.forget()
         self.position_filter.reset()
-        self.feet, self.stance, self.hands = FootContacts(), SteadyStance(), LostHandPolicy()
-        self.legs = LegHold(lean=self.lean_gate)
+        self.feet, self.stance = FootContacts(reseat=self.reseat), SteadyStance()
+        self.hands = LostHandPolicy()
+        self.legs = LegHold(lean=self.lean_gate, reseat=self.reseat)
 
     @property
     def frames_encoded(self) -> int:

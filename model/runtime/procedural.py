@@ -435,5 +435,6 @@ def pipeline_for(model, **kwargs):
         kwargs.pop("steady_stance", None)
         kwargs.pop("leg_hold", None)
         kwargs.pop("lean_gate", None)
+        kwargs.pop("reseat", None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

@@ -35,7 +35,7 @@ from typing import Final
 
 import numpy as np
 
-from .filters import WindowSpeed
+from .filters import WindowSpeed, settle_step
 
 QUIET_SPEED_M_S: Final = 0.10
 # A head that leans: round the pelvis at most this fast, while its distance from it changes slower than
@@ -50,6 +50,11 @@ HOLD_WINDOW_S: Final = 0.1
 # this: the planted feet's anchors do the same (contact.ANCHOR_SPEED_M_S). 0.1 cm/s held a worse early guess
 # longer (MODEL_CARD.md, "Legs held while both feet are down").
 SETTLE_SPEED_M_S: Final = 0.0025
+# With ``reseat``, a held joint (and a planted foot's anchor: contact.py) whose mean placement is more than
+# RESEAT_SLACK_M away also moves at (gap - slack) / RESEAT_TAU_S: a hold begun on a wrong guess (a seated
+# session's first legs, the end of a wander) is not kept (MODEL_CARD.md, rule 38).
+RESEAT_SLACK_M: Final = 0.04
+RESEAT_TAU_S: Final = 1.0
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
 _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
 _HELD: Final = np.array(HELD_JOINTS)
@@ -65,6 +70,12 @@ def _is_quiet(window: WindowSpeed, speed_m_s: float, pivot_m: np.ndarray | None)
         return False
     radial_m_s, around_m_s = window.about(pivot_m)
     return radial_m_s < LEAN_RADIAL_M_S and around_m_s < LEAN_SPEED_M_S
+
+
+def reseat_of(reseat: bool) -> tuple[float, float] | None:
+    """filters.settle_step's ``reseat`` for a hold or an anchor that re-seats (RESEAT_SLACK_M, RESEAT_TAU_S),
+    or None. Read at each call, so that the constants can be chosen by patching them."""
+    return (RESEAT_SLACK_M, RESEAT_TAU_S) if reseat else None
 
 
 def _stream_broke(last_us: int | None, t_us: int) -> bool:
@@ -130,8 +141,9 @@ class LegHold:
       where the planted feet pull them, up to 2 cm away, which was a jump when the fade ended.)
     """
 
-    def __init__(self, lean: bool = False) -> None:
+    def __init__(self, lean: bool = False, reseat: bool = False) -> None:
         self.lean = lean  # the head may lean about the served pelvis and stay quiet; False: its speed alone
+        self.reseat = reseat  # a held joint far from the network's mean placement moves to it faster
         self._forget()
 
     @property
@@ -198,11 +210,8 @@ class LegHold:
             return self._held
         self._placed_sum += network
         self._placed += 1
-        step = self._placed_sum / self._placed - self._held
-        longest_m, most_m = float(np.linalg.norm(step, axis=1).max()), SETTLE_SPEED_M_S * dt_s
-        if longest_m > most_m:
-            step *= most_m / longest_m
-        self._held = self._held + step
+        gap_m = self._placed_sum / self._placed - self._held
+        self._held = self._held + settle_step(gap_m, dt_s, SETTLE_SPEED_M_S, reseat_of(self.reseat))
         return self._held
 
     def _let_go(

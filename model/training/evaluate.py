@@ -277,6 +277,7 @@ def evaluate(
     steady_stance: bool = True,
     leg_hold: bool = True,
     lean_gate: bool = False,
+    reseat: bool = False,
     send_frames: bool = True,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
@@ -296,10 +297,12 @@ def evaluate(
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
     both feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans
-    round the served pelvis too (stance.py; off by default); ``send_frames`` False sends no camera frame, as
+    round the served pelvis too (stance.py; off by default), ``reseat`` True moves a held leg or a still
+    foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
+    default); ``send_frames`` False sends no camera frame, as
     a headset without the camera (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a
-    label with some of those five (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``,
-    ``send_frames``) set otherwise: one file served twice, with and without a runtime stage or the camera,
+    label with some of those six (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``,
+    ``reseat``, ``send_frames``) set otherwise: one file served twice, with and without a runtime stage or the camera,
     is a paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the
     caller has already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
@@ -324,7 +327,7 @@ def evaluate(
     }
     for name, model in served_models.items():
         options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold,
-                   "lean_gate": lean_gate}  # fmt: skip
+                   "lean_gate": lean_gate, "reseat": reseat}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
         pipeline = pipeline_for(model, **options)

@@ -10,6 +10,7 @@ from egoposevr.model.runtime.filters import (
     OneEuroCascade,
     OneEuroFilter,
     WindowSpeed,
+    settle_step,
     smoothing_factor,
 )
 
@@ -242,3 +243,21 @@ def test_each_update_is_the_one_euro_statement_bit_for_bit():
                 last_us = t_us
             x_hat[fresh], dx_hat[fresh] = x[fresh], 0.0
         np.testing.assert_array_equal(got, x_hat, err_msg=f"sample {i}")
+
+
+def test_a_held_point_settles_at_its_speed_and_one_far_from_its_mean_closes_the_gap_past_the_slack():
+    gap_m = np.array([[0.0, 0.0, 0.10], [0.0, 0.05, 0.0]])  # the longest row 10 cm
+    slow = settle_step(gap_m, 0.01, 0.0025)
+    assert np.linalg.norm(slow, axis=1).max() == pytest.approx(0.0025 * 0.01)
+    np.testing.assert_allclose(
+        slow / np.linalg.norm(slow[0]), gap_m / 0.10
+    )  # the rows keep their proportions
+    fast = settle_step(gap_m, 0.01, 0.0025, reseat=(0.04, 0.5))
+    assert np.linalg.norm(fast, axis=1).max() == pytest.approx((0.10 - 0.04) / 0.5 * 0.01)
+    within = gap_m * 0.3  # 3 cm: inside the slack, as slow as without
+    np.testing.assert_allclose(
+        settle_step(within, 0.01, 0.0025, reseat=(0.04, 0.5)), settle_step(within, 0.01, 0.0025)
+    )
+    np.testing.assert_array_equal(
+        settle_step(gap_m * 1e-4, 0.01, 0.0025, reseat=(0.04, 0.5)), gap_m * 1e-4
+    )  # reached

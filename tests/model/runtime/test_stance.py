@@ -14,6 +14,8 @@ from egoposevr.model.runtime.stance import (
     QUIET_SPEED_M_S,
     QUIET_WINDOW_S,
     RELEASE_TAU_S,
+    RESEAT_SLACK_M,
+    RESEAT_TAU_S,
     SETTLE_SPEED_M_S,
     LegHold,
     SteadyStance,
@@ -121,9 +123,11 @@ def standing_joints(foot_shift_m: np.ndarray | None = None) -> np.ndarray:
     return joints
 
 
-def serve_left_foot(shifts_m: list[np.ndarray], steady: bool) -> tuple[np.ndarray, FootContacts]:
+def serve_left_foot(
+    shifts_m: list[np.ndarray], steady: bool, reseat: bool = False
+) -> tuple[np.ndarray, FootContacts]:
     """The left foot's target (or the network's foot where none) per sample, and the contacts after."""
-    contacts, served = FootContacts(), []
+    contacts, served = FootContacts(reseat=reseat), []
     for i, shift in enumerate(shifts_m):
         targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
         joints = standing_joints(shift)
@@ -160,6 +164,23 @@ def test_a_steady_foot_settles_at_the_mean_of_the_networks_placements():
     assert abs(served[0, 0] - truth[0]) == pytest.approx(0.06)
     assert np.linalg.norm(served[-1, [0, 2]] - truth[[0, 2]]) < 0.01  # settled
     speed_m_s = np.linalg.norm(np.diff(served, axis=0), axis=1) / (STEP_US * 1e-6)
+    assert speed_m_s.max() <= ANCHOR_SPEED_M_S * 1.01
+
+
+def test_a_steady_foot_planted_on_a_wrong_guess_reseats_at_the_mean_and_one_near_it_settles_as_before():
+    """With ``reseat``, an anchor 15 cm from the network's mean closes the gap past RESEAT_SLACK_M within a
+    few RESEAT_TAU_S; a wander within the slack settles at ANCHOR_SPEED_M_S as without it."""
+    first = np.array([0.15, 0.0, 0.0])
+    samples = int(5 * RESEAT_TAU_S / (STEP_US * 1e-6))
+    shifts = [first] + [np.zeros(3)] * samples
+    truth = standing_joints()[LEFT_FOOT]
+    reseated, _ = serve_left_foot(shifts, steady=True, reseat=True)
+    assert abs(reseated[-1, 0] - truth[0]) < RESEAT_SLACK_M + 0.01
+    kept, _ = serve_left_foot(shifts, steady=True)
+    assert abs(kept[-1, 0] - truth[0]) > 0.13  # without it, the wrong guess is nearly all still there
+    wander = [np.array([0.03 * np.sin(i / 30), 0.0, 0.0]) for i in range(samples)]
+    near, _ = serve_left_foot(wander, steady=True, reseat=True)
+    speed_m_s = np.linalg.norm(np.diff(near, axis=0), axis=1) / (STEP_US * 1e-6)
     assert speed_m_s.max() <= ANCHOR_SPEED_M_S * 1.01
 
 
@@ -207,6 +228,26 @@ def test_legs_stay_where_they_were_served_while_both_feet_are_down_and_the_head_
     speed_m_s = np.linalg.norm(np.diff(path, axis=0), axis=-1) / (STEP_US * 1e-6)
     assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01  # settling, never wandering
     assert np.abs(np.array(network)[:, HELD, 0]).max() > 0.05  # while the network's moved 6 cm
+
+
+def test_legs_held_on_a_wrong_guess_reseat_at_the_networks_mean_and_wandering_ones_stay_held():
+    """A hold begun where the legs were served 15 cm off, the network then placing them right: with
+    ``reseat`` the held joints reach the slack of the mean in a few RESEAT_TAU_S; without it they barely move.
+    A network that wanders within the slack is held as without it."""
+    samples = int(5 * RESEAT_TAU_S / (STEP_US * 1e-6))
+    legs = np.isin(range(22), HELD)[:, None]
+    network = [standing_joints() + np.array([0.15, 0.0, 0.0]) * legs] + [standing_joints()] * samples
+    truth = standing_joints()[HELD]
+    for reseat, farthest_m in ((True, RESEAT_SLACK_M + 0.01), (False, None)):
+        held = hold_legs(
+            LegHold(reseat=reseat), network, [HEAD] * len(network), [(True, True)] * len(network)
+        )
+        gap_m = np.abs(held[-1][:, 0] - truth[:, 0]).max()
+        assert gap_m < farthest_m if reseat else gap_m > 0.13
+    wander = wandering_legs(samples)  # 6 cm back and forth about its start: a mean within the slack
+    held = np.array(hold_legs(LegHold(reseat=True), wander, [HEAD] * samples, [(True, True)] * samples)[1:])
+    speed_m_s = np.linalg.norm(np.diff(held, axis=0), axis=-1) / (STEP_US * 1e-6)
+    assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01
 
 
 @pytest.mark.parametrize("lean", [False, True])

@@ -1005,7 +1005,7 @@ def test_eval_serves_the_runtime_without_the_steady_stance_or_the_leg_hold_or_wi
     tiny_data, tiny_weights, tmp_path
 ):
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
-    runs, flags = {}, ("--no-steady-stance", "--no-leg-hold", "--lean-gate")
+    runs, flags = {}, ("--no-steady-stance", "--no-leg-hold", "--lean-gate", "--reseat")
     for flag in ("", *flags):
         out = tmp_path / f"eval{flag}.json"
         chosen = [flag] if flag else []
