@@ -126,7 +126,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reseat",
         action="store_true",
         help="a held leg or a still foot's anchor far from the network's mean placement moves to it within a "
-        "second or so instead of at 0.25 cm/s (model/runtime/stance.py; off by default, MODEL_CARD.md rule 38)",
+        "second or so instead of at 0.25 cm/s (model/runtime/stance.py; off by default: it failed MODEL_CARD.md rules 38 and 39)",
     )
     parser.add_argument(
         "--no-camera",

@@ -102,7 +102,7 @@ class Pipeline:
         # Off by default: it failed its rule, serving leaning legs further off (MODEL_CARD.md rule 37).
         self.lean_gate = lean_gate
         # a held leg or a steady foot's anchor far from the network's mean placement moves to it faster
-        # (stance.RESEAT_SLACK_M); off by default, MODEL_CARD.md rule 38
+        # (stance.RESEAT_SLACK_M); off by default: it failed MODEL_CARD.md rules 38 and 39
         self.reseat = reseat
         info = model.info
         self.window = info.config.window
