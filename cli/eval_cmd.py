@@ -23,8 +23,9 @@ first one named: whether a gap between two models is more than the people in the
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
-@no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate or the re-seating hold on (@lean-gate, @reseat, off by default), so
---models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera
+@no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate or the re-seating hold on (@lean-gate,
+@reseat, both off by default), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of
+the runtime changes. --no-camera
 (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`).
 
@@ -65,8 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold) or on (@lean-gate, @reseat), or without the "
-        "camera (@no-camera)",
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold) or on (@lean-gate, @reseat), or "
+        "without the camera (@no-camera)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -126,7 +127,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reseat",
         action="store_true",
         help="a held leg or a still foot's anchor far from the network's mean placement moves to it within a "
-        "second or so instead of at 0.25 cm/s (model/runtime/stance.py; off by default: it failed MODEL_CARD.md rules 38 and 39)",
+        "second or so instead of at 0.25 cm/s (model/runtime/stance.py; off by default: it failed "
+        "MODEL_CARD.md rules 38 and 39)",
     )
     parser.add_argument(
         "--no-camera",

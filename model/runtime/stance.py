@@ -52,7 +52,8 @@ HOLD_WINDOW_S: Final = 0.1
 SETTLE_SPEED_M_S: Final = 0.0025
 # With ``reseat``, a held joint (and a planted foot's anchor: contact.py) whose mean placement is more than
 # RESEAT_SLACK_M away also moves at (gap - slack) / RESEAT_TAU_S: a hold begun on a wrong guess (a seated
-# session's first legs, the end of a wander) is not kept (off by default: it failed MODEL_CARD.md rules 38 and 39).
+# session's first legs, the end of a wander) is not kept (off by default: it failed MODEL_CARD.md rules 38
+# and 39).
 RESEAT_SLACK_M: Final = 0.04
 RESEAT_TAU_S: Final = 1.0
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
