@@ -324,9 +324,13 @@ def _run_steps(
         try:
             net.load_state_dict(ckpt["state_dict"])
             opt.load_state_dict(ckpt["optimizer"])
-            for group in opt.param_groups:  # the saved state carries the decay it began with; the flags rule
-                group["weight_decay"] = tc.weight_decay
             sched.load_state_dict(ckpt["scheduler"])
+            # the saved state carries the decay and the learning rate it began with; the flags rule
+            for group in opt.param_groups:
+                group["weight_decay"] = tc.weight_decay
+                group["initial_lr"] = tc.lr
+                group["lr"] = tc.lr * sched.lr_lambdas[0](sched.last_epoch)  # as the schedule has it now
+            sched.base_lrs = [tc.lr] * len(opt.param_groups)
             step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
         except (RuntimeError, ValueError, KeyError) as error:
             raise CheckpointError(

@@ -82,27 +82,29 @@ def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_
     assert ckpt["history"][-1]["rot_served"] > 0
 
 
-def test_dropout_weight_decay_the_contact_and_foot_weights_are_flags_the_net_and_checkpoint_keep(
+def test_dropout_weight_decay_lr_the_contact_and_foot_weights_are_flags_the_net_and_checkpoint_keep(
     tiny_data, tmp_path, capsys
 ):
     import torch
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
     flags = ["--fusion-steps", "2", "--dropout", "0.3", "--contact-weight", "4", "--weight-decay", "0.1"]
-    assert main([*args, *flags, "--no-progress"]) == 0
+    assert main([*args, *flags, "--lr", "1e-3", "--no-progress"]) == 0
     ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
     assert ckpt["optimizer"]["param_groups"][0]["weight_decay"] == 0.1
+    assert ckpt["train_config"]["lr"] == 1e-3 and ckpt["scheduler"]["base_lrs"] == [1e-3]
     assert ckpt["config"]["dropout"] == 0.3 and ckpt["train_config"]["dropout"] == 0.3
     assert ckpt["train_config"]["contact_weight"] == 4.0 and ckpt["history"][-1]["contact"] > 0
     drops = {m.p for m in build_net(ckpt).modules() if isinstance(m, torch.nn.Dropout)}
     assert drops == {0.3}
     ckpt["step"] = 1  # cut short, so that --resume goes on with it
     torch.save(ckpt, tmp_path / "fusion-hmd.pt")
-    resumed = ["--fusion-steps", "2", "--weight-decay", "0.2", "--resume", "--no-progress"]
-    assert main([*args, *resumed]) == 0  # a resumed run decays as its command says, and records that
+    resumed = ["--fusion-steps", "2", "--weight-decay", "0.2", "--lr", "2e-4", "--resume", "--no-progress"]
+    assert main([*args, *resumed]) == 0  # a resumed run trains as its command says, and records that
     ckpt = load_checkpoint(tmp_path / "fusion-hmd.pt")
     assert ckpt["step"] == 2 and ckpt["train_config"]["weight_decay"] == 0.2
     assert ckpt["optimizer"]["param_groups"][0]["weight_decay"] == 0.2
+    assert ckpt["train_config"]["lr"] == 2e-4 and ckpt["scheduler"]["base_lrs"] == [2e-4]
     unweighted = ["--out", str(tmp_path / "c0"), "--fusion-steps", "2", "--contact-weight", "0"]
     assert main([*args, *unweighted, "--no-progress"]) == 0  # the weight scales the contact loss itself
     assert load_checkpoint(tmp_path / "c0" / "fusion-hmd.pt")["history"][-1]["contact"] == 0.0
@@ -122,6 +124,7 @@ def test_dropout_weight_decay_the_contact_and_foot_weights_are_flags_the_net_and
         ("--foot-weight", "--foot-weight W needs"),
         ("--contact-weight", "--contact-weight W needs"),
         ("--weight-decay", "--weight-decay D needs"),
+        ("--lr", "--lr LR needs"),
     ):
         assert main([*args, bad, "-1", "--no-progress"]) == 2
         assert says in capsys.readouterr().err
