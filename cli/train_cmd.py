@@ -159,6 +159,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "model file PATH (e.g. model/weights/egoposevr-lite.onnx); give it the keypoints it learnt from "
         "(--encoders with the encoder it was trained on)",
     )
+    _number(
+        parser,
+        "--keep-upper",
+        "W",
+        "with --init-from: each fusion net also learns, with weight W (the truth's is 1), the upper body the "
+        "net it starts from serves, frozen: a fine-tune for the legs that keeps the arms and trunk; 0 off",
+    )
     parser.add_argument(
         "--init-member",
         type=int,
@@ -220,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
             ("contact_weight", args.contact_weight), ("dropout", args.dropout),
             ("foot_weight", args.foot_weight),
             ("weight_decay", args.weight_decay), ("lr", args.lr),
-            ("distill_weight", args.distill_weight),
+            ("distill_weight", args.distill_weight), ("keep_upper_weight", args.keep_upper),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
             ("arm_swap_p", args.arm_swap),
@@ -298,6 +305,8 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.weight_decay is not None and not 0.0 <= args.weight_decay < 1.0, "--weight-decay D needs 0 <= D < 1"),
         (args.lr is not None and not 0.0 < args.lr <= 0.1, "--lr LR needs 0 < LR <= 0.1"),
         (args.contact_weight is not None and args.contact_weight < 0.0, "--contact-weight W needs W >= 0"),
+        (args.keep_upper is not None and not 0.0 <= args.keep_upper <= 100.0, "--keep-upper W needs 0 <= W <= 100"),
+        (args.keep_upper and args.init_from is None, "--keep-upper W needs --init-from (the net whose upper body it keeps)"),
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),

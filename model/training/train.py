@@ -50,7 +50,7 @@ from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.contact import FEET as ANKLES_AND_FEET
 from ..runtime.loading import load_encoder
-from ..skeleton import ARM_JOINTS, HEAD, rest_offsets
+from ..skeleton import ARM_JOINTS, HEAD, UPPER_BODY, rest_offsets
 from ..synth.headset import TRACKING_CONE_DEG
 from ..zoo import ZOO, fusion_names
 from .augment import (
@@ -126,6 +126,10 @@ class TrainConfig:
     # With teachers (train_fusion's ``teachers``): the share of each fusion loss term taken against the
     # teachers' mean output instead of the truth (knowledge distillation; MODEL_CARD.md).
     distill_weight: float = 0.5
+    # With a fine-tune (train_fusion's ``initial``): weight of the upper body's fit terms (UPPER_BODY's
+    # rotations and joints) taken against the net it starts from, frozen, on top of the truth's: a fine-tune
+    # for the legs that leaves the arms and the trunk where its start put them (MODEL_CARD.md, rule 41). 0: off.
+    keep_upper_weight: float = 0.0
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
@@ -712,11 +716,17 @@ def sample_window(
 
 
 def fusion_loss_fn(
-    net: FusionNet, seqs: list[FusionSequence], tc: TrainConfig, teacher: SeedEnsemble | None = None
+    net: FusionNet,
+    seqs: list[FusionSequence],
+    tc: TrainConfig,
+    teacher: SeedEnsemble | None = None,
+    keeper: FusionNet | None = None,
 ):
     """The fusion net's loss terms on a random batch. With ``teacher`` (frozen nets that read the same
     inputs), each term is split: ``1 - tc.distill_weight`` of it against the truth, the rest (keys
-    ``*_teacher``) against the teacher's output: its rotations, its joints and its contact probabilities."""
+    ``*_teacher``) against the teacher's output: its rotations, its joints and its contact probabilities.
+    With ``keeper`` (the frozen net a fine-tune starts from) the term ``keep_upper`` adds
+    ``tc.keep_upper_weight`` times the upper body's fit against the keeper's output (:func:`upper_body_term`)."""
     cfg = net.cfg
     dev = torch.device(tc.device)
     lengths = np.array([len(s.t_us) for s in seqs])
@@ -763,6 +773,13 @@ def fusion_loss_fn(
             losses["temporal"] = (now - before).abs().sum(-1).mean() * tc.temporal_weight
         if tc.skate_weight > 0:
             losses["skate"] = skate_term(error, world_from_heading[0], contact) * tc.skate_weight
+        if keeper is not None:
+            with torch.no_grad():
+                kept = (
+                    keeper.forward_with_contact(hmd, visual)[0] if cfg.contact_head else keeper(hmd, visual)
+                )
+                kept_pos = _anchored_joints(kept, anchor, offsets)
+            losses["keep_upper"] = upper_body_term(sixd, pos, kept, kept_pos, tc) * tc.keep_upper_weight
         if teacher is None:
             return losses
         with torch.no_grad():
@@ -792,6 +809,18 @@ def skate_term(error: torch.Tensor, world_from_heading: torch.Tensor, contact: t
     now, before = feet_world.chunk(2)
     down_now, down_before = contact.chunk(2)
     return ((now - before).abs().sum(-1) * down_now * down_before).sum(-1).mean()
+
+
+def upper_body_term(
+    sixd: torch.Tensor, pos: torch.Tensor, kept_sixd: torch.Tensor, kept_pos: torch.Tensor, tc: TrainConfig
+) -> torch.Tensor:
+    """How far the upper body (UPPER_BODY's 13 joints) is from the one to keep: the L1 of their 6D rotations
+    (B, J, 6) and of their joints (B, J, 3, m, summed over x, y, z; mean over the joints), weighted as the
+    truth's terms are (``tc.rotation_weight``, ``tc.position_weight``)."""
+    upper = torch.as_tensor(UPPER_BODY, device=sixd.device)
+    rot = (sixd[:, upper] - kept_sixd[:, upper]).abs().mean()
+    joints = (pos[:, upper] - kept_pos[:, upper]).abs().sum(-1).mean()
+    return rot * tc.rotation_weight + joints * tc.position_weight
 
 
 def _anchored_joints(sixd: torch.Tensor, anchor: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -883,6 +912,7 @@ def train_fusion(
     if initial is not None:
         net.load_state_dict(initial.state_dict)
     net.to(tc.device)
+    keeper = _upper_body_keeper(cfg, initial, tc)
     hmd_samples = int(sum(len(p.t_us) for p in prepared))
     meta = {"kind": "fusion", "name": name, "config": to_fields(cfg), "visual": entry.visual,
             "data": _data_field(data_dirs, tc, seqs, hmd_samples=hmd_samples),
@@ -891,11 +921,27 @@ def train_fusion(
         meta["teachers"] = list(teacher.runs_dirs)
     if initial is not None:
         meta["init"] = {"from": initial.source, "member": initial.member}
+        if keeper is not None:
+            meta["init"]["keep_upper_weight"] = tc.keep_upper_weight
     if out_of_fold and entry.visual:
         meta["keypoints_out_of_fold"] = [str(d) for d in out_of_fold]
-    loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None)
+    loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None, keeper)
     _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress)
     return path
+
+
+def _upper_body_keeper(
+    cfg: FusionConfig, initial: InitialWeights | None, tc: TrainConfig
+) -> FusionNet | None:
+    """With ``tc.keep_upper_weight``: a frozen copy of the net a fine-tune starts from, whose upper body the
+    fine-tune keeps (None when the weight is 0). TeacherError without a net to start from."""
+    if tc.keep_upper_weight <= 0:
+        return None
+    if initial is None:
+        raise TeacherError("keeping the upper body (--keep-upper) needs the net it starts from (--init-from)")
+    keeper = FusionNet(cfg)
+    keeper.load_state_dict(initial.state_dict)
+    return keeper.eval().requires_grad_(False).to(tc.device)
 
 
 @dataclasses.dataclass(frozen=True)

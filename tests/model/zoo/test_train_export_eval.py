@@ -550,6 +550,46 @@ def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, ca
     assert "no teacher checkpoint" in capsys.readouterr().err
 
 
+def test_a_fine_tune_that_keeps_the_upper_body_serves_it_nearer_its_start(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    """`--keep-upper W`: the same fine-tune (same draws) with the term moves the upper body's output less from
+    the net it started from than without it, and records the weight; without --init-from it is refused."""
+    import dataclasses
+
+    import torch
+
+    from egoposevr.model.skeleton import UPPER_BODY
+    from egoposevr.model.training.export import load_served_nets
+    from egoposevr.model.training.train import fusion_config, sample_window
+
+    train = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    train += ["--seed", "3", "--fusion-steps", "40", "--lr", "0.005", "--init-from", str(tiny_weights)]
+    for weight in ("10", "0"):
+        assert main([*train, "--out", str(tmp_path / f"k{weight}"), "--keep-upper", weight]) == 0
+    kept = load_checkpoint(tmp_path / "k10" / "fusion-hmd.pt")
+    assert kept["init"]["keep_upper_weight"] == 10.0 and "keep_upper" in kept["history"][-1]
+    assert "keep_upper_weight" not in load_checkpoint(tmp_path / "k0" / "fusion-hmd.pt")["init"]
+
+    tc = dataclasses.replace(PRESETS["tiny"], seed=3)
+    cfg = fusion_config("hmd", tc)
+    _, _, (start,) = load_served_nets(tiny_weights / "hmd.onnx")
+    fs = prepare_fusion_sequence(load_split(tiny_data, "val")[0], np.random.default_rng(0), tc, None)
+    hmd = torch.from_numpy(np.stack([sample_window(fs, i, cfg, None, tc)[0] for i in range(0, 100, 5)]))
+    with torch.no_grad():
+        was = start.eval()(hmd)
+        moved = {
+            w: (build_net(load_checkpoint(tmp_path / f"k{w}" / "fusion-hmd.pt"))(hmd) - was).abs()
+            for w in ("10", "0")
+        }
+    assert moved["10"][:, UPPER_BODY].mean() < 0.5 * moved["0"][:, UPPER_BODY].mean()
+
+    capsys.readouterr()
+    fresh = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    assert main([*fresh, "--out", str(tmp_path / "x"), "--keep-upper", "1"]) == 2
+    assert "needs --init-from" in capsys.readouterr().err
+
+
 def test_a_narrower_tracking_cone_trains_the_mirrored_copies_on_more_lost_controllers(
     tiny_data, tmp_path, capsys
 ):
