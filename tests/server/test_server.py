@@ -93,21 +93,24 @@ def _stalled_viewer_case(server):
     baseline_ms = _median_latency_ms(headset, baseline)
     baseline_answered = len(headset.poses()) / len(baseline)
     stalled = raw_client(server.url, session, receive_buffer=4096)  # never reads
-    dropped_before = server.metric("egoposevr_dropped_poses_total", role="render")
-    headset.received.clear()
-    sent = replay(headset, WALK[120:])
-    headset.wait_for(lambda: _accounted(headset, sent))
-    answered = headset.poses()
-    # The headset was not slowed into skipping: compared with the same machine a moment before, as a loaded
-    # CI machine may skip some samples with no viewer stalled at all.
-    assert len(answered) / len(sent) >= 0.9 * baseline_answered
-    # Generous bound (shared 2-core machines are noisy): a viewer blocking the server would add tens of ms.
-    assert _median_latency_ms(headset, sent) < 2 * baseline_ms + 3
-    healthy.wait_for(lambda: len([p for p in healthy.poses() if p.seq in sent]) >= len(answered))
-    assert server.metric("egoposevr_dropped_poses_total", role="render") > dropped_before
-    for c in (headset, healthy):
-        c.close()
-    stalled.close()
+    try:
+        dropped_before = server.metric("egoposevr_dropped_poses_total", role="render")
+        headset.received.clear()
+        sent = replay(headset, WALK[120:])
+        headset.wait_for(lambda: _accounted(headset, sent))
+        answered = headset.poses()
+        # The headset was not held back into skipping. A server that waited on the stalled viewer would stop
+        # answering once the viewer's 8 KiB buffers filled, a few poses in; half of the moment before's share
+        # leaves room for a pause of the machine's own (one full-suite run answered 174 of 210, 2026-12-03).
+        assert len(answered) / len(sent) >= 0.5 * baseline_answered
+        # Generous bound (shared 2-core machines are noisy): a viewer blocking the server would add tens of ms.
+        assert _median_latency_ms(headset, sent) < 2 * baseline_ms + 3
+        healthy.wait_for(lambda: len([p for p in healthy.poses() if p.seq in sent]) >= len(answered))
+        assert server.metric("egoposevr_dropped_poses_total", role="render") > dropped_before
+    finally:  # a failure here must not leave sockets open for the next test's warnings to trip on
+        for c in (headset, healthy):
+            c.close()
+        stalled.close()
 
 
 def _median_latency_ms(headset: Client, sent: dict[int, float]) -> float:
