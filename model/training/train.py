@@ -935,13 +935,18 @@ def _upper_body_keeper(
 ) -> FusionNet | None:
     """With ``tc.keep_upper_weight``: a frozen copy of the net a fine-tune starts from, whose upper body the
     fine-tune keeps (None when the weight is 0). TeacherError without a net to start from."""
+    _check_keeps_a_start(initial, tc)
     if tc.keep_upper_weight <= 0:
         return None
-    if initial is None:
-        raise TeacherError("keeping the upper body (--keep-upper) needs the net it starts from (--init-from)")
     keeper = FusionNet(cfg)
     keeper.load_state_dict(initial.state_dict)
     return keeper.eval().requires_grad_(False).to(tc.device)
+
+
+def _check_keeps_a_start(initial: InitialWeights | None, tc: TrainConfig) -> None:
+    """TeacherError when ``tc.keep_upper_weight`` asks to keep the upper body of a start there is not."""
+    if tc.keep_upper_weight > 0 and initial is None:
+        raise TeacherError("keeping the upper body (--keep-upper) needs the net it starts from (--init-from)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1185,8 +1190,9 @@ def train_zoo(
     visuals = [k for k in ("rgb", "rgbd") if any(ZOO[f].visual == k for f in fusions)]
     # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
     taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
-    for f in fusions:  # a fine-tune and teachers at different head offsets: refused now, too
+    for f in fusions:  # refused now, too: a fine-tune and teachers at different head offsets, nothing to keep
         training_offsets((initial or {}).get(f), taught[f], head_offsets_m)
+        _check_keeps_a_start((initial or {}).get(f), tc)
     data_dirs = dataset_dirs(data)
     if out_of_fold and (tc.hold_out or len(data_dirs) > 1):
         raise DatasetError(
