@@ -167,6 +167,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "net it starts from serves, frozen: a fine-tune for the legs that keeps the arms and trunk; 0 off",
     )
     parser.add_argument(
+        "--keep-joints",
+        choices=("upper", "arms"),
+        default=None,
+        help="with --keep-upper: the joints it keeps: upper, the 13 of the upper body under the head "
+        "(default); arms, the collars, shoulders, elbows and wrists in the chest's frame, the trunk's lean free",
+    )
+    parser.add_argument(
         "--init-member",
         type=int,
         default=0,
@@ -228,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
             ("foot_weight", args.foot_weight),
             ("weight_decay", args.weight_decay), ("lr", args.lr),
             ("distill_weight", args.distill_weight), ("keep_upper_weight", args.keep_upper),
+            ("keep_joints", args.keep_joints),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
             ("arm_swap_p", args.arm_swap),
@@ -307,6 +315,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.contact_weight is not None and args.contact_weight < 0.0, "--contact-weight W needs W >= 0"),
         (args.keep_upper is not None and not 0.0 <= args.keep_upper <= 100.0, "--keep-upper W needs 0 <= W <= 100"),
         (args.keep_upper and args.init_from is None, "--keep-upper W needs --init-from (the net whose upper body it keeps)"),
+        (args.keep_joints and not args.keep_upper, "--keep-joints needs --keep-upper W > 0 (the term it chooses joints for)"),
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),

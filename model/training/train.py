@@ -50,7 +50,7 @@ from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.contact import FEET as ANKLES_AND_FEET
 from ..runtime.loading import load_encoder
-from ..skeleton import ARM_JOINTS, HEAD, UPPER_BODY, rest_offsets
+from ..skeleton import ARM_JOINTS, HEAD, JOINT_INDEX, UPPER_BODY, rest_offsets
 from ..synth.headset import TRACKING_CONE_DEG
 from ..zoo import ZOO, fusion_names
 from .augment import (
@@ -130,6 +130,10 @@ class TrainConfig:
     # rotations and joints) taken against the net it starts from, frozen, on top of the truth's: a fine-tune
     # for the legs that leaves the arms and the trunk where its start put them (MODEL_CARD.md, rule 41). 0: off.
     keep_upper_weight: float = 0.0
+    # Which joints keep_upper_weight keeps: "upper", UPPER_BODY's 13 (their rotations, their joints under the
+    # head); "arms", ARM_JOINTS' 8 (their rotations, their joints in the chest's frame), so the spine, the neck
+    # and the trunk's lean over the hips stay free (MODEL_CARD.md, rule 42).
+    keep_joints: str = "upper"
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
@@ -156,6 +160,7 @@ class TrainConfig:
 
 # The ankles and the feet (the runtime's planted pairs): the joints --foot-weight weighs
 FOOT_JOINTS: Final = [j for ankle_and_foot in ANKLES_AND_FEET for j in ankle_and_foot]
+CHEST: Final = JOINT_INDEX["spine3"]  # the collars' parent
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {
@@ -779,7 +784,8 @@ def fusion_loss_fn(
                     keeper.forward_with_contact(hmd, visual)[0] if cfg.contact_head else keeper(hmd, visual)
                 )
                 kept_pos = _anchored_joints(kept, anchor, offsets)
-            losses["keep_upper"] = upper_body_term(sixd, pos, kept, kept_pos, tc) * tc.keep_upper_weight
+            kept_terms = upper_body_term(sixd, pos, kept, kept_pos, tc, offsets)
+            losses["keep_upper"] = kept_terms * tc.keep_upper_weight
         if teacher is None:
             return losses
         with torch.no_grad():
@@ -812,15 +818,39 @@ def skate_term(error: torch.Tensor, world_from_heading: torch.Tensor, contact: t
 
 
 def upper_body_term(
-    sixd: torch.Tensor, pos: torch.Tensor, kept_sixd: torch.Tensor, kept_pos: torch.Tensor, tc: TrainConfig
+    sixd: torch.Tensor,
+    pos: torch.Tensor,
+    kept_sixd: torch.Tensor,
+    kept_pos: torch.Tensor,
+    tc: TrainConfig,
+    offsets: torch.Tensor,
 ) -> torch.Tensor:
-    """How far the upper body (UPPER_BODY's 13 joints) is from the one to keep: the L1 of their 6D rotations
-    (B, J, 6) and of their joints (B, J, 3, m, summed over x, y, z; mean over the joints), weighted as the
-    truth's terms are (``tc.rotation_weight``, ``tc.position_weight``)."""
-    upper = torch.as_tensor(UPPER_BODY, device=sixd.device)
-    rot = (sixd[:, upper] - kept_sixd[:, upper]).abs().mean()
-    joints = (pos[:, upper] - kept_pos[:, upper]).abs().sum(-1).mean()
+    """How far the upper body is from the one to keep: the L1 of the kept joints' 6D rotations (B, J, 6)
+    and of their positions (B, J, 3, m, summed over x, y, z; mean over the joints), weighted as the truth's
+    terms are (``tc.rotation_weight``, ``tc.position_weight``). ``tc.keep_joints`` "upper": UPPER_BODY's 13
+    joints, placed under the head (pos, kept_pos); "arms": ARM_JOINTS' 8, placed in the chest's frame from
+    their own rotations and the bone offsets (B, J, 3), so that how the trunk leans is not kept."""
+    if tc.keep_joints == "arms":
+        kept = torch.as_tensor(ARM_JOINTS, device=sixd.device)
+        pos, kept_pos = _arms_in_chest_frame(sixd, offsets), _arms_in_chest_frame(kept_sixd, offsets)
+    else:
+        kept = torch.as_tensor(UPPER_BODY, device=sixd.device)
+    rot = (sixd[:, kept] - kept_sixd[:, kept]).abs().mean()
+    joints = (pos[:, kept] - kept_pos[:, kept]).abs().sum(-1).mean()
     return rot * tc.rotation_weight + joints * tc.position_weight
+
+
+_IDENTITY_6D: Final = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # the 6D of no rotation (sixd_to_matrix's layout)
+
+
+def _arms_in_chest_frame(sixd: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Joints (B, J, 3) of the rotations sixd (B, J, 6) with every joint but ARM_JOINTS unrotated, less the
+    chest's (spine3's): the arms' joints in the chest's own frame, which its lean does not move."""
+    arms = torch.as_tensor(ARM_JOINTS, device=sixd.device)
+    still = torch.as_tensor(_IDENTITY_6D, dtype=sixd.dtype, device=sixd.device).expand_as(sixd).clone()
+    still[:, arms] = sixd[:, arms]
+    pos, _ = forward_kinematics(sixd_to_matrix(still), torch.zeros(len(sixd), 3, device=sixd.device), offsets)
+    return pos - pos[:, CHEST][:, None]
 
 
 def _anchored_joints(sixd: torch.Tensor, anchor: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -923,6 +953,7 @@ def train_fusion(
         meta["init"] = {"from": initial.source, "member": initial.member}
         if keeper is not None:
             meta["init"]["keep_upper_weight"] = tc.keep_upper_weight
+            meta["init"]["keep_joints"] = tc.keep_joints
     if out_of_fold and entry.visual:
         meta["keypoints_out_of_fold"] = [str(d) for d in out_of_fold]
     loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None, keeper)

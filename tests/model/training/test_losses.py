@@ -6,8 +6,15 @@ import math
 import pytest
 
 torch = pytest.importorskip("torch")
+from egoposevr.model.training.nets.kinematics import default_offsets, matrix_to_sixd  # noqa: E402
 from egoposevr.model.training.plausibility import FEET  # noqa: E402
-from egoposevr.model.training.train import PRESETS, _fit_terms, skate_term  # noqa: E402
+from egoposevr.model.training.train import (  # noqa: E402
+    PRESETS,
+    _anchored_joints,
+    _fit_terms,
+    skate_term,
+    upper_body_term,
+)
 
 
 def _yaw(deg: float) -> torch.Tensor:
@@ -54,3 +61,32 @@ def test_the_served_rotation_term_makes_a_column_that_collapsed_between_two_trut
         one_truth.expand(1, 1, 6), torch.zeros(1, 1, 3), None,
         (targets[:1, None], torch.zeros(1, 1, 3), None), torch.ones(1, 1), PRESETS["tiny"],
     )  # fmt: skip
+
+
+def _pose(turns: dict[int, float]) -> torch.Tensor:
+    """One window's 6D (1, 22, 6): every joint unrotated but each joint j of turns turned by its degrees
+    about z."""
+    rot = torch.eye(3).repeat(22, 1, 1)
+    for joint, deg in turns.items():
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        rot[joint] = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return matrix_to_sixd(rot)[None]
+
+
+def _kept_cost(now: torch.Tensor, start: torch.Tensor, joints: str) -> float:
+    """upper_body_term of the output now against the start (each (1, 22, 6)), keeping ``joints``."""
+    tc = dataclasses.replace(PRESETS["tiny"], keep_joints=joints)
+    offsets, anchor = default_offsets()[None], torch.zeros(1, 3)
+    placed = [_anchored_joints(sixd, anchor, offsets) for sixd in (now, start)]
+    return upper_body_term(now, placed[0], start, placed[1], tc, offsets).item()
+
+
+def test_keeping_the_arms_leaves_the_trunk_free_to_lean_and_keeping_the_upper_body_does_not():
+    start = _pose({})
+    leaned = _pose({3: 10.0, 6: 10.0})  # spine1 and spine2 lean 20 degrees, the arms as they were
+    raised = _pose({16: 30.0})  # the left shoulder turns 30 degrees, the trunk as it was
+    assert _kept_cost(start, start, "arms") == pytest.approx(0.0, abs=1e-6)
+    assert _kept_cost(leaned, start, "arms") == pytest.approx(0.0, abs=1e-6)
+    assert _kept_cost(leaned, start, "upper") > 0.05  # the head-anchored arms and the spine moved
+    assert _kept_cost(raised, start, "arms") > 0.05
+    assert _kept_cost(raised, start, "upper") > 0.0

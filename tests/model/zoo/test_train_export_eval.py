@@ -569,6 +569,7 @@ def test_a_fine_tune_that_keeps_the_upper_body_serves_it_nearer_its_start(
         assert main([*train, "--out", str(tmp_path / f"k{weight}"), "--keep-upper", weight]) == 0
     kept = load_checkpoint(tmp_path / "k10" / "fusion-hmd.pt")
     assert kept["init"]["keep_upper_weight"] == 10.0 and "keep_upper" in kept["history"][-1]
+    assert kept["init"]["keep_joints"] == "upper"
     assert "keep_upper_weight" not in load_checkpoint(tmp_path / "k0" / "fusion-hmd.pt")["init"]
 
     tc = dataclasses.replace(PRESETS["tiny"], seed=3)
@@ -588,6 +589,8 @@ def test_a_fine_tune_that_keeps_the_upper_body_serves_it_nearer_its_start(
     fresh = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
     assert main([*fresh, "--out", str(tmp_path / "x"), "--keep-upper", "1"]) == 2
     assert "needs --init-from" in capsys.readouterr().err
+    assert main([*train, "--out", str(tmp_path / "y"), "--keep-joints", "arms"]) == 2
+    assert "--keep-joints needs --keep-upper" in capsys.readouterr().err
 
 
 def test_a_narrower_tracking_cone_trains_the_mirrored_copies_on_more_lost_controllers(
