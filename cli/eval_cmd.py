@@ -241,9 +241,10 @@ def run(args: argparse.Namespace) -> int:
         print("\nMPJPE per motion category (upper / lower body, cm):\n")
         print(category_table(results))
         print("\nFoot skating (cm/s) and leg leakage (cm) per motion category, each also after a session's")
-        print("first second:\n")
+        print("first second, and the leakage that did not bring the legs nearer the truth (wander, cm):\n")
         keys = ("foot_skate_cm_s", "foot_skate_settled_cm_s", "leg_leakage_cm", "leg_leakage_settled_cm")
-        print(category_table(results, keys, "skate / after 1 s / leak / after 1 s"))
+        keys += ("leg_wander_cm",)
+        print(category_table(results, keys, "skate / after 1 s / leak / after 1 s / wander"))
     if args.intervals:
         people = len(subjects(loaded[0]))
         print(

@@ -48,7 +48,7 @@ METRIC_KEYS = (
     "mpjpe_u_cm", "mpjpe_l_cm", "pa_mpjpe_u_cm", "pa_mpjpe_l_cm", "mpjre_u_deg", "mpjre_l_deg", "hpe_cm",
     "hpe_lost_cm", "lost_share", "facing_head_deg", "facing_hands_deg",
     "jitter", "foot_skate_cm_s", "foot_skate_settled_cm_s", "floor_float_cm", "floor_penetration_cm",
-    "leg_leakage_cm", "leg_leakage_settled_cm", "jerk", "jerk_true", "jerk_devices", "fps",
+    "leg_leakage_cm", "leg_leakage_settled_cm", "leg_wander_cm", "jerk", "jerk_true", "jerk_devices", "fps",
 )  # fmt: skip
 WRISTS = np.array([20, 21])
 # Head, left wrist, right wrist: the joints whose global rotation "facing" measures.
@@ -576,12 +576,12 @@ def keypoint_table(accuracy: dict[str, dict[str, Any]]) -> str:
 def plausibility_table(results: dict[str, dict[str, Any]]) -> str:
     """Does the served body behave like one (plausibility.py): one row per model; NaN where the split has no
     foot contact or no still legs."""
-    rows = ["| model | foot skating cm/s (after 1 s) | floating cm | penetration cm | leg leakage cm (after 1 s) "
+    rows = ["| model | foot skating cm/s (after 1 s) | floating cm | penetration cm | leg leakage cm (after 1 s; wander) "
             "| jerk m/s³ (truth; truth on the devices) |",
             "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
     for name, m in results.items():
         skating = f"{m['foot_skate_cm_s']:.1f} ({m['foot_skate_settled_cm_s']:.1f})"
-        leakage = f"{m['leg_leakage_cm']:.1f} ({m['leg_leakage_settled_cm']:.1f})"
+        leakage = f"{m['leg_leakage_cm']:.1f} ({m['leg_leakage_settled_cm']:.1f}; {m['leg_wander_cm']:.1f})"
         jerk = f"{m['jerk']:.0f} ({m['jerk_true']:.0f}; {m['jerk_devices']:.0f})"
         rows.append(
             f"| {name} | {skating} | {m['floor_float_cm']:.1f} | {m['floor_penetration_cm']:.1f} | {leakage} | {jerk} |"
@@ -610,6 +610,7 @@ INTERVAL_KEYS: Final = (
     ("mpjpe_u_cm", "MPJPE-U cm"), ("mpjpe_l_cm", "MPJPE-L cm"), ("mpjre_l_deg", "MPJRE-L °"),
     ("hpe_lost_cm", "H-PE lost cm"), ("foot_skate_cm_s", "skating cm/s"), ("leg_leakage_cm", "leakage cm"),
     ("foot_skate_settled_cm_s", "skating after 1 s cm/s"), ("leg_leakage_settled_cm", "leakage after 1 s cm"),
+    ("leg_wander_cm", "wander cm"),
 )  # fmt: skip
 
 

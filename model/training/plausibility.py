@@ -14,6 +14,10 @@ still while only the arms move. Measured against the truth of a dataset sequence
   stretches' parts after a session's first ``WARM_UP_S``: a cold session's first guess of the legs, made
   before its windows hold any real history, is corrected once the camera shows them, and that correction
   is a move of the served legs too, but not the wandering while the arms move that leakage is there to catch.
+  **Leg wander** (cm) is leakage less what of it brought the legs nearer the truth: each joint's distance
+  from its start less how much its error shrank since then (never below 0). Legs that move straight to where
+  the truth is wander 0 (a wrong first guess corrected late); legs that move away from it, or round it,
+  wander as far as they leak. A user sees both; wander says which of them a leakage was.
 - **Jerk** (m/s³): the mean norm of the third time derivative of the joints, served and true; and, where
   the caller gives it, of the truth with its head and tracked wrists moved to where the devices put them
   (``jerk_devices``): what a perfect network would serve with the head and hands exactly on their devices,
@@ -104,6 +108,20 @@ def leakage(served: np.ndarray, stretches: list[slice]) -> np.ndarray:
     )
 
 
+def wander(served: np.ndarray, truth: np.ndarray, stretches: list[slice]) -> np.ndarray:
+    """(S,) m: each stretch's mean, over its samples and the lower-body joints of served (N, J, 3), of the
+    distance from where the joint was at the stretch's start less how much nearer the truth (N, J, 3) it is
+    now than then (floored at 0 per joint and sample)."""
+    out = []
+    for s in stretches:
+        now, true_now = served[s][:, LOWER_BODY], truth[s][:, LOWER_BODY]
+        moved = np.linalg.norm(now - now[:1], axis=-1)
+        error = np.linalg.norm(now - true_now, axis=-1)
+        nearer = np.maximum(error[:1] - error, 0.0)
+        out.append(np.maximum(moved - nearer, 0.0).mean())
+    return np.array(out)
+
+
 def jerk(joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     """(N-3,) mean over joints of |d³x/dt³| (m/s³), on the mean sample interval."""
     if len(joints) < 4:
@@ -128,6 +146,7 @@ def plausibility(
         "sole": sole[touch],
         "leakage": leakage(served, still),
         "leakage_settled": leakage(served, settled(still, t_us)),
+        "wander": wander(served, truth, still),
         "jerk": jerk(served, t_us),
         "jerk_true": jerk(truth, t_us),
     } | ({} if on_devices is None else {"jerk_devices": jerk(on_devices, t_us)})
@@ -161,6 +180,7 @@ def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         "floor_penetration_cm": total(np.maximum(-sole, 0.0), 100.0),
         "leg_leakage_cm": total(part["leakage"], 100.0),
         "leg_leakage_settled_cm": total(part["leakage_settled"], 100.0),
+        "leg_wander_cm": total(part["wander"], 100.0),
         "jerk": total(part["jerk"]),
         "jerk_true": total(part["jerk_true"]),
         "jerk_devices": total(part["jerk_devices"]) if "jerk_devices" in part else np.array([np.nan, 0.0]),
@@ -169,7 +189,7 @@ def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
     """Pooled over sequences: foot_skate_cm_s, foot_skate_settled_cm_s, floor_float_cm, floor_penetration_cm,
-    leg_leakage_cm and leg_leakage_settled_cm (NaN where nothing was in contact or still), jerk, jerk_true and
+    leg_leakage_cm, leg_leakage_settled_cm and leg_wander_cm (NaN where nothing was in contact or still), jerk, jerk_true and
     jerk_devices (m/s³; NaN unless every part has it)."""
     if not parts:
         return {k: float("nan") for k in plausibility_totals(_EMPTY)}
@@ -178,5 +198,5 @@ def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, floa
 
 _EMPTY: Final = {
     k: np.zeros(0)
-    for k in ("skate", "skate_settled", "sole", "leakage", "leakage_settled", "jerk", "jerk_true")
+    for k in ("skate", "skate_settled", "sole", "leakage", "leakage_settled", "wander", "jerk", "jerk_true")
 }
