@@ -189,8 +189,8 @@ def plausibility_totals(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def summarize_plausibility(parts: list[dict[str, np.ndarray]]) -> dict[str, float]:
     """Pooled over sequences: foot_skate_cm_s, foot_skate_settled_cm_s, floor_float_cm, floor_penetration_cm,
-    leg_leakage_cm, leg_leakage_settled_cm and leg_wander_cm (NaN where nothing was in contact or still), jerk, jerk_true and
-    jerk_devices (m/s³; NaN unless every part has it)."""
+    leg_leakage_cm, leg_leakage_settled_cm and leg_wander_cm (NaN where nothing was in contact or still),
+    jerk, jerk_true and jerk_devices (m/s³; NaN unless every part has it)."""
     if not parts:
         return {k: float("nan") for k in plausibility_totals(_EMPTY)}
     return pooled_means(add_totals([plausibility_totals(p) for p in parts]))
