@@ -1355,7 +1355,7 @@ def test_eval_reports_categories_and_the_encoders_keypoint_error(
     # The split is read once for both reports.
     assert shards_read and len(set(shards_read)) == len(shards_read)
     assert "| category (sequences) |" in text and "| visual-rgbd |" in text and "| visual-rgb |" in text
-    assert "egoposevr skate / after 1 s / leak / after 1 s |" in text  # the still bars' table
+    assert "egoposevr skate / after 1 s / leak / after 1 s / wander |" in text  # the still bars' table
     assert "| procedural |" in text  # the baseline, evaluated like the others
     report = json.loads(out.read_text())
     assert set(report["keypoints"]) == {"visual-rgb", "visual-rgbd"}
