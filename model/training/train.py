@@ -161,6 +161,8 @@ class TrainConfig:
 # The ankles and the feet (the runtime's planted pairs): the joints --foot-weight weighs
 FOOT_JOINTS: Final = [j for ankle_and_foot in ANKLES_AND_FEET for j in ankle_and_foot]
 CHEST: Final = JOINT_INDEX["spine3"]  # the collars' parent
+# TrainConfig.keep_joints: the joints each choice keeps (upper_body_term)
+KEPT_JOINTS: Final = {"upper": UPPER_BODY, "arms": ARM_JOINTS}
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {
@@ -783,8 +785,7 @@ def fusion_loss_fn(
                 kept = (
                     keeper.forward_with_contact(hmd, visual)[0] if cfg.contact_head else keeper(hmd, visual)
                 )
-                kept_pos = _anchored_joints(kept, anchor, offsets)
-            kept_terms = upper_body_term(sixd, pos, kept, kept_pos, tc, offsets)
+            kept_terms = upper_body_term(sixd, pos, kept, anchor, offsets, tc)
             losses["keep_upper"] = kept_terms * tc.keep_upper_weight
         if teacher is None:
             return losses
@@ -821,35 +822,33 @@ def upper_body_term(
     sixd: torch.Tensor,
     pos: torch.Tensor,
     kept_sixd: torch.Tensor,
-    kept_pos: torch.Tensor,
-    tc: TrainConfig,
+    anchor: torch.Tensor,
     offsets: torch.Tensor,
+    tc: TrainConfig,
 ) -> torch.Tensor:
-    """How far the upper body is from the one to keep: the L1 of the kept joints' 6D rotations (B, J, 6)
-    and of their positions (B, J, 3, m, summed over x, y, z; mean over the joints), weighted as the truth's
-    terms are (``tc.rotation_weight``, ``tc.position_weight``). ``tc.keep_joints`` "upper": UPPER_BODY's 13
-    joints, placed under the head (pos, kept_pos); "arms": ARM_JOINTS' 8, placed in the chest's frame from
-    their own rotations and the bone offsets (B, J, 3), so that how the trunk leans is not kept."""
+    """How far the upper body is from the one to keep (kept_sixd, (B, J, 6), no gradient): the L1 of the kept
+    joints' 6D rotations (B, J, 6) and of their positions (B, J, 3, m, summed over x, y, z; mean over the
+    joints), weighted as the truth's terms are (``tc.rotation_weight``, ``tc.position_weight``).
+    ``tc.keep_joints`` (KEPT_JOINTS) "upper": UPPER_BODY's 13 joints, placed under the head at anchor (B, 3)
+    (pos is sixd's so placed); "arms": ARM_JOINTS' 8, placed in the chest's frame from their own rotations
+    and the bone offsets (B, J, 3), so that how the trunk leans is not kept."""
     if tc.keep_joints == "arms":
-        kept = torch.as_tensor(ARM_JOINTS, device=sixd.device)
         pos, kept_pos = _arms_in_chest_frame(sixd, offsets), _arms_in_chest_frame(kept_sixd, offsets)
     else:
-        kept = torch.as_tensor(UPPER_BODY, device=sixd.device)
+        kept_pos = _anchored_joints(kept_sixd, anchor, offsets)
+    kept = torch.as_tensor(KEPT_JOINTS[tc.keep_joints], device=sixd.device)
     rot = (sixd[:, kept] - kept_sixd[:, kept]).abs().mean()
     joints = (pos[:, kept] - kept_pos[:, kept]).abs().sum(-1).mean()
     return rot * tc.rotation_weight + joints * tc.position_weight
-
-
-_IDENTITY_6D: Final = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # the 6D of no rotation (sixd_to_matrix's layout)
 
 
 def _arms_in_chest_frame(sixd: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     """Joints (B, J, 3) of the rotations sixd (B, J, 6) with every joint but ARM_JOINTS unrotated, less the
     chest's (spine3's): the arms' joints in the chest's own frame, which its lean does not move."""
     arms = torch.as_tensor(ARM_JOINTS, device=sixd.device)
-    still = torch.as_tensor(_IDENTITY_6D, dtype=sixd.dtype, device=sixd.device).expand_as(sixd).clone()
-    still[:, arms] = sixd[:, arms]
-    pos, _ = forward_kinematics(sixd_to_matrix(still), torch.zeros(len(sixd), 3, device=sixd.device), offsets)
+    rot = torch.eye(3, dtype=sixd.dtype, device=sixd.device).expand(*sixd.shape[:2], 3, 3).clone()
+    rot[:, arms] = sixd_to_matrix(sixd[:, arms])
+    pos, _ = forward_kinematics(rot, torch.zeros(len(sixd), 3, device=sixd.device), offsets)
     return pos - pos[:, CHEST][:, None]
 
 
@@ -975,7 +974,10 @@ def _upper_body_keeper(
 
 
 def _check_keeps_a_start(initial: InitialWeights | None, tc: TrainConfig) -> None:
-    """TeacherError when ``tc.keep_upper_weight`` asks to keep the upper body of a start there is not."""
+    """TeacherError when ``tc.keep_upper_weight`` asks to keep the upper body of a start there is not;
+    ValueError when ``tc.keep_joints`` names no joints of KEPT_JOINTS."""
+    if tc.keep_joints not in KEPT_JOINTS:
+        raise ValueError(f"keep_joints must be one of {sorted(KEPT_JOINTS)}, got {tc.keep_joints!r}")
     if tc.keep_upper_weight > 0 and initial is None:
         raise TeacherError("keeping the upper body (--keep-upper) needs the net it starts from (--init-from)")
 

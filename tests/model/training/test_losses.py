@@ -11,6 +11,7 @@ from egoposevr.model.training.plausibility import FEET  # noqa: E402
 from egoposevr.model.training.train import (  # noqa: E402
     PRESETS,
     _anchored_joints,
+    _check_keeps_a_start,
     _fit_terms,
     skate_term,
     upper_body_term,
@@ -77,8 +78,7 @@ def _kept_cost(now: torch.Tensor, start: torch.Tensor, joints: str) -> float:
     """upper_body_term of the output now against the start (each (1, 22, 6)), keeping ``joints``."""
     tc = dataclasses.replace(PRESETS["tiny"], keep_joints=joints)
     offsets, anchor = default_offsets()[None], torch.zeros(1, 3)
-    placed = [_anchored_joints(sixd, anchor, offsets) for sixd in (now, start)]
-    return upper_body_term(now, placed[0], start, placed[1], tc, offsets).item()
+    return upper_body_term(now, _anchored_joints(now, anchor, offsets), start, anchor, offsets, tc).item()
 
 
 def test_keeping_the_arms_leaves_the_trunk_free_to_lean_and_keeping_the_upper_body_does_not():
@@ -90,3 +90,7 @@ def test_keeping_the_arms_leaves_the_trunk_free_to_lean_and_keeping_the_upper_bo
     assert _kept_cost(leaned, start, "upper") > 0.05  # the head-anchored arms and the spine moved
     assert _kept_cost(raised, start, "arms") > 0.05
     assert _kept_cost(raised, start, "upper") > 0.0
+    with pytest.raises(
+        ValueError, match="keep_joints"
+    ):  # a name that is no joint set is refused, not "upper"
+        _check_keeps_a_start(None, dataclasses.replace(PRESETS["tiny"], keep_joints="arm"))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
+from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, LOWER_BODY, REST_JOINTS_M
 from egoposevr.model.training.plausibility import (
     WARM_UP_S,
     contacts,
@@ -54,24 +54,23 @@ def test_legs_that_move_to_the_truth_leak_but_do_not_wander_and_legs_that_leave_
     distance from the truth) does too."""
     truth, t_us = standing(seconds=3.0)
     ramp = np.clip((t_us - t_us[0]) * 1e-6 - 1.0, 0.0, 1.0)[:, None]  # 0 until 1 s, then 1 by 2 s
-    lower = [0, 1, 2, 4, 5, 7, 8, 10, 11]
 
     def measured(served: np.ndarray) -> tuple[float, float]:
         result = summarize_plausibility([plausibility(served, truth, t_us)])
         return result["leg_leakage_cm"], result["leg_wander_cm"]
 
     corrected = truth.copy()
-    corrected[:, lower, 0] += 0.12 * (1.0 - ramp)  # 12 cm off, then straight to the truth
+    corrected[:, LOWER_BODY, 0] += 0.12 * (1.0 - ramp)  # 12 cm off, then straight to the truth
     leak, wandered = measured(corrected)
     assert leak > 5.0 and wandered == pytest.approx(0.0, abs=1e-6)
     left = truth.copy()
-    left[:, lower, 0] += 0.12 * ramp  # on the truth, then 12 cm away from it
+    left[:, LOWER_BODY, 0] += 0.12 * ramp  # on the truth, then 12 cm away from it
     leak, wandered = measured(left)
     assert leak > 5.0 and wandered == pytest.approx(leak, rel=1e-6)
     angle = np.pi / 2 * ramp  # 12 cm off, then a quarter turn round the truth at that distance
     around = truth.copy()
-    around[:, lower, 0] += 0.12 * np.cos(angle)
-    around[:, lower, 2] += 0.12 * np.sin(angle)
+    around[:, LOWER_BODY, 0] += 0.12 * np.cos(angle)
+    around[:, LOWER_BODY, 2] += 0.12 * np.sin(angle)
     leak, wandered = measured(around)
     assert leak > 5.0 and wandered == pytest.approx(leak, rel=1e-6)
 
