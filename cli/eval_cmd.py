@@ -23,9 +23,9 @@ first one named: whether a gap between two models is more than the people in the
 that is not the bundled one is served under a label: --models egoposevr,candidate=runs/x-weights/egoposevr.onnx
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
-@no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate or the re-seating hold on (@lean-gate,
-@reseat, both off by default), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of
-the runtime changes. --no-camera
+@no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate on or off (@lean-gate, @no-lean-gate;
+by default as the model file says) or the re-seating hold on (@reseat, off by default), so --models
+egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera
 (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`).
 
@@ -54,6 +54,7 @@ SWITCHES = {
     "no-steady-stance": ("steady_stance", False),
     "no-leg-hold": ("leg_hold", False),
     "lean-gate": ("lean_gate", True),
+    "no-lean-gate": ("lean_gate", False),
     "reseat": ("reseat", True),
     "no-camera": ("send_frames", False),
 }
@@ -66,8 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold) or on (@lean-gate, @reseat), or "
-        "without the camera (@no-camera)",
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate) or on (@lean-gate, "
+        "@reseat), or without the camera (@no-camera)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -120,8 +121,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--lean-gate",
         action="store_true",
-        help="a head that leans round the served pelvis holds the legs and feet as a still one does "
-        "(model/runtime/stance.py; off by default: it failed its rule, MODEL_CARD.md rule 37)",
+        help="every model: a head that leans round the served pelvis holds the legs and feet as a still one "
+        "does (model/runtime/stance.py); by default each model as its file says (ModelMetadata.lean_gate)",
     )
     parser.add_argument(
         "--reseat",
@@ -213,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
             foot_contacts=not args.no_foot_contacts,
             steady_stance=not args.no_steady_stance,
             leg_hold=not args.no_leg_hold,
-            lean_gate=args.lean_gate,
+            lean_gate=True if args.lean_gate else None,
             reseat=args.reseat,
             send_frames=not args.no_camera,
             runtime=runtime,

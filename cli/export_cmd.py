@@ -10,6 +10,9 @@ trained on them with `egoposevr train --encoders DIR`.
 --runs with several folders (the same training with other seeds) serves each model as the mean of their
 nets: one graph, the members' rotations (made orthonormal) and contact probabilities averaged.
 
+--lean-gate writes into the files of models with KPO (egoposevr) that the runtime serves them with the lean
+gate (model/runtime/stance.py): for nets that were chosen served with it (MODEL_CARD).
+
 --add-batch-axis rewrites model files exported for batch 1 (before the server batched sessions) in place
 so that their fusion net takes a batch axis, checked against the original row by row.
 
@@ -47,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="all", help="zoo names, comma-separated, or all (default)")
     parser.add_argument("--encoders", type=Path, metavar="DIR",
                         help="copy the visual encoders from DIR (fusion nets trained with train --encoders)")  # fmt: skip
+    parser.add_argument("--lean-gate", action="store_true",
+                        help="the files of models with KPO ask the runtime for the lean gate "
+                             "(model/runtime/stance.py): for nets chosen served with it")  # fmt: skip
     parser.add_argument("--add-batch-axis", type=Path, nargs="+", metavar="ONNX",
                         help="give these fusion graphs a batch axis, in place (no --runs/--out)")  # fmt: skip
     parser.add_argument("--reexport", type=Path, nargs="+", metavar="ONNX",
@@ -85,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         names = resolve(args.model)
-        errors = export_zoo(names, args.runs, args.out, args.encoders)
+        errors = export_zoo(names, args.runs, args.out, args.encoders, args.lean_gate)
     except (ValueError, FileNotFoundError) as error:
         print(f"egoposevr export: {error}", file=sys.stderr)
         return 2

@@ -115,6 +115,9 @@ class ModelMetadata:
     rig_offsets_m: tuple[tuple[float, float, float], ...]  # (3, 3) device -> joint, rows head/left/right
     training: dict[str, Any]
     units: str
+    # The runtime's lean gate (runtime/stance.py) on for this model: the nets were chosen served with it, and
+    # a net that was not can freeze wrong early guesses under it (MODEL_CARD.md, rules 37 and 44).
+    lean_gate: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -105,6 +105,11 @@ class ModelInfo:
         return self.metadata.kpo
 
     @property
+    def lean_gate(self) -> bool:
+        """Whether the file asks for the lean gate (runtime/stance.py); a pipeline may override it."""
+        return self.metadata.lean_gate
+
+    @property
     def config(self) -> FusionConfig:
         return self.metadata.config
 

@@ -91,7 +91,7 @@ class Pipeline:
         contacts: bool = True,
         steady_stance: bool = True,
         leg_hold: bool = True,
-        lean_gate: bool = False,
+        lean_gate: bool | None = None,
         reseat: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
@@ -99,8 +99,10 @@ class Pipeline:
         self.steady_stance = steady_stance  # with contacts: feet stay down while the head is still
         self.leg_hold = leg_hold  # with contacts: pelvis, hips and knees stay while both feet are down
         # with the leg hold: a head that leans about the served pelvis is quiet for both gates (stance.py).
-        # Off by default: it failed its rule, serving leaning legs further off (MODEL_CARD.md rule 37).
-        self.lean_gate = lean_gate
+        # None: as the model file says (ModelMetadata.lean_gate). A file asks for it only when its nets were
+        # chosen with it: under the gate, nets that were not froze wrong early guesses of seated legs
+        # (MODEL_CARD.md, rule 37).
+        self.lean_gate = model.info.lean_gate if lean_gate is None else lean_gate
         # a held leg or a steady foot's anchor far from the network's mean placement moves to it faster
         # (stance.RESEAT_SLACK_M); off by default: it failed MODEL_CARD.md rules 38 and 39
         self.reseat = reseat

@@ -276,7 +276,7 @@ def evaluate(
     foot_contacts: bool = True,
     steady_stance: bool = True,
     leg_hold: bool = True,
-    lean_gate: bool = False,
+    lean_gate: bool | None = None,
     reseat: bool = False,
     send_frames: bool = True,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -297,7 +297,7 @@ def evaluate(
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
     both feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans
-    round the served pelvis too (stance.py; off by default), ``reseat`` True moves a held leg or a still
+    round the served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg or a still
     foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
     default); ``send_frames`` False sends no camera frame, as a headset without the camera
     (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of those six

@@ -244,9 +244,10 @@ def copy_encoder(source: Path, out_path: Path) -> None:
         regressor_path(out_path).unlink(missing_ok=True)  # a stale one would not match these bytes
 
 
-def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
+def export_model(name: str, runs_dirs: list[Path], out_path: Path, lean_gate: bool = False) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
-    :class:`SeedEnsemble`); returns the parity error."""
+    :class:`SeedEnsemble`); returns the parity error. ``lean_gate``: a model with KPO asks the runtime for
+    the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there)."""
     entry = ZOO[name]
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
@@ -261,7 +262,7 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path) -> float:
     _export_fusion(module, cfg, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
-        inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo,
+        inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo, lean_gate=lean_gate and entry.kpo,
         visual_encoder=f"visual-{entry.visual}.onnx" if entry.visual else "",
         joint_names=JOINT_NAMES, rig_offsets_m=offsets, training=training,
         units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
@@ -508,13 +509,17 @@ def _graphs_differ(a: onnx.ModelProto, b: onnx.ModelProto, feeds: list[dict[str,
 
 
 def export_zoo(
-    names: list[str], runs_dirs: list[Path], out_dir: Path, encoders_dir: Path | None = None
+    names: list[str],
+    runs_dirs: list[Path],
+    out_dir: Path,
+    encoders_dir: Path | None = None,
+    lean_gate: bool = False,
 ) -> dict[str, float | None]:
     """Every named model and the visual encoders they use -> out_dir; {file name: parity error}. With
     ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
     regressors are that folder's, copied as they are (None: nothing exported, nothing to check). Several
     runs folders make each model the :class:`SeedEnsemble` of their nets; they must then have been trained
-    on one set of encoders, given as ``encoders_dir``."""
+    on one set of encoders, given as ``encoders_dir``. ``lean_gate``: as :func:`export_model`."""
     if len(runs_dirs) > 1 and encoders_dir is None:
         raise ValueError(
             "an ensemble of several runs needs --encoders: the encoders its nets were trained on"
@@ -530,5 +535,5 @@ def export_zoo(
         else:
             errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name)
     for name in names:
-        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_dir / f"{name}.onnx")
+        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_dir / f"{name}.onnx", lean_gate)
     return errors

@@ -92,3 +92,11 @@ def test_every_bundled_model_describes_itself_as_the_zoo_does():
 
     for name, path in model_files().items():
         assert LoadedModel.load(path).info.description == ZOO[name].description, name
+
+
+def test_a_model_file_written_before_the_lean_gate_field_reads_as_without_it():
+    """Files exported before ModelMetadata.lean_gate existed have no such property: served without the gate."""
+    props = to_properties(model_metadata(lean_gate=True))
+    assert props["lean_gate"] == "true" and from_properties(ModelMetadata, props).lean_gate
+    del props["lean_gate"]
+    assert from_properties(ModelMetadata, props).lean_gate is False

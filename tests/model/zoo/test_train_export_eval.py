@@ -1061,6 +1061,29 @@ def test_eval_serves_the_runtime_without_the_steady_stance_or_the_leg_hold_or_wi
         assert runs[""]["procedural"]["mpjpe_l_cm"] == runs[flag]["procedural"]["mpjpe_l_cm"]
 
 
+def test_a_model_file_says_whether_it_is_served_with_the_lean_gate(
+    tiny_runs, tiny_data, tiny_weights, tmp_path
+):
+    """export --lean-gate writes the gate into the files of models with KPO (the only ones that plant feet),
+    a pipeline takes it from the file unless told otherwise, and eval serves each file as it says unless a
+    switch (@lean-gate, @no-lean-gate) or --lean-gate overrides it."""
+    gated = tmp_path / "gated"
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(gated), "--model", "egoposevr,hmd-rgbd",
+                 "--lean-gate"]) == 0  # fmt: skip
+    ego, plain = LoadedModel.load(gated / "egoposevr.onnx"), LoadedModel.load(gated / "hmd-rgbd.onnx")
+    assert ego.info.lean_gate and not plain.info.lean_gate  # hmd-rgbd has no KPO, so no planted feet
+    assert not LoadedModel.load(tiny_weights / "egoposevr.onnx").info.lean_gate  # the default
+    assert Pipeline(ego).legs.lean and not Pipeline(ego, lean_gate=False).legs.lean
+    assert Pipeline(LoadedModel.load(tiny_weights / "egoposevr.onnx"), lean_gate=True).legs.lean
+    args = ["eval", "--data", str(tiny_data), "--split", "train", "--models-dir", str(gated), "--no-progress"]
+    out = tmp_path / "eval.json"
+    models = "egoposevr,egoposevr@lean-gate,egoposevr@no-lean-gate"
+    assert main([*args, "--models", models, "--json", str(out)]) == 0
+    served = json.loads(out.read_text())["models"]
+    keys = ("mpjpe_l_cm", "foot_skate_cm_s", "leg_leakage_cm")
+    assert all(served["egoposevr"][k] == served["egoposevr@lean-gate"][k] for k in keys)
+
+
 def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
