@@ -297,9 +297,9 @@ def evaluate(
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
     (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
     both feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans
-    round the served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg or a still
-    foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
-    default); ``send_frames`` False sends no camera frame, as a headset without the camera
+    round the served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True
+    moves a held leg or a still foot's anchor far from the network's mean placement to it faster
+    (stance.RESEAT_SLACK_M; off by default); ``send_frames`` False sends no camera frame, as a headset without the camera
     (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of those six
     (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``send_frames``) set
     otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
