@@ -7,14 +7,14 @@ where they were served instead of wandering with it.
 - **not steady** as soon as a foot steps, the headset is lost or stops being quiet (walking, a lunge, a
   jump: the feet follow the network again).
 
-The head is quiet while it moves slower than ``QUIET_SPEED_M_S``, or, given a pivot (the served pelvis:
-the lean gate, on where the model file asks for it, ``ModelMetadata.lean_gate``; MODEL_CARD.md rules 37, 44
-and 45 say for which nets it helps), while it **leans**: it moves around the pivot at most ``LEAN_SPEED_M_S``
-while its distance from it changes slower than ``LEAN_RADIAL_M_S``. A trunk that leans or sways over still hips moves the head round them, at
-a median 11-16 cm/s for the lean families (``synth``'s ``lean_stand`` / ``lean_sit``), which the speed alone
-called a step; a squat, a bend, a jump or a rise from a chair moves it towards or away from them; a side
-step moves it round them too, but faster (a median 25-35 cm/s) and with its distance changing more; and a
-step that lifts a foot ends the stance anyway.
+The head is quiet while it moves slower than ``QUIET_SPEED_M_S``, or, given a pivot (the served pelvis: the lean
+gate, on where the model file asks for it, ``ModelMetadata.lean_gate``; MODEL_CARD.md rules 37, 44 and 45 say
+for which nets it helps), while it **leans**: it moves around the pivot at most ``LEAN_SPEED_M_S`` while its
+distance from it changes slower than ``LEAN_RADIAL_M_S``. A trunk that leans or sways over still hips moves the
+head round them, at a median 11-16 cm/s for the lean families (``synth``'s ``lean_stand`` / ``lean_sit``), which
+the speed alone called a step; a squat, a bend, a jump or a rise from a chair moves it towards or away from
+them; a side step moves it round them too, but faster (a median 25-35 cm/s) and with its distance changing more;
+and a step that lifts a foot ends the stance anyway.
 
 The head is the gate because it is the one body part the devices track: arms that move while the head
 stays say nothing about the legs, and a step needs a weight shift that moves the head. A stance whose head

@@ -295,15 +295,15 @@ def evaluate(
     (:func:`calibrate_like_a_user`; needs a rig-pool dataset, whose manifest has each sequence's rig).
     ``foot_contacts`` False serves the network's own feet (no planting, no floor; runtime/contact.py),
     ``steady_stance`` False lets planted feet step on the network's drift while the headset is still
-    (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while
-    both feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans
-    round the served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True
-    moves a held leg or a still foot's anchor far from the network's mean placement to it faster
-    (stance.RESEAT_SLACK_M; off by default); ``send_frames`` False sends no camera frame, as a headset without the camera
-    (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of those six
-    (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``send_frames``) set
-    otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
-    comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the
+    (runtime/stance.py), ``leg_hold`` False lets the pelvis, hips and knees wander with the network while both
+    feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans round the
+    served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg
+    or a still foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
+    default); ``send_frames`` False sends no camera frame, as a headset without the camera
+    (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of those six (as
+    ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``send_frames``) set otherwise:
+    one file served twice, with and without a runtime stage or the camera, is a paired comparison.
+    ``loaded``: what :func:`split_sequences` gave for these arguments, when the
     caller has already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
