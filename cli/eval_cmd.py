@@ -27,7 +27,9 @@ served with that runtime stage off (the switches are the --no-... flags' names: 
 by default as the model file says) or the re-seating hold on (@reseat, off by default), so --models
 egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera
 (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
-the headset stream alone, as PROTOCOL.md's `camera: false`).
+the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
+sequence the truth's body, its bone lengths, from the first sample instead of the session's running
+estimate (model/runtime/body.py): what a perfect body estimate would buy, a diagnosis no user can have.
 
 Examples:
   egoposevr eval --data data/dev --split val --json eval.json
@@ -57,6 +59,7 @@ SWITCHES = {
     "no-lean-gate": ("lean_gate", False),
     "reseat": ("reseat", True),
     "no-camera": ("send_frames", False),
+    "truth-body": ("truth_body", True),
 }
 
 
@@ -68,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate) or on (@lean-gate, "
-        "@reseat), or without the camera (@no-camera)",
+        "@reseat), without the camera (@no-camera), or with the truth's body (@truth-body)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
@@ -136,6 +139,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="send no RGB-D frame: every model as a headset without the camera is served (the RGB-D models on "
         "the headset stream alone)",
+    )
+    parser.add_argument(
+        "--truth-body",
+        action="store_true",
+        help="a diagnosis: every model serves each sequence the truth's body (its bone lengths) from the first "
+        "sample instead of the session's running estimate (model/runtime/body.py)",
     )
     parser.add_argument(
         "--providers",
@@ -217,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
             lean_gate=True if args.lean_gate else None,
             reseat=args.reseat,
             send_frames=not args.no_camera,
+            truth_body=args.truth_body,
             runtime=runtime,
             fold=fold,
             loaded=loaded,

@@ -279,6 +279,7 @@ def evaluate(
     lean_gate: bool | None = None,
     reseat: bool = False,
     send_frames: bool = True,
+    truth_body: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
@@ -300,8 +301,11 @@ def evaluate(
     served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg
     or a still foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
     default); ``send_frames`` False sends no camera frame, as a headset without the camera
-    (:func:`replay_sequence`). ``runtime`` {label: {option: bool}} serves a label with some of those six (as
-    ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``send_frames``) set otherwise:
+    (:func:`replay_sequence`); ``truth_body`` True serves each sequence the truth's body (its bone lengths)
+    from its first sample instead of the session's running estimate (runtime/body.py): what a perfect body
+    estimate would buy, a diagnosis. ``runtime`` {label: {option: bool}} serves a label with some of those
+    seven (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``send_frames``,
+    ``truth_body``) set otherwise:
     one file served twice, with and without a runtime stage or the camera, is a paired comparison.
     ``loaded``: what :func:`split_sequences` gave for these arguments, when the
     caller has already read the split (``eval --keypoints`` reads it once for both reports).
@@ -330,9 +334,12 @@ def evaluate(
                    "lean_gate": lean_gate, "reseat": reseat}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
+        known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
         pipeline = pipeline_for(model, **options)
         errors = []
         for i, seq in enumerate(seqs):
+            if known_body:
+                pipeline = pipeline_for(model, bone_scale=seq["bone_scale"], **options)
             if calibrate:
                 calibrate_like_a_user(pipeline, seq, rigs[i])
             errors.append(sequence_errors(*replay_sequence(pipeline, seq, send_frames=frames), seq))

@@ -14,7 +14,8 @@ from egoposevr.model.runtime.kpo import KpoWeights
 from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
-from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+from egoposevr.model.skeleton import PARENTS, forward_kinematics, rest_offsets
+from egoposevr.model.training import evaluate as evaluate_module
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
 from egoposevr.model.training.dataset import (
     Fold,
@@ -1139,6 +1140,38 @@ def test_eval_serves_a_headset_without_the_camera_on_request(tiny_data, tiny_wei
     assert pipeline.frames_encoded == 0
     replay_sequence(pipeline, seq, rig)
     assert pipeline.frames_encoded > 0
+
+
+def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_path, monkeypatch):
+    """--truth-body (or NAME@truth-body beside NAME) serves each sequence with its own true bone lengths from
+    the first sample: every served bone is the truth's length, where the running estimate's are not."""
+    served_bones: dict[str, list[np.ndarray]] = {}
+    replay = evaluate_module.replay_sequence
+
+    def recording_replay(pipeline, seq, *args, **kwargs):
+        joints, rots = replay(pipeline, seq, *args, **kwargs)
+        lengths = np.linalg.norm(joints[:, 1:] - joints[:, PARENTS[1:]], axis=-1)  # (N, J-1) served bones
+        true = np.linalg.norm(rest_offsets(seq["bone_scale"])[1:], axis=-1)
+        served_bones.setdefault("truth" if pipeline.fixed_body else "estimate", []).append(
+            np.abs(lengths - true).max(axis=1)
+        )
+        return joints, rots
+
+    monkeypatch.setattr(evaluate_module, "replay_sequence", recording_replay)
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    served = {}
+    for name, chosen in (
+        ("switch", ["--models", "hmd-rgbd,hmd-rgbd@truth-body"]),
+        ("flag", ["--models", "hmd-rgbd", "--truth-body"]),
+    ):
+        out = tmp_path / f"{name}.json"
+        assert main([*args, *chosen, "--json", str(out)]) == 0
+        served[name] = json.loads(out.read_text())["models"]
+    keys = ("mpjpe_u_cm", "mpjpe_l_cm", "foot_skate_cm_s")
+    assert all(served["switch"]["hmd-rgbd@truth-body"][k] == served["flag"]["hmd-rgbd"][k] for k in keys)
+    assert any(served["switch"]["hmd-rgbd@truth-body"][k] != served["switch"]["hmd-rgbd"][k] for k in keys)
+    assert max(e.max() for e in served_bones["truth"]) < 1e-4  # metres, every bone of every sample
+    assert max(e.max() for e in served_bones["estimate"]) > 5e-3
 
 
 def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between_people(
