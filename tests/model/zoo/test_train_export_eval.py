@@ -1085,6 +1085,16 @@ def test_a_model_file_says_whether_it_is_served_with_the_lean_gate(
     assert all(served["egoposevr"][k] == served["egoposevr@lean-gate"][k] for k in keys)
 
 
+def _eval_runs(args: list[str], runs: tuple[tuple[str, list[str]], ...], tmp_path: Path) -> dict[str, dict]:
+    """{name: the models of `egoposevr eval`'s JSON} for each (name, further arguments) run of args."""
+    served = {}
+    for name, chosen in runs:
+        out = tmp_path / f"{name}.json"
+        assert main([*args, *chosen, "--json", str(out)]) == 0
+        served[name] = json.loads(out.read_text())["models"]
+    return served
+
+
 def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
@@ -1093,14 +1103,14 @@ def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
     train split, whose walk and squat give the tiny net's feet floor to be planted on and kept above."""
     data = ["--data", str(tiny_data), "--split", "train"]
     args = ["eval", *data, "--models-dir", str(tiny_weights), "--no-progress"]
-    served = {}
-    for name, chosen in (
-        ("switch", ["--models", "egoposevr,egoposevr@no-foot-contacts@no-leg-hold"]),
-        ("flags", ["--models", "egoposevr", "--no-foot-contacts", "--no-leg-hold"]),
-    ):
-        out = tmp_path / f"{name}.json"
-        assert main([*args, *chosen, "--json", str(out)]) == 0
-        served[name] = json.loads(out.read_text())["models"]
+    served = _eval_runs(
+        args,
+        (
+            ("switch", ["--models", "egoposevr,egoposevr@no-foot-contacts@no-leg-hold"]),
+            ("flags", ["--models", "egoposevr", "--no-foot-contacts", "--no-leg-hold"]),
+        ),
+        tmp_path,
+    )
     assert list(served["switch"]) == ["egoposevr", "egoposevr@no-foot-contacts@no-leg-hold"]
     without = served["switch"]["egoposevr@no-foot-contacts@no-leg-hold"]
     keys = ("mpjpe_l_cm", "foot_skate_cm_s", "floor_penetration_cm")  # no still legs on the train split
@@ -1120,14 +1130,14 @@ def test_eval_serves_a_headset_without_the_camera_on_request(tiny_data, tiny_wei
     """--no-camera (or NAME@no-camera beside NAME) sends no RGB-D frame: the RGB-D model runs on the headset
     stream alone, as it serves a headset without the camera; a model that reads no camera is served the same."""
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
-    served = {}
-    for name, chosen in (
-        ("switch", ["--models", "hmd,egoposevr@no-camera,egoposevr"]),
-        ("flag", ["--models", "hmd,egoposevr", "--no-camera"]),
-    ):
-        out = tmp_path / f"{name}.json"
-        assert main([*args, *chosen, "--json", str(out)]) == 0
-        served[name] = json.loads(out.read_text())["models"]
+    served = _eval_runs(
+        args,
+        (
+            ("switch", ["--models", "hmd,egoposevr@no-camera,egoposevr"]),
+            ("flag", ["--models", "hmd,egoposevr", "--no-camera"]),
+        ),
+        tmp_path,
+    )
     keys = ("mpjpe_u_cm", "mpjpe_l_cm", "hpe_cm", "mpjre_l_deg")
     without, flag, camera = served["switch"]["egoposevr@no-camera"], served["flag"], served["switch"]
     assert all(without[key] == flag["egoposevr"][key] for key in keys)
@@ -1159,14 +1169,14 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
 
     monkeypatch.setattr(evaluate_module, "replay_sequence", recording_replay)
     args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
-    served = {}
-    for name, chosen in (
-        ("switch", ["--models", "hmd-rgbd,hmd-rgbd@truth-body"]),
-        ("flag", ["--models", "hmd-rgbd", "--truth-body"]),
-    ):
-        out = tmp_path / f"{name}.json"
-        assert main([*args, *chosen, "--json", str(out)]) == 0
-        served[name] = json.loads(out.read_text())["models"]
+    served = _eval_runs(
+        args,
+        (
+            ("switch", ["--models", "hmd-rgbd,hmd-rgbd@truth-body"]),
+            ("flag", ["--models", "hmd-rgbd", "--truth-body"]),
+        ),
+        tmp_path,
+    )
     keys = ("mpjpe_u_cm", "mpjpe_l_cm", "foot_skate_cm_s")
     assert all(served["switch"]["hmd-rgbd@truth-body"][k] == served["flag"]["hmd-rgbd"][k] for k in keys)
     assert any(served["switch"]["hmd-rgbd@truth-body"][k] != served["switch"]["hmd-rgbd"][k] for k in keys)
