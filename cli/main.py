@@ -12,6 +12,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import (
     bench_cmd,
+    blend_cmd,
     bodies_cmd,
     bridge_cmd,
     decode_cmd,
@@ -43,6 +44,7 @@ SUBCOMMANDS = (
     ("synth", synth_cmd),
     ("train", train_cmd),
     ("export", export_cmd),
+    ("blend", blend_cmd),
     ("fit-body", fitbody_cmd),
     ("eval", eval_cmd),
 )

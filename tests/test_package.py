@@ -14,6 +14,7 @@ TORCH_ALLOWED = [
     "model/training/nets",
     "model/training/train.py",
     "model/training/export.py",
+    "model/training/blend.py",
     "model/synth/anny_bodies.py",  # builds body banks with the anny body model; rendering reads the bank
 ]
 # Which parts of model/ each layer may import (absolute names under egoposevr.model).

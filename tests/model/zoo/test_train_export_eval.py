@@ -280,6 +280,49 @@ def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
     assert "not an ONNX file" in capsys.readouterr().err
 
 
+def test_a_net_and_its_fine_tune_blend_weight_by_weight_and_export_like_any_run(
+    tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
+):
+    """`egoposevr blend`: each learnt weight is the weighted mean (weights normalised), the buffers are the
+    nets' own, a weight of 1 gives that net back, and the blend exports and serves like a trained run. Nets
+    of another kind or shape, a wrong count of weights and a folder without the checkpoint are refused."""
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--encoders", str(tiny_weights), "--fusion-steps", "3", "--lr", "0.01", "--seed", "5"]
+    assert main([*train, "--out", str(tmp_path / "ft"), "--init-from", str(tiny_weights)]) == 0
+    start, tuned = tiny_runs, tmp_path / "ft"
+    name = "fusion-hmd-rgbd.pt"
+    blend = ["blend", "--runs", str(start), str(tuned), "--out"]
+    assert main([*blend, str(tmp_path / "b"), "--weights", "1", "3"]) == 0
+    assert main([*blend, str(tmp_path / "one"), "--weights", "1", "0"]) == 0
+    a, b = (load_checkpoint(d / name)["state_dict"] for d in (start, tuned))
+    mixed = load_checkpoint(tmp_path / "b" / name)
+    assert mixed["blend"]["weights"] == [0.25, 0.75] and mixed["step"] == mixed["total_steps"]
+    moved = [k for k in a if a[k].dtype.is_floating_point and not np.array_equal(a[k].numpy(), b[k].numpy())]
+    assert len(moved) > 10  # the fine-tune moved the learnt weights
+    for key, tensor in mixed["state_dict"].items():
+        want = (0.25 * a[key].double() + 0.75 * b[key].double()).numpy() if key in moved else a[key].numpy()
+        np.testing.assert_allclose(tensor.double().numpy(), want, atol=1e-6, err_msg=key)
+    for key, tensor in load_checkpoint(tmp_path / "one" / name)["state_dict"].items():
+        np.testing.assert_array_equal(tensor.numpy(), a[key].numpy())
+    out = tmp_path / "b-weights"
+    export = ["export", "--runs", str(tmp_path / "b"), "--out", str(out), "--model", "hmd-rgbd"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    assert LoadedModel.load(out / "hmd-rgbd.onnx").info.name == "hmd-rgbd"
+
+    capsys.readouterr()
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / name).write_bytes((tiny_runs / "fusion-hmd.pt").read_bytes())  # another net under this name
+    for args, said in (
+        (["--runs", str(start), str(other), "--weights", "1", "1"], "differs"),
+        (["--runs", str(start), str(tuned), "--weights", "1"], "need 2 weights"),
+        (["--runs", str(start), str(tuned), "--weights", "1", "-1"], ">= 0"),
+        (["--runs", str(start), str(tmp_path / "none"), "--weights", "1", "1"], "is in every one"),
+    ):
+        assert main(["blend", *args, "--out", str(tmp_path / "x")]) == 2
+        assert said in capsys.readouterr().err
+
+
 def test_an_encoder_fine_tunes_from_the_weights_an_exported_encoder_holds(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
