@@ -15,6 +15,7 @@ their inputs differently is refused. The blended checkpoint records what it was 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +33,8 @@ def blend_weights(weights: list[float], count: int) -> list[float]:
     """The blend's weights, normalised to sum to 1: one per checkpoint, each >= 0, not all 0."""
     if len(weights) != count:
         raise ValueError(f"{count} checkpoints need {count} weights, not {len(weights)}")
-    if any(not (w >= 0.0) for w in weights) or sum(weights) <= 0.0:  # `not >=` also refuses NaN
-        raise ValueError(f"the weights must be >= 0 and not all 0, not {weights}")
+    if any(not (0.0 <= w < math.inf) for w in weights) or sum(weights) <= 0.0:  # refuses NaN too
+        raise ValueError(f"the weights must be finite, >= 0 and not all 0, not {weights}")
     total = float(sum(weights))
     return [float(w) / total for w in weights]
 
