@@ -9,8 +9,9 @@ can tell that, so ``egoposevr blend`` says it in its help. An output ensemble (`
 other kind of mean: it runs every net and costs their sum.
 
 The nets' buffers (input normalisation) are not learnt and must be equal; a blend of nets that normalise
-their inputs differently is refused. The blended checkpoint records what it was made from and is finished
-(its step is its total), so ``train --resume`` never continues it and ``export`` treats it like any run's.
+their inputs differently is refused. The blended checkpoint records what it was made from (each net's own
+training record, which ``export`` writes into the model file's) and is finished (its step is its total), so
+``train --resume`` never continues it and ``export`` treats it like any run's.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Any
 
 import torch
 
+from .export import training_record
 from .train import CheckpointError, build_net, load_checkpoint, save_checkpoint
 
 # Fields of the first checkpoint a blend keeps as they are (what the net is and what it learnt from).
@@ -71,7 +73,12 @@ def blend_checkpoints(paths: list[Path], weights: list[float]) -> dict[str, Any]
         "total_steps": first["total_steps"],
         "history": [],
         "train_seconds": 0.0,
-        "blend": {"from": [str(p) for p in paths], "weights": shares},
+        # the top level's data, seed and start are the first net's; each blended net's own are here
+        "blend": {
+            "from": [str(p) for p in paths],
+            "weights": shares,
+            "nets": [training_record(ckpt) for ckpt in ckpts],
+        },
     }
 
 

@@ -159,14 +159,16 @@ def _batched_against_single(single: onnx.ModelProto, batched: onnx.ModelProto, b
     return float(np.abs(many.run(None, feed)[0] - np.concatenate(rows)).max())
 
 
-def _training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
+def training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """What a model file says of how one net was made: its data, steps, seed, time and last losses, and where
+    it applies, its teachers, its start (``init``) or the nets it blends (``blend``, each with its own record)."""
     return {
         "data": ckpt.get("data"),
         "steps": ckpt["step"],
         "seed": ckpt["train_config"]["seed"],
         "train_seconds": round(ckpt["train_seconds"], 1),
         "final_losses": ckpt["history"][-1] if ckpt["history"] else {},
-    } | {key: ckpt[key] for key in ("teachers", "init", "keypoints_out_of_fold") if key in ckpt}
+    } | {key: ckpt[key] for key in ("teachers", "init", "keypoints_out_of_fold", "blend") if key in ckpt}
 
 
 def export_visual(ckpt_path: Path, out_path: Path) -> float:
@@ -179,7 +181,7 @@ def export_visual(ckpt_path: Path, out_path: Path) -> float:
     _export(module, (example,), out_path, (["image"], ["uv", "depth_m", "zeta"]), {"image": {0: batch}})
     _set_metadata(out_path, EncoderMetadata(
         format=FORMAT_VERSION, kind="visual", name=ckpt["name"], config=cfg,
-        camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES, training=_training_record(ckpt),
+        camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES, training=training_record(ckpt),
         units="image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
               "depth_m metres along the optical axis; zeta probability in view",
     ))  # fmt: skip
@@ -256,9 +258,9 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path, lean_gate: bo
     offsets = _rig_offsets(ckpts, paths)
     module = _served_module(nets)
     if len(nets) > 1:
-        training: dict[str, Any] = {"ensemble": [_training_record(ckpt) for ckpt in ckpts]}
+        training: dict[str, Any] = {"ensemble": [training_record(ckpt) for ckpt in ckpts]}
     else:
-        training = _training_record(ckpts[0])
+        training = training_record(ckpts[0])
     _export_fusion(module, cfg, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,

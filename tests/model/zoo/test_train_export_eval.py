@@ -307,7 +307,10 @@ def test_a_net_and_its_fine_tune_blend_weight_by_weight_and_export_like_any_run(
     out = tmp_path / "b-weights"
     export = ["export", "--runs", str(tmp_path / "b"), "--out", str(out), "--model", "hmd-rgbd"]
     assert main([*export, "--encoders", str(tiny_weights)]) == 0
-    assert LoadedModel.load(out / "hmd-rgbd.onnx").info.name == "hmd-rgbd"
+    record = LoadedModel.load(out / "hmd-rgbd.onnx").info.metadata.training["blend"]
+    assert record["weights"] == [0.25, 0.75] and record["nets"][1]["init"]["from"] == str(
+        tiny_weights / "hmd-rgbd.onnx"
+    )
 
     capsys.readouterr()
     other = tmp_path / "other"
