@@ -1,15 +1,16 @@
 """Fit each visual encoder's body regressor: bone lengths from the height and what the camera measures.
 
 Run after `egoposevr export`. For every RGB-D visual encoder the folder's models use, feeds each sequence of
---split through the serving code's body calibrator (camera frames through the encoder and Alg. 1, head
+--split (of every --data folder, fitted together) through the serving code's body calibrator (camera frames through the encoder and Alg. 1, head
 heights from the headset), fits a regressor from the height and the measured hip, spine and leg lengths to
 every bone's length (one ridge expert per body family the training bodies show), and writes it beside the
 encoder (visual-rgbd.onnx -> visual-rgbd.body.json).
-With --check-split it reports the summed bone-length error there. Models load it with their encoder; a
+With --check-split it reports the summed bone-length error there, in each --data folder that has that split. Models load it with their encoder; a
 regressor fitted on another encoder is refused. See model/runtime/body.py.
 
 Example:
   egoposevr fit-body --data data/dev --weights model/weights
+  egoposevr fit-body --data data/v3g data/sit-train --weights model/weights --check-split ''
 """
 
 from __future__ import annotations
@@ -20,10 +21,17 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset root")
+    parser.add_argument(
+        "--data", type=Path, nargs="+", required=True, metavar="DIR",
+        help="dataset root; several: their --split sequences fitted together",
+    )  # fmt: skip
     parser.add_argument("--weights", type=Path, required=True, metavar="DIR", help="exported models")
     parser.add_argument("--split", default="train", help="split to fit on (default train)")
-    parser.add_argument("--check-split", default="val", help="split to report on; '' for none (default val)")
+    parser.add_argument(
+        "--check-split",
+        default="val",
+        help="split to report on, in each --data folder that has it; '' for none (default val)",
+    )
     parser.add_argument("--ridge", type=float, default=None, help="ridge penalty (default 1.0)")
     parser.add_argument("--no-progress", action="store_true")
 

@@ -1,11 +1,13 @@
-"""Fitting each visual encoder's body regressor (body.py) on a dataset split: ``egoposevr fit-body``.
+"""Fitting each visual encoder's body regressor (body.py) on datasets' splits: ``egoposevr fit-body``.
 
-For every sequence, the serving code's own :class:`~egoposevr.model.runtime.body.BodyCalibrator` is fed what a
-session would feed it, in arrival order — every camera frame through the encoder and Alg. 1's visibility
-filter, every headset sample's head joint. Each moment its evidence changes (height scale, measured bone
-medians) is one training row, with the sequence's true bone scales as the target. A second split, when
-given, reports the summed bone-length error of the height scale, of the fallback without a regressor and
-of the regressor.
+For every sequence of one or more datasets' fitting split, the serving code's own
+:class:`~egoposevr.model.runtime.body.BodyCalibrator` is fed what a session would feed it, in arrival order —
+every camera frame through the encoder and Alg. 1's visibility filter, every headset sample's head joint.
+Each moment its evidence changes (height scale, measured bone medians) is one training row, with the
+sequence's true bone scales as the target. Several datasets let the regressor see bodies in poses one set
+lacks (the walks of one, the seated people of another). A check split, read in each dataset that has it,
+reports the summed bone-length error of the height scale, of the fallback without a regressor and of the
+regressor.
 
 Shape legend: ``N`` sequences, ``J`` = 22 joints.
 """
@@ -13,7 +15,7 @@ Shape legend: ``N`` sequences, ``J`` = 22 joints.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -69,30 +71,42 @@ def summed_bone_error_cm(bone_scale: np.ndarray, true_scale: np.ndarray) -> np.n
 
 
 def _observe_split(
-    model: LoadedModel, data_dir: Path, split: str, progress: Progress | None
+    model: LoadedModel, data_dirs: Sequence[Path], split: str, progress: Progress | None
 ) -> tuple[list[BodyCalibrator], list[list[Snapshot]], np.ndarray]:
-    """Per sequence of the split: its calibrator at the end, its snapshots; true scales (N, J)."""
-    seqs = load_split(data_dir, split)
-    bodies, snapshots = [], []
-    for i, seq in enumerate(seqs):
-        body, seen = observe_body(model, seq)
-        bodies.append(body)
-        snapshots.append(seen)
-        if progress:
-            progress(f"{model.info.visual_path.name} {split}", i + 1, len(seqs))
-    return bodies, snapshots, np.array([s["bone_scale"] for s in seqs], dtype=np.float64)
+    """Per sequence of each dataset's split, one dataset after the other: its calibrator at the end, its
+    snapshots; true scales (N, J). One dataset is in memory at a time."""
+    bodies, snapshots, truth = [], [], []
+    for data_dir in data_dirs:
+        seqs = load_split(data_dir, split)
+        for i, seq in enumerate(seqs):
+            body, seen = observe_body(model, seq)
+            bodies.append(body)
+            snapshots.append(seen)
+            truth.append(seq["bone_scale"])
+            if progress:
+                progress(f"{model.info.visual_path.name} {data_dir} {split}", i + 1, len(seqs))
+    return bodies, snapshots, np.array(truth, dtype=np.float64).reshape(len(truth), NUM_JOINTS)
+
+
+def datasets_with_split(data_dirs: Sequence[Path], split: str) -> list[Path]:
+    """The datasets that hold ``split`` (a folder of that name)."""
+    return [Path(d) for d in data_dirs if (Path(d) / split).is_dir()]
 
 
 def fit_encoder(
     model: LoadedModel,
-    data_dir: Path,
+    data_dirs: Sequence[Path],
     split: str = "train",
     check_split: str | None = "val",
     ridge: float = DEFAULT_RIDGE,
     progress: Progress | None = None,
 ) -> BodyRegressor:
-    """The regressor of ``model``'s visual encoder, fitted on ``split`` (and checked on ``check_split``)."""
-    _, snapshots, truth = _observe_split(model, data_dir, split, progress)
+    """The regressor of ``model``'s visual encoder, fitted on ``split`` of every dataset (and checked on
+    ``check_split`` of those that have it). Raises ValueError when no dataset has the check split."""
+    check_dirs = datasets_with_split(data_dirs, check_split) if check_split else []
+    if check_split and not check_dirs:
+        raise ValueError(f"no --data folder has a {check_split!r} split to check on")
+    _, snapshots, truth = _observe_split(model, data_dirs, split, progress)
     # Every sequence weighs 1 in all, however many snapshots it made, so that the ridge penalty means
     # the same whatever the frame rate and length.
     rows = [(h, m, truth[n], 1.0 / len(seen)) for n, seen in enumerate(snapshots) for h, m in seen]
@@ -106,11 +120,12 @@ def fit_encoder(
         np.array([r[3] for r in rows]),
     )
     record: dict[str, Any] = {
-        **fitted.record, "data": str(data_dir), "split": split, "sequences": len(snapshots)
+        **fitted.record, "data": [str(d) for d in data_dirs], "split": split, "sequences": len(snapshots)
     }  # fmt: skip
     if check_split:
-        bodies, snapshots, truth = _observe_split(model, data_dir, check_split, progress)
+        bodies, snapshots, truth = _observe_split(model, check_dirs, check_split, progress)
         record["check_split"] = check_split
+        record["check_data"] = [str(d) for d in check_dirs]
         record["summed_bone_error_cm"] = _check_errors(fitted, bodies, snapshots, truth)
     return dataclasses.replace(fitted, record=record)
 
@@ -137,14 +152,14 @@ def _check_errors(
 
 def fit_body_regressors(
     weights_dir: Path,
-    data_dir: Path,
+    data_dirs: Sequence[Path],
     split: str = "train",
     check_split: str | None = "val",
     ridge: float = DEFAULT_RIDGE,
     progress: Progress | None = None,
 ) -> dict[Path, BodyRegressor]:
-    """A regressor for every depth-seeing visual encoder the folder's models use, written beside it ->
-    {path: regressor}. Earlier regressors in the folder are removed first: they are replaced, and one fitted
+    """A regressor for every depth-seeing visual encoder the folder's models use, fitted on the datasets'
+    ``split`` together and written beside it -> {path: regressor}. Earlier regressors in the folder are removed first: they are replaced, and one fitted
     on an older encoder would stop its models from loading."""
     for old in Path(weights_dir).glob(f"*{REGRESSOR_SUFFIX}"):
         old.unlink()
@@ -154,7 +169,7 @@ def fit_body_regressors(
         encoder = model.info.visual_path
         if not model.measures_body or regressor_path(encoder) in written:
             continue
-        regressor = fit_encoder(model, data_dir, split, check_split, ridge, progress)
+        regressor = fit_encoder(model, data_dirs, split, check_split, ridge, progress)
         regressor.save(regressor_path(encoder))
         written[regressor_path(encoder)] = regressor
     return written

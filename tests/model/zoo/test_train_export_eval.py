@@ -1378,6 +1378,29 @@ def test_fit_body_writes_a_regressor_its_models_load_and_a_new_encoder_retires_i
     assert LoadedModel.load(out / "egoposevr.onnx").info.body_regressor is None
 
 
+def test_fit_body_fits_several_datasets_together_and_checks_where_a_check_split_exists(
+    tiny_runs, tiny_data, tmp_path, capsys
+):
+    seated = tmp_path / "seated"  # a train split only: the check split is read where it exists
+    synth = ["synth", "--procedural", "1", "--families", "still_sit", "--seed", "5", "--seconds", "2"]
+    assert (
+        main([*synth, "--resolution", "80x64", "--hmd-rate", "60", "--no-progress", "--out", str(seated)])
+        == 0
+    )
+    out = tmp_path / "weights"
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(out), "--model", "egoposevr"]) == 0
+    fit_body = ["fit-body", "--data", str(tiny_data), str(seated), "--weights", str(out), "--no-progress"]
+    assert main(fit_body) == 0
+    record = LoadedModel.load(out / "egoposevr.onnx").info.body_regressor.record
+    assert record["data"] == [str(tiny_data), str(seated)]
+    assert record["sequences"] == len(load_split(tiny_data, "train")) + 1
+    assert record["check_data"] == [str(tiny_data)] and "summed_bone_error_cm" in record
+    capsys.readouterr()
+    # Asked to check on a split no folder has, it says so rather than fitting unchecked.
+    assert main(["fit-body", "--data", str(seated), "--weights", str(out), "--no-progress"]) == 2
+    assert "no --data folder has a 'val' split" in capsys.readouterr().err
+
+
 def test_fit_body_without_depth_camera_models_says_so(tiny_runs, tiny_data, tmp_path, capsys):
     out = tmp_path / "weights"
     assert main(["export", "--runs", str(tiny_runs), "--out", str(out), "--model", "hmd,hmd-rgb"]) == 0
