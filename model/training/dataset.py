@@ -186,9 +186,17 @@ def load_splits(
 
 def decode_frames(seq: dict[str, Any], size_wh: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """A sequence's frames resized for the visual encoder: RGB (K, h, w, 3) uint8, depth (K, h, w) uint16."""
+    return decode_frame_list(seq["rgb_jpeg"], seq["depth_png"], size_wh)
+
+
+def decode_frame_list(
+    rgb_jpeg: Sequence[bytes], depth_png: Sequence[bytes], size_wh: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """K encoded frames (JPEG colour, PNG depth) resized for the visual encoder: RGB (K, h, w, 3) uint8,
+    depth (K, h, w) uint16."""
     w, h = size_wh
-    rgb = np.empty((len(seq["rgb_jpeg"]), h, w, 3), np.uint8)
-    depth = np.empty((len(seq["rgb_jpeg"]), h, w), np.uint16)
-    for k, (jpeg, png) in enumerate(zip(seq["rgb_jpeg"], seq["depth_png"], strict=True)):
+    rgb = np.empty((len(rgb_jpeg), h, w, 3), np.uint8)
+    depth = np.empty((len(rgb_jpeg), h, w), np.uint16)
+    for k, (jpeg, png) in enumerate(zip(rgb_jpeg, depth_png, strict=True)):
         rgb[k], depth[k] = resize_frame(*decode_rgbd(jpeg, png), size_wh)
     return rgb, depth

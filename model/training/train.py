@@ -65,6 +65,7 @@ from .augment import (
 from .dataset import (
     DatasetError,
     Fold,
+    decode_frame_list,
     decode_frames,
     fold_members,
     load_splits,
@@ -396,15 +397,28 @@ def _run_steps(
 # ----------------------------------------------------------------------------------------- stage 1
 @dataclasses.dataclass
 class VisualData:
-    """Decoded frames of a split at the net's input size, with labels. K frames."""
+    """A split's camera frames with their labels, K frames. The frames stay as rendered (JPEG colour, PNG
+    depth: the sequences' own bytes) and a batch is decoded and resized when it is drawn. Decoded up front
+    at the net's input size they took 100 kB a frame, and the training sets with the many-body renders
+    outgrew the machine's 24 GB; decoding a batch of 32 costs about 10 ms of a step's 270."""
 
-    rgb: np.ndarray  # (K, h, w, 3) uint8
-    depth: np.ndarray  # (K, h, w) uint16 mm
+    rgb_jpeg: list[bytes]  # (K,)
+    depth_png: list[bytes]  # (K,) mm
+    size_net_wh: tuple[int, int]  # the net's input size, what frames() returns
     uv: np.ndarray  # (K, J, 2) normalised
     intrinsics: np.ndarray  # (K, 4) fx, fy, cx, cy of each frame's own camera, pixels
     size_wh: np.ndarray  # (K, 2) that camera's image size
     joints_cam_m: np.ndarray  # (K, J, 3)
     visible: np.ndarray  # (K, J) bool
+
+    def __len__(self) -> int:
+        return len(self.rgb_jpeg)
+
+    def frames(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frames idx (B,) at the net's input size: RGB (B, h, w, 3) uint8, depth (B, h, w) uint16 mm."""
+        return decode_frame_list(
+            [self.rgb_jpeg[i] for i in idx], [self.depth_png[i] for i in idx], self.size_net_wh
+        )
 
 
 def _camera_wh(seq: dict[str, Any]) -> tuple[int, int]:
@@ -412,12 +426,13 @@ def _camera_wh(seq: dict[str, Any]) -> tuple[int, int]:
 
 
 def load_visual_data(seqs: list[dict[str, Any]], size_wh: tuple[int, int]) -> VisualData:
-    """Frames resized to size_wh with labels; each sequence's labels are in its own camera (``seq["camera"]``)."""
-    frames = [decode_frames(s, size_wh) for s in seqs]
+    """Every sequence's frames (kept encoded) with labels, each sequence's labels in its own camera
+    (``seq["camera"]``); frames() gives them resized to size_wh."""
     per_frame = [np.ones((len(s["cam_t_us"]), 1)) for s in seqs]
     return VisualData(
-        rgb=np.concatenate([f[0] for f in frames]),
-        depth=np.concatenate([f[1] for f in frames]),
+        rgb_jpeg=[jpeg for s in seqs for jpeg in s["rgb_jpeg"]],
+        depth_png=[png for s in seqs for png in s["depth_png"]],
+        size_net_wh=tuple(size_wh),
         uv=np.concatenate([normalise_uv(s["joints_uv_px"], _camera_wh(s)) for s in seqs]).astype(np.float32),
         intrinsics=np.concatenate(
             [n * np.asarray(s["camera"]["intrinsics"]) for n, s in zip(per_frame, seqs, strict=True)]
@@ -448,9 +463,9 @@ def visual_loss_fn(net: KeypointNet, data: VisualData, tc: TrainConfig):
     sigma_u, sigma_v = tc.heatmap_sigma_cells / hw, tc.heatmap_sigma_cells / hh
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        idx = rng.integers(0, len(data.rgb), tc.batch)
+        idx = rng.integers(0, len(data), tc.batch)
         rgb, depth, uv_np, visible, intrinsics_np, size_np, joints_np = crop_and_flip(
-            rng, data.rgb[idx], data.depth[idx], data.uv[idx], data.visible[idx], data.intrinsics[idx],
+            rng, *data.frames(idx), data.uv[idx], data.visible[idx], data.intrinsics[idx],
             data.size_wh[idx], data.joints_cam_m[idx], crop_p=tc.crop_p, flip_p=tc.mirror_p,
         )  # fmt: skip
         image = torch.from_numpy(network_input(rgb, depth, cfg.channels)).to(dev)
@@ -498,7 +513,7 @@ def train_visual(
     camera = split_camera(data_dirs[0], "train")  # the encoder's default camera: the first dataset's
     frames = load_visual_data(seqs, (cfg.width, cfg.height))
     meta = {"kind": "visual", "name": f"visual-{kind}", "config": to_fields(cfg), "camera": camera,
-            "data": _data_field(data_dirs, tc, seqs, frames=len(frames.rgb))}  # fmt: skip
+            "data": _data_field(data_dirs, tc, seqs, frames=len(frames))}  # fmt: skip
     if initial is not None:
         net.load_state_dict(initial.state_dict)
         net.freeze_statistics()

@@ -19,6 +19,7 @@ from egoposevr.model.training import evaluate as evaluate_module
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
 from egoposevr.model.training.dataset import (
     Fold,
+    decode_frames,
     fold_members,
     load_split,
     load_splits,
@@ -26,7 +27,13 @@ from egoposevr.model.training.dataset import (
     split_camera,
 )
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
-from egoposevr.model.training.train import PRESETS, build_net, load_checkpoint, prepare_fusion_sequence
+from egoposevr.model.training.train import (
+    PRESETS,
+    build_net,
+    load_checkpoint,
+    load_visual_data,
+    prepare_fusion_sequence,
+)
 from egoposevr.model.weights import model_files
 from egoposevr.model.zoo import ZOO
 
@@ -160,7 +167,6 @@ def test_the_batch_is_a_training_choice_the_checkpoint_keeps(tiny_data, tmp_path
 def test_fusion_nets_train_on_an_exported_encoders_keypoints(
     tiny_data, tiny_runs, tiny_weights, tmp_path, capsys
 ):
-    from egoposevr.model.training.dataset import decode_frames
     from egoposevr.model.training.train import ExportedEncoder, predict_keypoints
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
@@ -188,6 +194,22 @@ def test_fusion_nets_train_on_an_exported_encoders_keypoints(
 
     assert main([*args, "--out", str(tmp_path / "b"), "--encoders", str(tmp_path / "none")]) == 2
     assert "visual-rgbd.onnx" in capsys.readouterr().err
+
+
+def test_the_encoders_training_frames_are_kept_encoded_and_drawn_as_decoded(tiny_data):
+    """Stage 1 keeps every frame as rendered and decodes a batch when drawn: frame k of the set is frame k of
+    the sequences one after the other, at the net's size, labels alongside."""
+    seqs, size_wh = load_split(tiny_data, "train"), (40, 32)
+    data = load_visual_data(seqs, size_wh)
+    decoded = [decode_frames(seq, size_wh) for seq in seqs]
+    rgb, depth = (np.concatenate([d[k] for d in decoded]) for k in (0, 1))
+    assert len(data) == len(rgb) == sum(len(seq["cam_t_us"]) for seq in seqs)
+    idx = np.array([len(rgb) - 1, 0, len(seqs[0]["cam_t_us"]), 3, 3])  # across sequences, repeated
+    drawn_rgb, drawn_depth = data.frames(idx)
+    assert np.array_equal(drawn_rgb, rgb[idx]) and np.array_equal(drawn_depth, depth[idx])
+    assert drawn_rgb.dtype == np.uint8 and drawn_depth.dtype == np.uint16
+    joints = np.concatenate([seq["joints_cam_m"] for seq in seqs])
+    assert np.array_equal(data.joints_cam_m[idx], joints[idx])
 
 
 def test_seeds_export_as_one_graph_that_serves_their_mean(
