@@ -1,12 +1,13 @@
 """Fit each visual encoder's body regressor: bone lengths from the height and what the camera measures.
 
 Run after `egoposevr export`. For every RGB-D visual encoder the folder's models use, feeds each sequence of
---split (of every --data folder, fitted together) through the serving code's body calibrator (camera frames through the encoder and Alg. 1, head
-heights from the headset), fits a regressor from the height and the measured hip, spine and leg lengths to
-every bone's length (one ridge expert per body family the training bodies show), and writes it beside the
-encoder (visual-rgbd.onnx -> visual-rgbd.body.json).
-With --check-split it reports the summed bone-length error there, in each --data folder that has that split. Models load it with their encoder; a
-regressor fitted on another encoder is refused. See model/runtime/body.py.
+--split (of every --data folder, fitted together) through the serving code's body calibrator (camera frames
+through the encoder and Alg. 1, head heights from the headset), fits a regressor from the height and the
+measured hip, spine and leg lengths to every bone's length (one ridge expert per body family the training
+bodies show), and writes it beside the encoder (visual-rgbd.onnx -> visual-rgbd.body.json).
+With --check-split it reports the summed bone-length error there, in each --data folder that has that split.
+Models load it with their encoder; a regressor fitted on another encoder is refused. See
+model/runtime/body.py.
 
 Example:
   egoposevr fit-body --data data/dev --weights model/weights

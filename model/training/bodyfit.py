@@ -28,7 +28,7 @@ from ..runtime.frames import encode_frame
 from ..runtime.loading import LoadedModel
 from ..skeleton import NUM_JOINTS, rest_offsets
 from ..weights import model_files
-from .dataset import load_split
+from .dataset import load_split, split_shards
 from .evaluate import CAMERA_LATENCY_US
 
 # Chosen on the validation split's summed bone error, one ridge map for all bodies: 0.3 -> 16.6, 1 -> 16.2,
@@ -88,9 +88,15 @@ def _observe_split(
     return bodies, snapshots, np.array(truth, dtype=np.float64).reshape(len(truth), NUM_JOINTS)
 
 
-def datasets_with_split(data_dirs: Sequence[Path], split: str) -> list[Path]:
-    """The datasets that hold ``split`` (a folder of that name)."""
-    return [Path(d) for d in data_dirs if (Path(d) / split).is_dir()]
+def check_datasets(data_dirs: Sequence[Path], check_split: str | None) -> list[Path]:
+    """The datasets that hold ``check_split`` (none when it is None or ''). Raises ValueError when it is asked
+    for and no dataset has it."""
+    if not check_split:
+        return []
+    found = [Path(d) for d in data_dirs if split_shards(d, check_split)]
+    if not found:
+        raise ValueError(f"no --data folder has a {check_split!r} split to check on")
+    return found
 
 
 def fit_encoder(
@@ -103,9 +109,7 @@ def fit_encoder(
 ) -> BodyRegressor:
     """The regressor of ``model``'s visual encoder, fitted on ``split`` of every dataset (and checked on
     ``check_split`` of those that have it). Raises ValueError when no dataset has the check split."""
-    check_dirs = datasets_with_split(data_dirs, check_split) if check_split else []
-    if check_split and not check_dirs:
-        raise ValueError(f"no --data folder has a {check_split!r} split to check on")
+    check_dirs = check_datasets(data_dirs, check_split)
     _, snapshots, truth = _observe_split(model, data_dirs, split, progress)
     # Every sequence weighs 1 in all, however many snapshots it made, so that the ridge penalty means
     # the same whatever the frame rate and length.
@@ -159,8 +163,10 @@ def fit_body_regressors(
     progress: Progress | None = None,
 ) -> dict[Path, BodyRegressor]:
     """A regressor for every depth-seeing visual encoder the folder's models use, fitted on the datasets'
-    ``split`` together and written beside it -> {path: regressor}. Earlier regressors in the folder are removed first: they are replaced, and one fitted
-    on an older encoder would stop its models from loading."""
+    ``split`` together and written beside it -> {path: regressor}. Earlier regressors in the folder are
+    removed first: they are replaced, and one fitted on an older encoder would stop its models from loading.
+    A check split no dataset has is refused before anything is removed."""
+    check_datasets(data_dirs, check_split)
     for old in Path(weights_dir).glob(f"*{REGRESSOR_SUFFIX}"):
         old.unlink()
     written: dict[Path, BodyRegressor] = {}

@@ -74,10 +74,15 @@ def split_camera(data_dir: str | Path, split: str) -> dict[str, Any]:
         raise DatasetError(f"{path}: no camera entry for split {split!r} ({exc})") from exc
 
 
+def split_shards(data_dir: str | Path, split: str) -> list[Path]:
+    """A split's shard files, in order; none when the dataset has no such split."""
+    return sorted((Path(data_dir) / split).glob("shard-*.npz"))
+
+
 def load_split(data_dir: str | Path, split: str, limit: int | None = None) -> list[dict[str, Any]]:
     """All sequences of a split (images still encoded), at most ``limit``; each with its ``camera`` (width,
     height, intrinsics, cam_from_head (16)): its own, or the split's for shards that carry none."""
-    shards = sorted((Path(data_dir) / split).glob("shard-*.npz"))
+    shards = split_shards(data_dir, split)
     if not shards:
         raise DatasetError(f"no shards in {Path(data_dir) / split}")
     seqs: list[dict[str, Any]] = []

@@ -1418,9 +1418,12 @@ def test_fit_body_fits_several_datasets_together_and_checks_where_a_check_split_
     assert record["sequences"] == len(load_split(tiny_data, "train")) + 1
     assert record["check_data"] == [str(tiny_data)] and "summed_bone_error_cm" in record
     capsys.readouterr()
-    # Asked to check on a split no folder has, it says so rather than fitting unchecked.
+    # Asked to check on a split no folder has, it says so rather than fitting unchecked, and the folder keeps
+    # the regressor it had.
+    fitted = (out / "visual-rgbd.body.json").read_text()
     assert main(["fit-body", "--data", str(seated), "--weights", str(out), "--no-progress"]) == 2
     assert "no --data folder has a 'val' split" in capsys.readouterr().err
+    assert (out / "visual-rgbd.body.json").read_text() == fitted
 
 
 def test_fit_body_without_depth_camera_models_says_so(tiny_runs, tiny_data, tmp_path, capsys):
