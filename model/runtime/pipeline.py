@@ -27,7 +27,7 @@ from ..inputs import canonicalize_hmd, heading_frame
 from ..rig import TRACKED_JOINTS, joints_from_devices, stillness_point
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels
-from .body import BodyCalibrator, ServedScale
+from .body import BodyCalibrator, ServedScale, held_target
 from .calibration import Calibration, body_measurements, canonical_poses
 from .contact import FootContacts
 from .filters import DevicePoseFilter, OneEuroCascade
@@ -93,6 +93,7 @@ class Pipeline:
         leg_hold: bool = True,
         lean_gate: bool | None = None,
         reseat: bool = False,
+        body_hold: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -106,6 +107,9 @@ class Pipeline:
         # a held leg or a steady foot's anchor far from the network's mean placement moves to it faster
         # (stance.RESEAT_SLACK_M); off by default: it failed MODEL_CARD.md rules 38 and 39
         self.reseat = reseat
+        # with the leg hold: while it holds, the bones that place the lower body under the head keep their
+        # served size once the body's first measurement is BODY_HOLD_AFTER_S old (body.held_target)
+        self.body_hold = body_hold
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -132,6 +136,7 @@ class Pipeline:
         self.offsets = rest_offsets(self.bone_scale)
         self.body = BodyCalibrator(self.model.info.body_regressor, float(self.model.info.rig_offsets_m[0, 1]))
         self.served_scale = ServedScale()
+        self._body_measured_us: int | None = None  # when the camera first measured a bone this session
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)
         self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
@@ -244,9 +249,18 @@ class Pipeline:
         tracked_pos, tracked_rot = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
         if not self.fixed_body:
             self.body.push(tracked_pos, valid)
-            if self.served_scale.follow(t_us, self.body.bone_scale):
+            if self.served_scale.follow(t_us, self._body_target(t_us)):
                 self.offsets = rest_offsets(self.served_scale.scale)
         return poses, valid, tracked_pos, tracked_rot
+
+    def _body_target(self, t_us: int) -> np.ndarray:
+        """The bone scale (J,) the served skeleton follows: the running estimate, or with ``body_hold``
+        (body.held_target) its lower body's placing bones kept while the legs are held."""
+        if self._body_measured_us is None and self.body.measured:
+            self._body_measured_us = t_us
+        if not (self.body_hold and self.leg_hold and self.legs.holding):
+            return self.body.bone_scale
+        return held_target(self.body.bone_scale, self.served_scale.scale, t_us, self._body_measured_us)
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""

@@ -436,5 +436,6 @@ def pipeline_for(model, **kwargs):
         kwargs.pop("leg_hold", None)
         kwargs.pop("lean_gate", None)
         kwargs.pop("reseat", None)
+        kwargs.pop("body_hold", None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

@@ -278,6 +278,7 @@ def evaluate(
     leg_hold: bool = True,
     lean_gate: bool | None = None,
     reseat: bool = False,
+    body_hold: bool = False,
     send_frames: bool = True,
     truth_body: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -300,11 +301,12 @@ def evaluate(
     feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans round the
     served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg
     or a still foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
-    default); ``send_frames`` False sends no camera frame, as a headset without the camera
+    default), ``body_hold`` True keeps the size of the bones that place the lower body while the legs are
+    held, once the body's first measurement is a second old (body.held_target; off by default); ``send_frames`` False sends no camera frame, as a headset without the camera
     (:func:`replay_sequence`); ``truth_body`` True serves each sequence the truth's body (its bone lengths)
     from its first sample instead of the session's running estimate (runtime/body.py): what a perfect body
     estimate would buy, a diagnosis. ``runtime`` {label: {option: bool}} serves a label with some of those
-    seven (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``send_frames``,
+    eight (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``send_frames``,
     ``truth_body``) set otherwise: one file served twice, with and without a runtime stage or the camera, is a
     paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the caller has
     already read the split (``eval --keypoints`` reads it once for both reports).
@@ -330,7 +332,7 @@ def evaluate(
     }
     for name, model in served_models.items():
         options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold,
-                   "lean_gate": lean_gate, "reseat": reseat}  # fmt: skip
+                   "lean_gate": lean_gate, "reseat": reseat, "body_hold": body_hold}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
