@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from egoposevr.model.runtime.body import (
+    BODY_HOLD_AFTER_S,
+    LOWER_PLACING_BONES,
     MIN_VISUAL_SAMPLES,
     SCALE_RANGE,
     SERVED_SCALE_RATE_PER_S,
@@ -18,6 +20,7 @@ from egoposevr.model.runtime.body import (
     BodyRegressor,
     ServedScale,
     height_scale,
+    held_target,
 )
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 
@@ -285,3 +288,54 @@ def test_a_long_pause_or_time_going_back_moves_the_served_scale_no_further_than_
     before = served.scale.copy()
     served.follow(0, np.full(22, 1.2))  # time went back
     assert np.array_equal(served.scale, before)
+
+
+def test_a_held_target_keeps_the_lower_bodys_placing_bones_once_the_first_measurement_is_old_enough():
+    estimate, served = np.full(22, 1.10), np.full(22, 1.00)
+    placing, others = list(LOWER_PLACING_BONES), [j for j in range(22) if j not in LOWER_PLACING_BONES]
+    t0 = 5_000_000
+    assert held_target(estimate, None, t0, t0) is estimate  # nothing served yet
+    assert held_target(estimate, served, t0, None) is estimate  # the camera has measured nothing
+    young = t0 + int(BODY_HOLD_AFTER_S * 1e6) - 1
+    assert held_target(estimate, served, young, t0) is estimate  # the body is still arriving
+    held = held_target(estimate, served, t0 + int(BODY_HOLD_AFTER_S * 1e6), t0)
+    assert np.array_equal(held[placing], served[placing]) and np.array_equal(held[others], estimate[others])
+    assert np.array_equal(estimate, np.full(22, 1.10))  # the estimate is not changed in place
+
+
+def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resizes_the_arms():
+    """The whole pipeline (bundled egoposevr, headset only) on a procedural user standing still: the camera's
+    measured legs change 4 s in, while the leg hold holds. With body_hold the served hips, legs and spine keep
+    their size until the hold ends; without it they grow towards the new estimate; the arms follow either way."""
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(1)
+    track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
+    model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
+    placing = list(LOWER_PLACING_BONES)
+    grown, held_share = {}, {}
+    for body_hold in (True, False):
+        pipeline = Pipeline(model, body_hold=body_hold)
+        holds, before = [], None
+        for i, t_us in enumerate(track.t_us):
+            if i == 10:  # the camera's first measurement
+                pipeline.body.measured = {4: 1.0, 5: 1.0, 7: 1.0, 8: 1.0}
+                pipeline.body._rebuild()
+            if i == 360:  # four seconds in: it measures the legs longer
+                before = pipeline.served_scale.scale.copy()
+                pipeline.body.measured = {4: 1.15, 5: 1.15, 7: 1.15, 8: 1.15}
+                pipeline.body._rebuild()
+            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+            if i >= 360:
+                holds.append(pipeline.legs.holding)
+        after = pipeline.served_scale.scale
+        grown[body_hold] = np.abs(after[placing] - before[placing]).max()
+        held_share[body_hold] = np.mean(holds)
+        others = [j for j in range(22) if j not in LOWER_PLACING_BONES]
+        assert np.abs(after[others] - before[others]).max() > 0.01  # the arms follow the new estimate
+    assert held_share[True] > 0.9, held_share  # the legs were held after the change
+    assert grown[True] < 0.2 * grown[False], grown
