@@ -96,6 +96,7 @@ LEGACY_REGRESSOR_HEAD_OFFSET_Y_M: Final = STILLNESS_OFFSET_M[1]
 _REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
 _SIGHTED: Final = np.array(SIGHTED_BONES)
 _SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
+_PLACING: Final = np.array(LOWER_PLACING_BONES)
 
 
 def height_scale(highest_head_m: float) -> float:
@@ -423,7 +424,7 @@ def held_target(
     if served is None or measured_since_us is None or (t_us - measured_since_us) * 1e-6 < BODY_HOLD_AFTER_S:
         return estimate
     out = np.array(estimate, dtype=np.float64)
-    out[list(LOWER_PLACING_BONES)] = served[list(LOWER_PLACING_BONES)]
+    out[_PLACING] = served[_PLACING]
     return out
 
 

@@ -424,18 +424,19 @@ class ProceduralPipeline:
         return position
 
 
+# The network pipeline's options that the procedural one has no stage for (it plants its own feet, has no
+# KPO, no leg hold and no estimated body to keep).
+NETWORK_PIPELINE_OPTIONS: Final = (
+    "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold",
+)  # fmt: skip
+
+
 def pipeline_for(model, **kwargs):
     """A session's pipeline for any servable model: the procedural one's, or the network pipeline."""
     from .pipeline import Pipeline
 
     if isinstance(model, ProceduralModel):
-        kwargs.pop("naive", None)
-        kwargs.pop("kpo_weights", None)
-        kwargs.pop("contacts", None)  # it plants its own feet
-        kwargs.pop("steady_stance", None)
-        kwargs.pop("leg_hold", None)
-        kwargs.pop("lean_gate", None)
-        kwargs.pop("reseat", None)
-        kwargs.pop("body_hold", None)
+        for option in NETWORK_PIPELINE_OPTIONS:
+            kwargs.pop(option, None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

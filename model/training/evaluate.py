@@ -302,13 +302,14 @@ def evaluate(
     served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg
     or a still foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
     default), ``body_hold`` True keeps the size of the bones that place the lower body while the legs are
-    held, once the body's first measurement is a second old (body.held_target; off by default); ``send_frames`` False sends no camera frame, as a headset without the camera
-    (:func:`replay_sequence`); ``truth_body`` True serves each sequence the truth's body (its bone lengths)
-    from its first sample instead of the session's running estimate (runtime/body.py): what a perfect body
-    estimate would buy, a diagnosis. ``runtime`` {label: {option: bool}} serves a label with some of those
-    eight (as ``contacts``, ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``send_frames``,
-    ``truth_body``) set otherwise: one file served twice, with and without a runtime stage or the camera, is a
-    paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the caller has
+    held, once the body's first measurement is a second old (body.held_target; off by default);
+    ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
+    ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
+    of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
+    ``runtime`` {label: {option: bool}} serves a label with some of those eight (as ``contacts``,
+    ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``send_frames``, ``truth_body``)
+    set otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
+    comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the caller has
     already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
