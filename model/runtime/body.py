@@ -83,10 +83,10 @@ DISCRIMINANT_RIDGE: Final = 1e-3  # added to the features' covariance (the const
 # 0.5 / 1 that cost the training split at most 0.03 cm of lower body (MODEL_CARD.md, "A body that grows").
 SERVED_SCALE_RATE_PER_S: Final = 0.5
 SERVED_SCALE_MAX_STEP_S: Final = 0.1  # a longer pause between samples counts as this long
-# With Pipeline(body_hold=True), while the legs are held: the bones that place the lower body under the head
-# (the root's scale, the spine from the pelvis to the head, the hips, thighs, shins and feet) keep their
-# served size once the camera's first measurement is BODY_HOLD_AFTER_S old (:func:`held_target`).
-LOWER_PLACING_BONES: Final = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 15)
+# With Pipeline(body_hold=True), while the legs are held: the hips, thighs, shins and feet keep their served
+# size once the camera's first measurement is BODY_HOLD_AFTER_S old (:func:`held_target`). The spine follows
+# the estimate: kept too, the standing upper body was 3.4 % further off (MODEL_CARD.md, rule 56).
+HELD_LEG_BONES: Final = (1, 2, *LEG_BONES)
 BODY_HOLD_AFTER_S: Final = 1.0
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
 REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -> visual-rgbd.body.json
@@ -96,7 +96,7 @@ LEGACY_REGRESSOR_HEAD_OFFSET_Y_M: Final = STILLNESS_OFFSET_M[1]
 _REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
 _SIGHTED: Final = np.array(SIGHTED_BONES)
 _SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
-_PLACING: Final = np.array(LOWER_PLACING_BONES)
+_HELD_LEGS: Final = np.array(HELD_LEG_BONES)
 
 
 def height_scale(highest_head_m: float) -> float:
@@ -414,8 +414,8 @@ class BodyCalibrator:
 def held_target(
     estimate: np.ndarray, served: np.ndarray | None, t_us: int, measured_since_us: int | None
 ) -> np.ndarray:
-    """What the served skeleton follows while the legs are held: the estimate (J,) with LOWER_PLACING_BONES
-    at their served size (J,; None before the first sample), once the camera's first measurement (at
+    """What the served skeleton follows while the legs are held: the estimate (J,) with HELD_LEG_BONES at
+    their served size (J,; None before the first sample), once the camera's first measurement (at
     measured_since_us; None: none yet) is BODY_HOLD_AFTER_S old. Before that the body is still arriving (the
     height's body, the regressor's first answers), and keeping it keeps a wrong one (MODEL_CARD.md, "A body
     that keeps its size while the legs are held"). After it, every change of the estimate under still legs
@@ -424,7 +424,7 @@ def held_target(
     if served is None or measured_since_us is None or (t_us - measured_since_us) * 1e-6 < BODY_HOLD_AFTER_S:
         return estimate
     out = np.array(estimate, dtype=np.float64)
-    out[_PLACING] = served[_PLACING]
+    out[_HELD_LEGS] = served[_HELD_LEGS]
     return out
 
 

@@ -107,8 +107,8 @@ class Pipeline:
         # a held leg or a steady foot's anchor far from the network's mean placement moves to it faster
         # (stance.RESEAT_SLACK_M); off by default: it failed MODEL_CARD.md rules 38 and 39
         self.reseat = reseat
-        # with the leg hold: while it holds, the bones that place the lower body under the head keep their
-        # served size once the body's first measurement is BODY_HOLD_AFTER_S old (body.held_target)
+        # with the leg hold: while it holds, the hips, thighs, shins and feet keep their served size once the
+        # body's first measurement is BODY_HOLD_AFTER_S old (body.held_target)
         self.body_hold = body_hold
         info = model.info
         self.window = info.config.window
@@ -255,7 +255,7 @@ class Pipeline:
 
     def _body_target(self, t_us: int) -> np.ndarray:
         """The bone scale (J,) the served skeleton follows: the running estimate, or with ``body_hold``
-        (body.held_target) its lower body's placing bones kept while the legs are held."""
+        (body.held_target) its leg bones kept while the legs are held."""
         if self._body_measured_us is None and self.body.measured:
             self._body_measured_us = t_us
         if not (self.body_hold and self.leg_hold and self.legs.holding):

@@ -9,7 +9,7 @@ import pytest
 
 from egoposevr.model.runtime.body import (
     BODY_HOLD_AFTER_S,
-    LOWER_PLACING_BONES,
+    HELD_LEG_BONES,
     MIN_VISUAL_SAMPLES,
     SCALE_RANGE,
     SERVED_SCALE_RATE_PER_S,
@@ -290,9 +290,10 @@ def test_a_long_pause_or_time_going_back_moves_the_served_scale_no_further_than_
     assert np.array_equal(served.scale, before)
 
 
-def test_a_held_target_keeps_the_lower_bodys_placing_bones_once_the_first_measurement_is_old_enough():
+def test_a_held_target_keeps_the_leg_bones_once_the_first_measurement_is_old_enough():
     estimate, served = np.full(22, 1.10), np.full(22, 1.00)
-    placing, others = list(LOWER_PLACING_BONES), [j for j in range(22) if j not in LOWER_PLACING_BONES]
+    placing, others = list(HELD_LEG_BONES), [j for j in range(22) if j not in HELD_LEG_BONES]
+    assert {1, 4, 7, 10} <= set(placing) and {3, 6, 9, 12, 15} <= set(others)  # hip to foot kept, spine not
     t0 = 5_000_000
     assert held_target(estimate, None, t0, t0) is estimate  # nothing served yet
     assert held_target(estimate, served, t0, None) is estimate  # the camera has measured nothing
@@ -303,10 +304,11 @@ def test_a_held_target_keeps_the_lower_bodys_placing_bones_once_the_first_measur
     assert np.array_equal(estimate, np.full(22, 1.10))  # the estimate is not changed in place
 
 
-def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resizes_the_arms():
+def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resizes_the_rest():
     """The whole pipeline (bundled egoposevr, headset only) on a procedural user standing still: the camera's
-    measured legs change 4 s in, while the leg hold holds. With body_hold the served hips, legs and spine keep
-    their size until the hold ends; without it they grow towards the new estimate; the arms follow either way."""
+    measured legs change 4 s in, while the leg hold holds. With body_hold the served hips and legs keep their
+    size until the hold ends; without it they grow towards the new estimate; the spine and arms follow either
+    way."""
     from egoposevr.model.runtime.loading import LoadedModel
     from egoposevr.model.runtime.pipeline import Pipeline
     from egoposevr.model.synth.headset import simulate_headset
@@ -316,7 +318,7 @@ def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resi
     rng = np.random.default_rng(1)
     track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
     model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
-    placing = list(LOWER_PLACING_BONES)
+    placing = list(HELD_LEG_BONES)
     grown, held_share = {}, {}
     for body_hold in (True, False):
         pipeline = Pipeline(model, body_hold=body_hold)
@@ -335,7 +337,8 @@ def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resi
         after = pipeline.served_scale.scale
         grown[body_hold] = np.abs(after[placing] - before[placing]).max()
         held_share[body_hold] = np.mean(holds)
-        others = [j for j in range(22) if j not in LOWER_PLACING_BONES]
-        assert np.abs(after[others] - before[others]).max() > 0.01  # the arms follow the new estimate
+        others = [j for j in range(22) if j not in HELD_LEG_BONES]
+        assert np.abs(after[others] - before[others]).max() > 0.01  # the spine and arms follow the estimate
+        assert np.abs(after[[3, 6, 9]] - before[[3, 6, 9]]).max() > 0.005, (after - before)[[3, 6, 9]]
     assert held_share[True] > 0.9, held_share  # the legs were held after the change
     assert grown[True] < 0.2 * grown[False], grown
