@@ -24,8 +24,8 @@ that is not the bundled one is served under a label: --models egoposevr,candidat
 (its folder holds the visual encoder it reads, as export writes it). A model named with @SWITCH after it is
 served with that runtime stage off (the switches are the --no-... flags' names: @no-foot-contacts,
 @no-steady-stance, @no-leg-hold, @no-camera), or with the lean gate on or off (@lean-gate, @no-lean-gate;
-by default as the model file says), the re-seating hold on (@reseat, off by default) or the body kept while the
-legs are held (@body-hold, off by default: MODEL_CARD.md, rule 56), so --models
+by default as the model file says), the re-seating hold on (@reseat, off by default) or the legs' size kept while
+they are held off or on (@no-body-hold, @body-hold; on by default: MODEL_CARD.md, rule 57), so --models
 egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes. --no-camera
 (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each

@@ -93,7 +93,7 @@ class Pipeline:
         leg_hold: bool = True,
         lean_gate: bool | None = None,
         reseat: bool = False,
-        body_hold: bool = False,
+        body_hold: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -108,7 +108,8 @@ class Pipeline:
         # (stance.RESEAT_SLACK_M); off by default: it failed MODEL_CARD.md rules 38 and 39
         self.reseat = reseat
         # with the leg hold: while it holds, the hips, thighs, shins and feet keep their served size once the
-        # body's first measurement is BODY_HOLD_AFTER_S old (body.held_target)
+        # body's first measurement (or the last calibration) is BODY_HOLD_AFTER_S old (body.held_target): still
+        # people's feet skate about 20 % less and settle about 20 % stiller (MODEL_CARD.md, rule 57)
         self.body_hold = body_hold
         info = model.info
         self.window = info.config.window
@@ -125,6 +126,7 @@ class Pipeline:
         are read as the training rig's from the next sample on, and the body takes its height and arms."""
         self.calibration = calibration
         self._apply_calibration()
+        self._hold_clock_us = None  # a calibration resizes held legs too: the body_hold waits again
 
     def _apply_calibration(self) -> None:
         """The body takes the calibration's measures; the served skeleton follows from the next sample."""
@@ -136,7 +138,9 @@ class Pipeline:
         self.offsets = rest_offsets(self.bone_scale)
         self.body = BodyCalibrator(self.model.info.body_regressor, float(self.model.info.rig_offsets_m[0, 1]))
         self.served_scale = ServedScale()
-        self._body_measured_us: int | None = None  # when the camera first measured a bone this session
+        # body_hold's clock: the sample when the camera first measured a bone this session, or the first after
+        # the last calibration (None until then)
+        self._hold_clock_us: int | None = None
         self.last_head_pose = np.array([0.0, 1.6, 0.0, 0.0, 0.0, 0.0, 1.0])
         self.cache = KeypointCache(self.visual_window, self.naive)
         self.device_filter = DevicePoseFilter(DEVICE_POSITION, DEVICE_ROTATION)
@@ -256,11 +260,11 @@ class Pipeline:
     def _body_target(self, t_us: int) -> np.ndarray:
         """The bone scale (J,) the served skeleton follows: the running estimate, or with ``body_hold``
         (body.held_target) its leg bones kept while the legs are held."""
-        if self._body_measured_us is None and self.body.measured:
-            self._body_measured_us = t_us
+        if self._hold_clock_us is None and self.body.measured:
+            self._hold_clock_us = t_us
         if not (self.body_hold and self.leg_hold and self.legs.holding):
             return self.body.bone_scale
-        return held_target(self.body.bone_scale, self.served_scale.scale, t_us, self._body_measured_us)
+        return held_target(self.body.bone_scale, self.served_scale.scale, t_us, self._hold_clock_us)
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""

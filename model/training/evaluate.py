@@ -278,7 +278,7 @@ def evaluate(
     leg_hold: bool = True,
     lean_gate: bool | None = None,
     reseat: bool = False,
-    body_hold: bool = False,
+    body_hold: bool = True,
     send_frames: bool = True,
     truth_body: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -301,8 +301,9 @@ def evaluate(
     feet are down (stance.LegHold), ``lean_gate`` True holds them and the feet while the head leans round the
     served pelvis too (stance.py; None: as each model file says, False: off), ``reseat`` True moves a held leg
     or a still foot's anchor far from the network's mean placement to it faster (stance.RESEAT_SLACK_M; off by
-    default), ``body_hold`` True keeps the size of the hips, thighs, shins and feet while the legs are
-    held, once the body's first measurement is a second old (body.held_target; off by default);
+    default), ``body_hold`` False lets the hips, thighs, shins and feet follow every new body estimate while
+    the legs are held (by default they keep their size once the body's first measurement is a second old:
+    body.held_target);
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.

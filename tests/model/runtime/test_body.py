@@ -342,3 +342,35 @@ def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resi
         assert np.abs(after[[3, 6, 9]] - before[[3, 6, 9]]).max() > 0.005, (after - before)[[3, 6, 9]]
     assert held_share[True] > 0.9, held_share  # the legs were held after the change
     assert grown[True] < 0.2 * grown[False], grown
+
+
+def test_with_body_hold_a_calibration_still_resizes_held_legs():
+    """A calibration is the wearer's own measure: under a leg hold it resizes the legs as it does without the
+    hold (the hold's clock starts again), where a new camera estimate would not."""
+    from egoposevr.model.runtime.calibration import Calibration
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(2)
+    track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
+    model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
+    legs = list(HELD_LEG_BONES)
+    served, holding = {}, []
+    for body_hold in (True, False):
+        pipeline = Pipeline(model, body_hold=body_hold)
+        for i, t_us in enumerate(track.t_us):
+            if i == 10:  # the camera's first measurement
+                pipeline.body.measured = {4: 1.0, 5: 1.0, 7: 1.0, 8: 1.0}
+                pipeline.body._rebuild()
+            if i == 360:  # four seconds in, the legs held: a calibration of a much taller wearer
+                before = pipeline.served_scale.scale[legs].copy()
+                holding.append(pipeline.legs.holding)
+                pipeline.calibrate(Calibration("stand", 1.85, np.tile(np.eye(3), (3, 1, 1))))
+            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        served[body_hold] = pipeline.served_scale.scale[legs]
+    assert holding == [True, True]
+    assert np.abs(served[True] - before).max() > 0.1  # the held legs took the calibration's body ...
+    np.testing.assert_allclose(served[True], served[False], atol=1e-3)  # ... as legs without the hold do
