@@ -16,6 +16,10 @@ is down: it plants at ``PLANT_P`` (if the foot is within ``RELEASE_HEIGHT_M`` of
   than ``STEP_SPEED_M_S``; or it is ``SURE_RELEASE`` times that far at any speed (a slow knee raise). A
   slow drift within that is the network's legs wandering while the user only moves the upper body, which is
   what the plant is there to hide.
+- **a sure plant** (``sure_plant``): while a contact head is at least ``SURE_P`` sure that a planted foot is
+  down, the network lifting its own foot is no step; only a drift over the floor past ``SURE_RELEASE`` is.
+  Seated, the network's foot joint floats 12 cm over the floor with a contact probability of 1.0 when the
+  served legs are not the wearer's, and letting the foot go there left it free above a floor it never left.
 - **no jumps**: whenever a foot's state changes, what was served the sample before fades into the new
   target (smoothstep, ``LAND_S`` for a plant, ``BLEND_S`` for a release), so a foot lowered onto the floor,
   let go, or planted again at once elsewhere glides instead of moving centimetres in one sample (the jerk
@@ -78,6 +82,7 @@ FLOOR_EVERY_S: Final = 0.25  # the percentile is re-taken this often (it costs ~
 FLOOR_PERCENTILE: Final = 20.0  # one foot is on the floor most of the time, standing, walking or sitting
 PLANT_P: Final = 0.5  # a net with a contact head: plant at this probability, release under RELEASE_P
 RELEASE_P: Final = 0.3
+SURE_P: Final = 0.9  # with sure_plant: a contact this sure is let go by the foot's drift alone, not its lift
 
 
 @dataclasses.dataclass
@@ -127,9 +132,10 @@ class FloorEstimate:
 class FootContacts:
     """Per-session foot contact state; :meth:`targets` adds the feet's KPO targets for one sample."""
 
-    def __init__(self, floor_y_m: float = 0.0, reseat: bool = False) -> None:
+    def __init__(self, floor_y_m: float = 0.0, reseat: bool = False, sure_plant: bool = False) -> None:
         self.floor_y_m = floor_y_m  # the reference space's floor
         self.reseat = reseat  # a steady anchor far from the network's mean placement moves to it faster
+        self.sure_plant = sure_plant  # a foot the contact head is sure of is not let go by its lift
         self._estimate = FloorEstimate()  # the session's own, from the network's feet
         self._floor_now_m = floor_y_m
         self._feet = (_Foot(), _Foot())
@@ -204,7 +210,9 @@ class FootContacts:
         speed_m_s = foot.speed.push(t_us, predicted[1])
         if foot.planted:
             assert foot.anchor is not None
-            if self._steps(foot, predicted, lift_m, body_scale, speed_m_s, contact_p, steady):
+            if self._steps(
+                foot, predicted, lift_m, body_scale, speed_m_s, contact_p, steady, self.sure_plant
+            ):
                 foot.planted = False
                 self._switch(foot, t_us, predicted, BLEND_S)
             else:
@@ -228,11 +236,14 @@ class FootContacts:
         speed_m_s: float,
         contact_p: float | None,
         steady: bool,
+        sure_plant: bool = False,
     ) -> bool:
         """Whether a planted foot steps now (module docstring: planted -> free)."""
         assert foot.anchor is not None
         drift_m = float(np.linalg.norm(predicted[1, [0, 2]] - foot.anchor[1, [0, 2]]))
         away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
+        if sure_plant and contact_p is not None and contact_p >= SURE_P:
+            away = drift_m / (RELEASE_DISTANCE_M * body_scale)
         if steady:  # the network's foot wandering over the floor is not a step while the head is still
             sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
             return lift_m > RELEASE_HEIGHT_M and sure

@@ -94,6 +94,7 @@ class Pipeline:
         lean_gate: bool | None = None,
         reseat: bool = False,
         body_hold: bool = True,
+        sure_plant: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -111,6 +112,8 @@ class Pipeline:
         # body's first measurement (or the last calibration) is BODY_HOLD_AFTER_S old (body.held_target): still
         # people's feet skate about 20 % less and settle about 20 % stiller (MODEL_CARD.md, rule 57)
         self.body_hold = body_hold
+        # a planted foot the contact head is sure of is not let go by the network lifting it (contact.SURE_P)
+        self.sure_plant = sure_plant
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -159,7 +162,8 @@ class Pipeline:
         self.hmd_window: np.ndarray | None = None  # (T, 72 [+ 6 tracking state])
         self.cache.forget()
         self.position_filter.reset()
-        self.feet, self.stance = FootContacts(reseat=self.reseat), SteadyStance()
+        self.feet = FootContacts(reseat=self.reseat, sure_plant=self.sure_plant)
+        self.stance = SteadyStance()
         self.hands = LostHandPolicy()
         self.legs = LegHold(lean=self.lean_gate, reseat=self.reseat)
 

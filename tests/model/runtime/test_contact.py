@@ -11,6 +11,8 @@ from egoposevr.model.runtime.contact import (
     PLANT_SPEED_M_S,
     RELEASE_DISTANCE_M,
     RELEASE_HEIGHT_M,
+    SURE_P,
+    SURE_RELEASE,
     FootContacts,
 )
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
@@ -199,6 +201,45 @@ def test_a_contact_head_decides_when_a_foot_is_down_and_when_it_steps():
         20 * STEP_US, still, 1.0, np.zeros((22, 3)), np.zeros(22, dtype=bool), np.array([0.1, 0.9])
     )
     assert contacts.planted == (False, True)
+
+
+@pytest.mark.parametrize("sure_plant", [False, True])
+def test_with_sure_plant_a_foot_the_head_is_sure_of_stays_down_however_high_the_net_lifts_it(sure_plant):
+    """A seated network's foot joint floats well over the floor while its contact head is sure the foot is
+    down: with sure_plant the plant stays; without it, a lift that far is a step. Less sure, or drifted that
+    far over the floor, the foot steps either way (and is planted again past the old plant)."""
+
+    def left_foot_after(lift_m: float, shift_m: float, p_left: float) -> tuple[bool, float]:
+        """Whether the left foot is planted after the net's drift, and how far its target moved (m)."""
+        rng = np.random.default_rng(7)
+        contacts = FootContacts(sure_plant=sure_plant)
+        for i in range(40):  # planted
+            joints = standing_joints(rng, 0.0)
+            contacts.targets(
+                i * STEP_US, joints, 1.0, np.zeros((22, 3)), np.zeros(22, dtype=bool), np.ones(2)
+            )
+        start = joints[LEFT_FOOT].copy()
+        for i in range(40, 80):  # the net's left foot drifts up and over the floor, slowly
+            joints = standing_joints(rng, 0.0)
+            share = (i - 39) / 40
+            joints[[LEFT_ANKLE, LEFT_FOOT], 1] += lift_m * share
+            joints[[LEFT_ANKLE, LEFT_FOOT], 0] += shift_m * share
+            targets = np.zeros((22, 3))
+            p = np.array([p_left, 1.0])
+            contacts.targets(i * STEP_US, joints, 1.0, targets, np.zeros(22, dtype=bool), p)
+        for i in range(80, 140):  # the net keeps it there; any release's blend has faded
+            targets = np.zeros((22, 3))
+            contacts.targets(i * STEP_US, joints, 1.0, targets, np.zeros(22, dtype=bool), p)
+        moved_m = float(np.linalg.norm(targets[LEFT_FOOT, [0, 2]] - start[[0, 2]]))
+        return contacts.planted[0], moved_m
+
+    high = 1.2 * SURE_RELEASE * RELEASE_HEIGHT_M
+    far = 1.2 * SURE_RELEASE * RELEASE_DISTANCE_M
+    assert left_foot_after(high, 0.0, 1.0)[0] is sure_plant
+    assert left_foot_after(0.0, 0.0, 1.0)[0]  # the net's foot where the plant is: down either way
+    assert not left_foot_after(high, 0.0, SURE_P - 0.05)[0]  # less sure: a step
+    planted, moved_m = left_foot_after(0.0, far, 1.0)  # drifted that far: a step, and down again past it
+    assert planted and moved_m > SURE_RELEASE * RELEASE_DISTANCE_M
 
 
 def test_without_a_floor_at_y_zero_the_feet_are_left_to_the_network_until_the_session_finds_one():
