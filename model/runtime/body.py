@@ -83,9 +83,10 @@ DISCRIMINANT_RIDGE: Final = 1e-3  # added to the features' covariance (the const
 # 0.5 / 1 that cost the training split at most 0.03 cm of lower body (MODEL_CARD.md, "A body that grows").
 SERVED_SCALE_RATE_PER_S: Final = 0.5
 SERVED_SCALE_MAX_STEP_S: Final = 0.1  # a longer pause between samples counts as this long
-# With Pipeline(body_hold=True), while the legs are held: the hips, thighs, shins and feet keep their served
-# size once the camera's first measurement is BODY_HOLD_AFTER_S old (:func:`held_target`). The spine follows
-# the estimate: kept too, the standing upper body was 3.4 % further off (MODEL_CARD.md, rule 56).
+# With Pipeline(body_hold=True), the default, while the legs are held: the hips, thighs, shins and feet keep
+# their served size once the camera's first measurement (or the last calibration) is BODY_HOLD_AFTER_S old
+# (:func:`held_target`). The spine follows the estimate: kept too, the standing upper body was 3.4 % further
+# off (MODEL_CARD.md, rule 56); the legs alone cost it nothing (rule 57).
 HELD_LEG_BONES: Final = (1, 2, *LEG_BONES)
 BODY_HOLD_AFTER_S: Final = 1.0
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
@@ -412,16 +413,16 @@ class BodyCalibrator:
 
 
 def held_target(
-    estimate: np.ndarray, served: np.ndarray | None, t_us: int, measured_since_us: int | None
+    estimate: np.ndarray, served: np.ndarray | None, t_us: int, since_us: int | None
 ) -> np.ndarray:
     """What the served skeleton follows while the legs are held: the estimate (J,) with HELD_LEG_BONES at
-    their served size (J,; None before the first sample), once the camera's first measurement (at
-    measured_since_us; None: none yet) is BODY_HOLD_AFTER_S old. Before that the body is still arriving (the
+    their served size (J,; None before the first sample), once the hold's clock (since_us: the camera's first
+    measurement, or the first sample after a later calibration; None: none yet) is BODY_HOLD_AFTER_S old. Before that the body is still arriving (the
     height's body, the regressor's first answers), and keeping it keeps a wrong one (MODEL_CARD.md, "A body
     that keeps its size while the legs are held"). After it, every change of the estimate under still legs
     moves held knees and planted feet: on ten-second still streams the estimate's changes, not its error,
     are what a still stander's leg leakage is (MODEL_CARD.md, rule 55's diagnosis)."""
-    if served is None or measured_since_us is None or (t_us - measured_since_us) * 1e-6 < BODY_HOLD_AFTER_S:
+    if served is None or since_us is None or (t_us - since_us) * 1e-6 < BODY_HOLD_AFTER_S:
         return estimate
     out = np.array(estimate, dtype=np.float64)
     out[_HELD_LEGS] = served[_HELD_LEGS]
