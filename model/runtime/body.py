@@ -417,11 +417,12 @@ def held_target(
 ) -> np.ndarray:
     """What the served skeleton follows while the legs are held: the estimate (J,) with HELD_LEG_BONES at
     their served size (J,; None before the first sample), once the hold's clock (since_us: the camera's first
-    measurement, or the first sample after a later calibration; None: none yet) is BODY_HOLD_AFTER_S old. Before that the body is still arriving (the
-    height's body, the regressor's first answers), and keeping it keeps a wrong one (MODEL_CARD.md, "A body
-    that keeps its size while the legs are held"). After it, every change of the estimate under still legs
-    moves held knees and planted feet: on ten-second still streams the estimate's changes, not its error,
-    are what a still stander's leg leakage is (MODEL_CARD.md, rule 55's diagnosis)."""
+    measurement, or the first sample after a later calibration; None: none yet) is BODY_HOLD_AFTER_S old.
+    Before that the body is still arriving (the height's body, the regressor's first answers), and keeping it
+    keeps a wrong one (MODEL_CARD.md, "A body that keeps its size while the legs are held"). After it, every
+    change of the estimate under still legs moves held knees and planted feet: on ten-second still streams
+    the estimate's changes, not its error, are what a still stander's leg leakage is (MODEL_CARD.md, rule
+    55's diagnosis)."""
     if served is None or since_us is None or (t_us - since_us) * 1e-6 < BODY_HOLD_AFTER_S:
         return estimate
     out = np.array(estimate, dtype=np.float64)

@@ -241,9 +241,8 @@ class FootContacts:
         """Whether a planted foot steps now (module docstring: planted -> free)."""
         assert foot.anchor is not None
         drift_m = float(np.linalg.norm(predicted[1, [0, 2]] - foot.anchor[1, [0, 2]]))
-        away = max(lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
-        if sure_plant and contact_p is not None and contact_p >= SURE_P:
-            away = drift_m / (RELEASE_DISTANCE_M * body_scale)
+        sure = sure_plant and contact_p is not None and contact_p >= SURE_P  # its lift is then no step
+        away = max(0.0 if sure else lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
         if steady:  # the network's foot wandering over the floor is not a step while the head is still
             sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
             return lift_m > RELEASE_HEIGHT_M and sure

@@ -109,8 +109,8 @@ class Pipeline:
         # (stance.RESEAT_SLACK_M); off by default: it failed MODEL_CARD.md rules 38 and 39
         self.reseat = reseat
         # with the leg hold: while it holds, the hips, thighs, shins and feet keep their served size once the
-        # body's first measurement (or the last calibration) is BODY_HOLD_AFTER_S old (body.held_target): still
-        # people's feet skate about 20 % less and settle about 20 % stiller (MODEL_CARD.md, rule 57)
+        # body's first measurement (or the last calibration) is BODY_HOLD_AFTER_S old (body.held_target):
+        # still people's feet skate about 20 % less and settle about 20 % stiller (MODEL_CARD.md, rule 57)
         self.body_hold = body_hold
         # a planted foot the contact head is sure of is not let go by the network lifting it (contact.SURE_P)
         self.sure_plant = sure_plant
@@ -263,7 +263,8 @@ class Pipeline:
 
     def _body_target(self, t_us: int) -> np.ndarray:
         """The bone scale (J,) the served skeleton follows: the running estimate, or with ``body_hold``
-        (body.held_target) its leg bones kept while the legs are held."""
+        (body.held_target) its leg bones kept while the legs are held. Starts the hold's clock at the first
+        sample that has a measured body (after the session's start or a calibration)."""
         if self._hold_clock_us is None and self.body.measured:
             self._hold_clock_us = t_us
         if not (self.body_hold and self.leg_hold and self.legs.holding):

@@ -427,7 +427,8 @@ class ProceduralPipeline:
 # The network pipeline's options that the procedural one has no stage for (it plants its own feet, has no
 # KPO, no leg hold and no estimated body to keep).
 NETWORK_PIPELINE_OPTIONS: Final = (
-    "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold", "sure_plant",
+    "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold",
+    "sure_plant",
 )  # fmt: skip
 
 

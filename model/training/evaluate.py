@@ -309,9 +309,9 @@ def evaluate(
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
-    ``runtime`` {label: {option: bool}} serves a label with some of those eight (as ``contacts``,
-    ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``, ``send_frames``, ``truth_body``)
-    set otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
+    ``runtime`` {label: {option: bool}} serves a label with some of those nine (as ``contacts``,
+    ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
+    ``send_frames``, ``truth_body``) set otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
     comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the caller has
     already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R

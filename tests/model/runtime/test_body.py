@@ -304,42 +304,53 @@ def test_a_held_target_keeps_the_leg_bones_once_the_first_measurement_is_old_eno
     assert np.array_equal(estimate, np.full(22, 1.10))  # the estimate is not changed in place
 
 
-def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resizes_the_rest():
-    """The whole pipeline (bundled egoposevr, headset only) on a procedural user standing still: the camera's
-    measured legs change 4 s in, while the leg hold holds. With body_hold the served hips and legs keep their
-    size until the hold ends; without it they grow towards the new estimate; the spine and arms follow either
-    way."""
+def _serve_a_still_stander(body_hold: bool, seed: int, at_4_s) -> tuple[object, list[bool]]:
+    """The whole pipeline (bundled egoposevr, headset only) on a procedural user standing still for 6 s at
+    90 Hz: the camera's first measurement (legs of the mean body's length) arrives at the tenth sample, and
+    ``at_4_s(pipeline)`` runs before the sample four seconds in. -> the pipeline after the stream, and
+    whether the legs were held at each sample from four seconds on."""
     from egoposevr.model.runtime.loading import LoadedModel
     from egoposevr.model.runtime.pipeline import Pipeline
     from egoposevr.model.synth.headset import simulate_headset
     from egoposevr.model.synth.procedural import generate
     from egoposevr.model.weights import WEIGHTS_DIR
 
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
-    model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
+    pipeline = Pipeline(LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx"), body_hold=body_hold)
+    holds = []
+    for i, t_us in enumerate(track.t_us):
+        if i == 10:
+            pipeline.body.measured = {4: 1.0, 5: 1.0, 7: 1.0, 8: 1.0}
+            pipeline.body._rebuild()
+        if i == 360:
+            at_4_s(pipeline)
+        pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        if i >= 360:
+            holds.append(pipeline.legs.holding)
+    return pipeline, holds
+
+
+def test_with_body_hold_a_new_estimate_does_not_resize_still_legs_but_still_resizes_the_rest():
+    """The camera's measured legs change 4 s in, while the leg hold holds. With body_hold the served hips and
+    legs keep their size until the hold ends; without it they grow towards the new estimate; the spine and
+    arms follow either way."""
     placing = list(HELD_LEG_BONES)
-    grown, held_share = {}, {}
+    others = [j for j in range(22) if j not in HELD_LEG_BONES]
+    grown, held_share, before = {}, {}, {}
+
+    def measure_longer_legs(pipeline) -> None:
+        before["scale"] = pipeline.served_scale.scale.copy()  # each run's, before the change
+        pipeline.body.measured = {4: 1.15, 5: 1.15, 7: 1.15, 8: 1.15}
+        pipeline.body._rebuild()
+
     for body_hold in (True, False):
-        pipeline = Pipeline(model, body_hold=body_hold)
-        holds, before = [], None
-        for i, t_us in enumerate(track.t_us):
-            if i == 10:  # the camera's first measurement
-                pipeline.body.measured = {4: 1.0, 5: 1.0, 7: 1.0, 8: 1.0}
-                pipeline.body._rebuild()
-            if i == 360:  # four seconds in: it measures the legs longer
-                before = pipeline.served_scale.scale.copy()
-                pipeline.body.measured = {4: 1.15, 5: 1.15, 7: 1.15, 8: 1.15}
-                pipeline.body._rebuild()
-            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
-            if i >= 360:
-                holds.append(pipeline.legs.holding)
-        after = pipeline.served_scale.scale
-        grown[body_hold] = np.abs(after[placing] - before[placing]).max()
+        pipeline, holds = _serve_a_still_stander(body_hold, 1, measure_longer_legs)
+        after, was = pipeline.served_scale.scale, before["scale"]
+        grown[body_hold] = np.abs(after[placing] - was[placing]).max()
         held_share[body_hold] = np.mean(holds)
-        others = [j for j in range(22) if j not in HELD_LEG_BONES]
-        assert np.abs(after[others] - before[others]).max() > 0.01  # the spine and arms follow the estimate
-        assert np.abs(after[[3, 6, 9]] - before[[3, 6, 9]]).max() > 0.005, (after - before)[[3, 6, 9]]
+        assert np.abs(after[others] - was[others]).max() > 0.01  # the spine and arms follow the estimate
+        assert np.abs(after[[3, 6, 9]] - was[[3, 6, 9]]).max() > 0.005, (after - was)[[3, 6, 9]]
     assert held_share[True] > 0.9, held_share  # the legs were held after the change
     assert grown[True] < 0.2 * grown[False], grown
 
@@ -348,29 +359,18 @@ def test_with_body_hold_a_calibration_still_resizes_held_legs():
     """A calibration is the wearer's own measure: under a leg hold it resizes the legs as it does without the
     hold (the hold's clock starts again), where a new camera estimate would not."""
     from egoposevr.model.runtime.calibration import Calibration
-    from egoposevr.model.runtime.loading import LoadedModel
-    from egoposevr.model.runtime.pipeline import Pipeline
-    from egoposevr.model.synth.headset import simulate_headset
-    from egoposevr.model.synth.procedural import generate
-    from egoposevr.model.weights import WEIGHTS_DIR
 
-    rng = np.random.default_rng(2)
-    track = simulate_headset(generate("still_stand", 6.0, 60.0, rng), 90.0, rng)
-    model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
     legs = list(HELD_LEG_BONES)
-    served, holding = {}, []
+    served, holding, before = {}, [], {}
+
+    def calibrate_a_much_taller_wearer(pipeline) -> None:
+        before[pipeline.body_hold] = pipeline.served_scale.scale[legs].copy()
+        holding.append(pipeline.legs.holding)
+        pipeline.calibrate(Calibration("stand", 1.85, np.tile(np.eye(3), (3, 1, 1))))
+
     for body_hold in (True, False):
-        pipeline = Pipeline(model, body_hold=body_hold)
-        for i, t_us in enumerate(track.t_us):
-            if i == 10:  # the camera's first measurement
-                pipeline.body.measured = {4: 1.0, 5: 1.0, 7: 1.0, 8: 1.0}
-                pipeline.body._rebuild()
-            if i == 360:  # four seconds in, the legs held: a calibration of a much taller wearer
-                before = pipeline.served_scale.scale[legs].copy()
-                holding.append(pipeline.legs.holding)
-                pipeline.calibrate(Calibration("stand", 1.85, np.tile(np.eye(3), (3, 1, 1))))
-            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        pipeline, _ = _serve_a_still_stander(body_hold, 2, calibrate_a_much_taller_wearer)
         served[body_hold] = pipeline.served_scale.scale[legs]
     assert holding == [True, True]
-    assert np.abs(served[True] - before).max() > 0.1  # the held legs took the calibration's body ...
+    assert np.abs(served[True] - before[True]).max() > 0.1  # the held legs took the calibration's body ...
     np.testing.assert_allclose(served[True], served[False], atol=1e-3)  # ... as legs without the hold do
