@@ -52,7 +52,7 @@ import numpy as np
 
 from ..skeleton import FOOT_JOINT_HEIGHT_M
 from .filters import WindowSpeed, fade_left, settle_step
-from .stance import reseat_of
+from .stance import REBASE_S, rebase_of
 
 FEET: Final = ((7, 10), (8, 11))  # (ankle, foot joint): left, right
 _FOOT_JOINTS: Final = [foot_j for _, foot_j in FEET]
@@ -140,6 +140,7 @@ class FootContacts:
         self._floor_now_m = floor_y_m
         self._feet = (_Foot(), _Foot())
         self._last_us: int | None = None
+        self._rebase_until_us: int | None = None  # a rebase's end (:meth:`rebase`)
 
     @property
     def planted(self) -> tuple[bool, bool]:
@@ -150,6 +151,14 @@ class FootContacts:
     def floor_now_m(self) -> float:
         """The floor's height that the feet are held to now, m."""
         return self._floor_now_m
+
+    def rebase(self, t_us: int) -> None:
+        """The network's inputs have just filled (Pipeline's ``warm_reseat``): each planted foot's mean
+        placement restarts from the next sample, and until stance.REBASE_S from t_us its anchor closes its gap
+        to it at gap / stance.REBASE_TAU_S, steady stance or not."""
+        for foot in self._feet:
+            foot.placed_sum, foot.placed = None, 0
+        self._rebase_until_us = t_us + int(REBASE_S * 1e6)
 
     def targets(
         self,
@@ -216,8 +225,10 @@ class FootContacts:
                 foot.planted = False
                 self._switch(foot, t_us, predicted, BLEND_S)
             else:
-                if steady:
-                    self._settle(foot, predicted - np.array([0.0, lift_m, 0.0]), self.reseat)
+                rebasing = self._rebase_until_us is not None and t_us < self._rebase_until_us
+                if steady or rebasing:
+                    on_floor = predicted - np.array([0.0, lift_m, 0.0])
+                    self._settle(foot, on_floor, rebase_of(t_us, self._rebase_until_us, self.reseat))
                 return self._serve(foot, t_us, foot.anchor, predicted, rest_y)
         elif self._plants(lift_m, speed_m_s, contact_p):
             foot.planted = True
@@ -277,15 +288,17 @@ class FootContacts:
         return None if target is None and foot.blend_m is None and not below.any() else out
 
     @staticmethod
-    def _settle(foot: _Foot, on_floor: np.ndarray, reseat: bool) -> None:
-        """A planted foot in a steady stance: its anchor (2, 3) moves towards the mean of the network's
-        placements on the floor since the plant (``on_floor`` this sample's), at most ANCHOR_SPEED_M_S, or,
-        with ``reseat`` and far from it, faster (stance.RESEAT_SLACK_M)."""
-        assert foot.anchor is not None and foot.placed_sum is not None
+    def _settle(foot: _Foot, on_floor: np.ndarray, reseat: tuple[float, float] | None) -> None:
+        """A planted foot in a steady stance (or rebasing): its anchor (2, 3) moves towards the mean of the
+        network's placements on the floor since the plant or the rebase (``on_floor`` this sample's), at most
+        ANCHOR_SPEED_M_S, or faster with ``reseat`` (filters.settle_step's)."""
+        assert foot.anchor is not None
+        if foot.placed_sum is None:  # rebased: the mean starts again here
+            foot.placed_sum, foot.placed = np.zeros_like(on_floor), 0
         foot.placed_sum += on_floor
         foot.placed += 1
         gap_m = foot.placed_sum / foot.placed - foot.anchor
-        foot.anchor = foot.anchor + settle_step(gap_m, foot.speed.step_s, ANCHOR_SPEED_M_S, reseat_of(reseat))
+        foot.anchor = foot.anchor + settle_step(gap_m, foot.speed.step_s, ANCHOR_SPEED_M_S, reseat)
 
     @staticmethod
     def _plants(lift_m: float, speed_m_s: float, contact_p: float | None) -> bool:

@@ -95,6 +95,7 @@ class Pipeline:
         reseat: bool = False,
         body_hold: bool = True,
         sure_plant: bool = False,
+        warm_reseat: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -114,6 +115,10 @@ class Pipeline:
         self.body_hold = body_hold
         # a planted foot the contact head is sure of is not let go by the network lifting it (contact.SURE_P)
         self.sure_plant = sure_plant
+        # once the net's input windows have filled (a stream's first answers read a padded headset window and
+        # few camera frames), held legs and planted feet re-seat at its answers (stance.REBASE_S): a hold
+        # begun on the session's cold first guess is not what stays
+        self.warm_reseat = warm_reseat
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -166,6 +171,8 @@ class Pipeline:
         self.stance = SteadyStance()
         self.hands = LostHandPolicy()
         self.legs = LegHold(lean=self.lean_gate, reseat=self.reseat)
+        self._stream_samples = 0  # headset samples since the stream (re)started
+        self._rebased = False  # warm_reseat's re-seat done this stream
 
     @property
     def frames_encoded(self) -> int:
@@ -243,6 +250,7 @@ class Pipeline:
         if self.device_filter.jumped[0]:
             self._restart_stream()
         x = self.features.push(t_us, poses, valid)
+        self._stream_samples += 1
         if self.model.info.config.device_validity:
             x = np.concatenate([x, self.tracking.push(t_us, valid)])
         if valid[0]:
@@ -270,6 +278,25 @@ class Pipeline:
         if not (self.body_hold and self.leg_hold and self.legs.holding):
             return self.body.bone_scale
         return held_target(self.body.bone_scale, self.served_scale.scale, t_us, self._hold_clock_us)
+
+    def _inputs_filled(self) -> bool:
+        """Whether the net's windows hold no padding now: ``window`` headset samples since the stream began
+        and, for a net that reads the camera, ``visual_window`` frames (or twice ``window`` samples without
+        them: a headset whose camera does not send)."""
+        if self._stream_samples < self.window:
+            return False
+        return (
+            self.visual_window == 0
+            or len(self.cache.frames) >= self.visual_window
+            or self._stream_samples >= 2 * self.window
+        )
+
+    def _rebase_when_warm(self, t_us: int) -> None:
+        """warm_reseat: at the first sample whose windows are filled, the hold and the planted feet re-seat."""
+        if self.warm_reseat and not self._rebased and self._inputs_filled():
+            self._rebased = True
+            self.feet.rebase(t_us)
+            self.legs.rebase(t_us)
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
@@ -332,6 +359,7 @@ class Pipeline:
             observed[_TRACKED] = valid
             self.hands.targets(t_us, joints, valid, tracked_pos, targets, observed)
             if self.contacts:
+                self._rebase_when_warm(t_us)
                 bones = self.bone_scale if self.fixed_body else self.served_scale.scale
                 leg_scale = float(bones[_LEG_BONES].mean())
                 still_m = self._stillness_point(pending)

@@ -428,7 +428,7 @@ class ProceduralPipeline:
 # KPO, no leg hold and no estimated body to keep).
 NETWORK_PIPELINE_OPTIONS: Final = (
     "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold",
-    "sure_plant",
+    "sure_plant", "warm_reseat",
 )  # fmt: skip
 
 

@@ -56,6 +56,12 @@ SETTLE_SPEED_M_S: Final = 0.0025
 # and 39).
 RESEAT_SLACK_M: Final = 0.04
 RESEAT_TAU_S: Final = 1.0
+# With ``warm_reseat`` (Pipeline): once the network's input windows have filled (its first answers read few
+# or no camera frames and a padded headset window), a hold's mean restarts from the next placement and for
+# REBASE_S the held joints (and the planted feet's anchors: contact.py) close their gap to it at
+# gap / REBASE_TAU_S: a hold begun on the session's cold first guess is not what stays (MODEL_CARD.md, rule 59).
+REBASE_S: Final = 0.3
+REBASE_TAU_S: Final = 0.1
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
 _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
 _HELD: Final = np.array(HELD_JOINTS)
@@ -77,6 +83,14 @@ def reseat_of(reseat: bool) -> tuple[float, float] | None:
     """filters.settle_step's ``reseat`` for a hold or an anchor that re-seats (RESEAT_SLACK_M, RESEAT_TAU_S),
     or None. Read at each call, so that the constants can be chosen by patching them."""
     return (RESEAT_SLACK_M, RESEAT_TAU_S) if reseat else None
+
+
+def rebase_of(t_us: int, until_us: int | None, reseat: bool) -> tuple[float, float] | None:
+    """filters.settle_step's ``reseat`` at t_us: a re-seat with no slack over REBASE_TAU_S before until_us (a
+    rebase's end), else :func:`reseat_of`."""
+    if until_us is not None and t_us < until_us:
+        return 0.0, REBASE_TAU_S
+    return reseat_of(reseat)
 
 
 def _stream_broke(last_us: int | None, t_us: int) -> bool:
@@ -162,6 +176,7 @@ class LegHold:
         self._placed_sum: np.ndarray | None = None  # (5, 3) the network's placements since the hold began
         self._placed = 0
         self._offset: np.ndarray | None = None  # (5, 3) held minus unheld, decaying after the hold
+        self._rebase_until_us: int | None = None  # a rebase's end (:meth:`rebase`)
 
     @property
     def holding(self) -> bool:
@@ -192,27 +207,37 @@ class LegHold:
         quiet = head_valid and _is_quiet(self._head_speed, speed_m_s, self.pivot_m)
         network = joints[_HELD]
         if quiet and all(planted) and self._served is not None:
-            target = self._hold(network, dt_s)
+            target = self._hold(network, dt_s, t_us)
         else:
             target = self._let_go(network, dt_s, unheld)
         if target is not None:
             targets[_HELD] = target
             observed[_HELD] = True
 
+    def rebase(self, t_us: int) -> None:
+        """The network's inputs have just filled (Pipeline's ``warm_reseat``): a hold's mean restarts from the
+        next placement, and until REBASE_S from t_us the held joints close their gap to it at
+        gap / REBASE_TAU_S."""
+        self._placed_sum, self._placed = None, 0
+        self._rebase_until_us = t_us + int(REBASE_S * 1e6)
+
     def served(self, joints: np.ndarray) -> None:
         """The joints (J, 3) served this sample (after KPO): where a hold that begins next sample starts."""
         self._served = joints[_HELD]  # a copy (fancy indexing)
 
-    def _hold(self, network: np.ndarray, dt_s: float) -> np.ndarray:
+    def _hold(self, network: np.ndarray, dt_s: float, t_us: int) -> np.ndarray:
         """This sample's held targets (5, 3): begun at the served joints, settling to the network's mean."""
         self._offset = None
         if self._held is None:
             self._held, self._placed_sum, self._placed = self._served.copy(), network.copy(), 1
             return self._held
+        if self._placed_sum is None:  # rebased: the mean starts again here
+            self._placed_sum, self._placed = np.zeros_like(network), 0
         self._placed_sum += network
         self._placed += 1
         gap_m = self._placed_sum / self._placed - self._held
-        self._held = self._held + settle_step(gap_m, dt_s, SETTLE_SPEED_M_S, reseat_of(self.reseat))
+        reseat = rebase_of(t_us, self._rebase_until_us, self.reseat)
+        self._held = self._held + settle_step(gap_m, dt_s, SETTLE_SPEED_M_S, reseat)
         return self._held
 
     def _let_go(

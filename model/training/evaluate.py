@@ -280,6 +280,7 @@ def evaluate(
     reseat: bool = False,
     body_hold: bool = True,
     sure_plant: bool = False,
+    warm_reseat: bool = False,
     send_frames: bool = True,
     truth_body: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -305,13 +306,14 @@ def evaluate(
     default), ``body_hold`` False lets the hips, thighs, shins and feet follow every new body estimate while
     the legs are held (by default they keep their size once the body's first measurement is a second old:
     body.held_target), ``sure_plant`` True keeps a planted foot the contact head is sure of down however
-    high the network lifts it (contact.SURE_P; off by default);
+    high the network lifts it (contact.SURE_P; off by default), ``warm_reseat`` True re-seats held legs and
+    planted feet at the network's answers once its windows fill (Pipeline's; off by default);
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
-    ``runtime`` {label: {option: bool}} serves a label with some of those nine (as ``contacts``,
+    ``runtime`` {label: {option: bool}} serves a label with some of those ten (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``send_frames``, ``truth_body``) set otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
+    ``warm_reseat``, ``send_frames``, ``truth_body``) set otherwise: one file served twice, with and without a runtime stage or the camera, is a paired
     comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the caller has
     already read the split (``eval --keypoints`` reads it once for both reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
@@ -337,7 +339,7 @@ def evaluate(
     for name, model in served_models.items():
         options = {"contacts": foot_contacts, "steady_stance": steady_stance, "leg_hold": leg_hold,
                    "lean_gate": lean_gate, "reseat": reseat, "body_hold": body_hold,
-                   "sure_plant": sure_plant}  # fmt: skip
+                   "sure_plant": sure_plant, "warm_reseat": warm_reseat}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body

@@ -13,6 +13,7 @@ from egoposevr.model.runtime.stance import (
     MAX_GAP_S,
     QUIET_SPEED_M_S,
     QUIET_WINDOW_S,
+    REBASE_S,
     RELEASE_TAU_S,
     RESEAT_SLACK_M,
     RESEAT_TAU_S,
@@ -124,11 +125,14 @@ def standing_joints(foot_shift_m: np.ndarray | None = None) -> np.ndarray:
 
 
 def serve_left_foot(
-    shifts_m: list[np.ndarray], steady: bool, reseat: bool = False
+    shifts_m: list[np.ndarray], steady: bool, reseat: bool = False, rebase_at: int | None = None
 ) -> tuple[np.ndarray, FootContacts]:
-    """The left foot's target (or the network's foot where none) per sample, and the contacts after."""
+    """The left foot's target (or the network's foot where none) per sample, and the contacts after; with
+    ``rebase_at``, the contacts are rebased before that sample."""
     contacts, served = FootContacts(reseat=reseat), []
     for i, shift in enumerate(shifts_m):
+        if i == rebase_at:
+            contacts.rebase(i * STEP_US)
         targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
         joints = standing_joints(shift)
         contacts.targets(i * STEP_US, joints, 1.0, targets, observed, np.ones(2), steady)
@@ -184,6 +188,26 @@ def test_a_steady_foot_planted_on_a_wrong_guess_reseats_at_the_mean_and_one_near
     assert speed_m_s.max() <= ANCHOR_SPEED_M_S * 1.01
 
 
+def test_a_foot_planted_on_a_cold_guess_reseats_at_the_networks_answers_after_a_rebase():
+    """A foot planted 10 cm off (the session's cold first guess, not far enough to be let go), the network
+    then placing it right: after a rebase its anchor reaches the network's answers within REBASE_S, steady
+    stance or not, and then settles at ANCHOR_SPEED_M_S again; without one it stays where it was planted."""
+    cold = int(0.4 / (STEP_US * 1e-6))
+    after = int(2 * REBASE_S / (STEP_US * 1e-6))
+    shifts = [np.array([0.10, 0.0, 0.0])] * cold + [np.zeros(3)] * after
+    truth = standing_joints()[LEFT_FOOT]
+    for steady in (False, True):
+        rebased, contacts = serve_left_foot(shifts, steady=steady, rebase_at=cold)
+        assert contacts.planted[0]
+        assert np.linalg.norm(rebased[cold + int(REBASE_S / (STEP_US * 1e-6))] - truth) < 0.01, steady
+        kept, _ = serve_left_foot(shifts, steady=steady)
+        assert abs(kept[-1, 0] - truth[0]) > 0.09, steady
+    wander = [np.array([0.03 * np.sin(i / 30), 0.0, 0.0]) for i in range(3 * after)]  # after the rebase
+    settled, _ = serve_left_foot(shifts + wander, steady=True, rebase_at=cold)
+    speed_m_s = np.linalg.norm(np.diff(settled[cold + after :], axis=0), axis=1) / (STEP_US * 1e-6)
+    assert speed_m_s.max() <= ANCHOR_SPEED_M_S * 1.01
+
+
 HELD = list(HELD_JOINTS)
 
 
@@ -193,17 +217,17 @@ def hold_legs(
     heads_m: list[np.ndarray],
     planted: list[tuple[bool, bool]],
     pull_m: np.ndarray | None = None,
+    t0: int = 0,
 ) -> list[np.ndarray | None]:
     """Each sample's held targets (5, 3), or None where the legs are served without the hold. What is served
     is the target where there is one, else the network's joints moved by ``pull_m`` (3,): what KPO does to
-    them for the planted feet (None: nothing)."""
+    them for the planted feet (None: nothing). The first sample is sample ``t0`` of the stream."""
     out = []
     for i, joints in enumerate(network):
         unheld = joints + (0.0 if pull_m is None else pull_m)
         targets, observed = np.zeros((22, 3)), np.zeros(22, dtype=bool)
-        hold.targets(
-            i * STEP_US, joints, heads_m[i], True, planted[i], targets, observed, unheld=lambda u=unheld: u
-        )
+        t_us, head_m = (t0 + i) * STEP_US, heads_m[i]
+        hold.targets(t_us, joints, head_m, True, planted[i], targets, observed, unheld=lambda u=unheld: u)
         assert observed[HELD].all() or not observed[HELD].any()
         out.append(targets[HELD].copy() if observed[HELD].any() else None)
         served = unheld.copy()
@@ -249,6 +273,33 @@ def test_legs_held_on_a_wrong_guess_reseat_at_the_networks_mean_and_wandering_on
     wander = wandering_legs(samples)  # 6 cm back and forth about its start: a mean within the slack
     held = np.array(hold_legs(LegHold(reseat=True), wander, [HEAD] * samples, [(True, True)] * samples)[1:])
     speed_m_s = np.linalg.norm(np.diff(held, axis=0), axis=-1) / (STEP_US * 1e-6)
+    assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01
+
+
+def test_legs_held_on_a_cold_guess_reseat_at_the_networks_answers_after_a_rebase():
+    """A hold begun where the legs were served 15 cm off, the network placing them right from the next
+    sample: a rebase 0.4 s in (the windows filled) brings the held joints to the network's answers within
+    REBASE_S, and after it a wandering network moves them at SETTLE_SPEED_M_S again; without it they barely
+    move."""
+    cold = int(0.4 / (STEP_US * 1e-6))
+    after = int(REBASE_S / (STEP_US * 1e-6))
+    legs = np.isin(range(22), HELD)[:, None]
+    network = [standing_joints() + np.array([0.15, 0.0, 0.0]) * legs] + [standing_joints()] * (cold + after)
+    network += wandering_legs(3 * after)
+    truth = standing_joints()[HELD]
+    heads, planted = [HEAD] * len(network), [(True, True)] * len(network)
+    held = {}
+    for rebase in (True, False):
+        hold = LegHold()
+        held[rebase] = hold_legs(hold, network[:cold], heads[:cold], planted[:cold])
+        if rebase:
+            hold.rebase(cold * STEP_US)
+        rest = len(network) - cold
+        held[rebase] += hold_legs(hold, network[cold:], heads[:rest], planted[:rest], t0=cold)
+    assert np.abs(held[True][cold + after][:, 0] - truth[:, 0]).max() < 0.01
+    assert np.abs(held[False][cold + after][:, 0] - truth[:, 0]).max() > 0.13
+    path = np.array(held[True][cold + after + 1 :])
+    speed_m_s = np.linalg.norm(np.diff(path, axis=0), axis=-1) / (STEP_US * 1e-6)
     assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01
 
 
@@ -397,3 +448,44 @@ def test_the_stillness_gates_watch_one_point_of_the_headset_whatever_head_offset
     still_offsets[0] = STILLNESS_OFFSET_M
     head_m, head_rot = joints_from_devices(poses, still_offsets)
     np.testing.assert_allclose(stillness_point(head_m[0], head_rot[0], still_offsets[0]), head_m[0])
+
+
+@pytest.mark.parametrize(("name", "frame_every", "filled_at"), [
+    ("egoposevr", 1, "window"),  # frames faster than the headset window fills
+    ("egoposevr", None, "twice the window"),  # a camera net whose camera does not send
+    ("egoposevr", 6, "the eighth frame"),  # frames slower than the headset window fills
+])  # fmt: skip
+def test_warm_reseat_rebases_the_hold_and_the_feet_once_when_the_nets_windows_fill(
+    name, frame_every, filled_at
+):
+    """With ``warm_reseat`` the leg hold and the planted feet are rebased once, at the first sample whose
+    windows hold no padding: ``window`` headset samples and, for a net that reads the camera, its
+    ``visual_window`` frames (or twice ``window`` samples without any); off by default."""
+    from egoposevr.model.runtime.frames import EncodedFrame
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(5)
+    track = simulate_headset(generate("still_stand", 1.5, 60.0, rng), 90.0, rng)
+    model = LoadedModel.load(WEIGHTS_DIR / f"{name}.onnx")
+    window, visual_window = model.info.config.window, model.info.config.visual_window
+    expected = {"window": window, "twice the window": 2 * window,
+                "the eighth frame": (visual_window - 1) * (frame_every or 1) + 1}[filled_at]  # fmt: skip
+    assert expected > window or filled_at != "the eighth frame"
+    for warm_reseat in (True, False):
+        pipeline = Pipeline(model, warm_reseat=warm_reseat)
+        rebased: list[tuple[str, int]] = []
+        pipeline.legs.rebase = lambda t, r=rebased: r.append(("legs", t))
+        pipeline.feet.rebase = lambda t, r=rebased: r.append(("feet", t))
+        for i, t_us in enumerate(track.t_us):
+            if frame_every and i % frame_every == 0:
+                pipeline.add_frame(EncodedFrame(
+                    int(t_us), (160, 128), np.array([100.0, 100.0, 80.0, 64.0]), np.eye(4),
+                    np.tile([0.0, 0.5, 1.0], (22, 1)), np.zeros(22), model.info.visual_path, 0,
+                ))  # fmt: skip
+            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        at = int(track.t_us[expected - 1])
+        assert rebased == ([("feet", at), ("legs", at)] if warm_reseat else []), (filled_at, expected)
