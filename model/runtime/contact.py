@@ -154,8 +154,10 @@ class FootContacts:
 
     def rebase(self, t_us: int) -> None:
         """The network's inputs have just filled (Pipeline's ``warm_reseat``): each planted foot's mean
-        placement restarts from the next sample, and until stance.REBASE_S from t_us its anchor closes its gap
-        to it at gap / stance.REBASE_TAU_S, steady stance or not."""
+        placement restarts from the next sample, and until stance.REBASE_S from t_us, while the stance is
+        steady, its anchor closes its gap to it at gap / stance.REBASE_TAU_S. (Re-seated outside a steady
+        stance too, planted feet of crouches were dragged with the network's moving guess: MODEL_CARD.md,
+        rule 60.)"""
         for foot in self._feet:
             foot.placed_sum, foot.placed = None, 0
         self._rebase_until_us = t_us + int(REBASE_S * 1e6)
@@ -225,8 +227,7 @@ class FootContacts:
                 foot.planted = False
                 self._switch(foot, t_us, predicted, BLEND_S)
             else:
-                rebasing = self._rebase_until_us is not None and t_us < self._rebase_until_us
-                if steady or rebasing:
+                if steady:  # a rebase re-seats only a still stance's feet: a moving one's would be dragged
                     on_floor = predicted - np.array([0.0, lift_m, 0.0])
                     self._settle(foot, on_floor, rebase_of(t_us, self._rebase_until_us, self.reseat))
                 return self._serve(foot, t_us, foot.anchor, predicted, rest_y)
@@ -289,8 +290,8 @@ class FootContacts:
 
     @staticmethod
     def _settle(foot: _Foot, on_floor: np.ndarray, reseat: tuple[float, float] | None) -> None:
-        """A planted foot in a steady stance (or rebasing): its anchor (2, 3) moves towards the mean of the
-        network's placements on the floor since the plant or the rebase (``on_floor`` this sample's), at most
+        """A planted foot in a steady stance: its anchor (2, 3) moves towards the mean of the network's
+        placements on the floor since the plant or the rebase (``on_floor`` this sample's), at most
         ANCHOR_SPEED_M_S, or faster with ``reseat`` (filters.settle_step's)."""
         assert foot.anchor is not None
         if foot.placed_sum is None:  # rebased: the mean starts again here

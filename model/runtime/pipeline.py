@@ -116,8 +116,9 @@ class Pipeline:
         # a planted foot the contact head is sure of is not let go by the network lifting it (contact.SURE_P)
         self.sure_plant = sure_plant
         # once the net's input windows have filled (a stream's first answers read a padded headset window and
-        # few camera frames), held legs and planted feet re-seat at its answers (stance.REBASE_S): a hold
-        # begun on the session's cold first guess is not what stays
+        # few camera frames), held legs and a steady stance's planted feet re-seat at its answers
+        # (stance.REBASE_S): a hold begun on the session's cold first guess is not what stays (MODEL_CARD.md,
+        # rules 59 and 60)
         self.warm_reseat = warm_reseat
         info = model.info
         self.window = info.config.window
