@@ -293,7 +293,7 @@ class Pipeline:
         )
 
     def _rebase_when_warm(self, t_us: int) -> None:
-        """warm_reseat: at the first sample whose windows are filled, the hold and the planted feet re-seat."""
+        """With warm_reseat: at the first sample whose windows are filled, the hold and the feet re-seat."""
         if self.warm_reseat and not self._rebased and self._inputs_filled():
             self._rebased = True
             self.feet.rebase(t_us)

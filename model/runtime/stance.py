@@ -58,9 +58,9 @@ RESEAT_SLACK_M: Final = 0.04
 RESEAT_TAU_S: Final = 1.0
 # With ``warm_reseat`` (Pipeline): once the network's input windows have filled (its first answers read few
 # or no camera frames and a padded headset window), a hold's mean restarts from the next placement and for
-# REBASE_S the held joints (and a steady stance's planted feet's anchors: contact.py) close their gap to it at
-# gap / REBASE_TAU_S: a hold begun on the session's cold first guess is not what stays (MODEL_CARD.md, rules 59
-# and 60).
+# REBASE_S the held joints (and a steady stance's planted feet's anchors: contact.py) close their gap to it
+# at gap / REBASE_TAU_S: a hold begun on the session's cold first guess is not what stays (MODEL_CARD.md,
+# rules 59 and 60).
 REBASE_S: Final = 0.3
 REBASE_TAU_S: Final = 0.1
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
