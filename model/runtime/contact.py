@@ -159,7 +159,8 @@ class FootContacts:
         stance too, planted feet of crouches were dragged with the network's moving guess: MODEL_CARD.md,
         rule 60.)"""
         for foot in self._feet:
-            foot.placed_sum, foot.placed = None, 0
+            if foot.planted:  # a foot planted later starts its mean at its plant
+                foot.placed_sum, foot.placed = np.zeros_like(foot.placed_sum), 0
         self._rebase_until_us = t_us + int(REBASE_S * 1e6)
 
     def targets(
@@ -253,8 +254,9 @@ class FootContacts:
         """Whether a planted foot steps now (module docstring: planted -> free)."""
         assert foot.anchor is not None
         drift_m = float(np.linalg.norm(predicted[1, [0, 2]] - foot.anchor[1, [0, 2]]))
-        sure = sure_plant and contact_p is not None and contact_p >= SURE_P  # its lift is then no step
-        away = max(0.0 if sure else lift_m / RELEASE_HEIGHT_M, drift_m / (RELEASE_DISTANCE_M * body_scale))
+        sure_down = sure_plant and contact_p is not None and contact_p >= SURE_P  # its lift is then no step
+        lifted = 0.0 if sure_down else lift_m / RELEASE_HEIGHT_M
+        away = max(lifted, drift_m / (RELEASE_DISTANCE_M * body_scale))
         if steady:  # the network's foot wandering over the floor is not a step while the head is still
             sure = contact_p is None or contact_p < RELEASE_P or lift_m > SURE_RELEASE * RELEASE_HEIGHT_M
             return lift_m > RELEASE_HEIGHT_M and sure
@@ -293,9 +295,7 @@ class FootContacts:
         """A planted foot in a steady stance: its anchor (2, 3) moves towards the mean of the network's
         placements on the floor since the plant or the rebase (``on_floor`` this sample's), at most
         ANCHOR_SPEED_M_S, or faster with ``reseat`` (filters.settle_step's)."""
-        assert foot.anchor is not None
-        if foot.placed_sum is None:  # rebased: the mean starts again here
-            foot.placed_sum, foot.placed = np.zeros_like(on_floor), 0
+        assert foot.anchor is not None and foot.placed_sum is not None
         foot.placed_sum += on_floor
         foot.placed += 1
         gap_m = foot.placed_sum / foot.placed - foot.anchor

@@ -219,7 +219,8 @@ class LegHold:
         """The network's inputs have just filled (Pipeline's ``warm_reseat``): a hold's mean restarts from the
         next placement, and until REBASE_S from t_us the held joints close their gap to it at
         gap / REBASE_TAU_S."""
-        self._placed_sum, self._placed = None, 0
+        if self._held is not None:
+            self._placed_sum, self._placed = np.zeros_like(self._placed_sum), 0
         self._rebase_until_us = t_us + int(REBASE_S * 1e6)
 
     def served(self, joints: np.ndarray) -> None:
@@ -232,8 +233,6 @@ class LegHold:
         if self._held is None:
             self._held, self._placed_sum, self._placed = self._served.copy(), network.copy(), 1
             return self._held
-        if self._placed_sum is None:  # rebased: the mean starts again here
-            self._placed_sum, self._placed = np.zeros_like(network), 0
         self._placed_sum += network
         self._placed += 1
         gap_m = self._placed_sum / self._placed - self._held
