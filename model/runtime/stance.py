@@ -58,11 +58,14 @@ RESEAT_SLACK_M: Final = 0.04
 RESEAT_TAU_S: Final = 1.0
 # With ``warm_reseat`` (Pipeline): once the network's input windows have filled (its first answers read few
 # or no camera frames and a padded headset window), a hold's mean restarts from the next placement and for
-# REBASE_S the held joints (and a steady stance's planted feet's anchors: contact.py) close their gap to it
-# at gap / REBASE_TAU_S: a hold begun on the session's cold first guess is not what stays (MODEL_CARD.md,
-# rules 59 and 60).
+# REBASE_S the held joints (and a steady stance's planted feet's anchors: contact.py) close the part of their
+# gap to it past REBASE_SLACK_M at (gap - slack) / REBASE_TAU_S: a hold begun on the session's cold first
+# guess is not what stays where that guess was far off (a seated person's legs), while a nearer one is kept,
+# since the warm answers of a short stretch can be the worse of the two (MODEL_CARD.md, rules 59-61; the
+# slack chosen on training crouches and still people, rule 61).
 REBASE_S: Final = 0.3
 REBASE_TAU_S: Final = 0.1
+REBASE_SLACK_M: Final = 0.05
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
 _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
 _HELD: Final = np.array(HELD_JOINTS)
@@ -87,10 +90,10 @@ def reseat_of(reseat: bool) -> tuple[float, float] | None:
 
 
 def rebase_of(t_us: int, until_us: int | None, reseat: bool) -> tuple[float, float] | None:
-    """filters.settle_step's ``reseat`` at t_us: a re-seat with no slack over REBASE_TAU_S before until_us (a
-    rebase's end), else :func:`reseat_of`."""
+    """filters.settle_step's ``reseat`` at t_us: a re-seat past REBASE_SLACK_M over REBASE_TAU_S before
+    until_us (a rebase's end), else :func:`reseat_of`. Read at each call, as reseat_of."""
     if until_us is not None and t_us < until_us:
-        return 0.0, REBASE_TAU_S
+        return REBASE_SLACK_M, REBASE_TAU_S
     return reseat_of(reseat)
 
 
