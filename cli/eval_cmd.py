@@ -28,8 +28,8 @@ by default as the model file says), the re-seating hold on (@reseat, off by defa
 while they are held off or on (@no-body-hold, @body-hold; on by default: MODEL_CARD.md, rule 57), or a
 planted foot the contact head is sure of kept down however high the net lifts it (@sure-plant, off by
 default), or held legs and a still stance's planted feet re-seated past a 5 cm slack once the net's windows
-fill (@warm-reseat, off by default: MODEL_CARD.md, rules 59-61), so --models egoposevr@no-leg-hold,egoposevr says, paired, what
-one stage of the runtime changes.
+fill (@warm-reseat, off by default: MODEL_CARD.md, rules 59-61), so --models egoposevr@no-leg-hold,egoposevr
+says, paired, what one stage of the runtime changes.
 --no-camera (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
