@@ -26,7 +26,7 @@ from ..hmd import HmdFeatureExtractor, TrackingState, check_poses, ignore_untrac
 from ..inputs import canonicalize_hmd, heading_frame
 from ..rig import TRACKED_JOINTS, joints_from_devices, stillness_point
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
-from . import kernels
+from . import kernels, stance
 from .body import BodyCalibrator, ServedScale, held_target
 from .calibration import Calibration, body_measurements, canonical_poses
 from .contact import FootContacts
@@ -292,12 +292,15 @@ class Pipeline:
             or self._stream_samples >= 2 * self.window
         )
 
-    def _rebase_when_warm(self, t_us: int) -> None:
-        """With warm_reseat: at the first sample whose windows are filled, the hold and the feet re-seat."""
+    def _rebase_when_warm(self, t_us: int, joints: np.ndarray) -> None:
+        """With warm_reseat: at the first sample whose windows are filled, the hold and the feet re-seat (with
+        stance.REBASE_FOLDED_SHARE, only if the network's joints (J, 3) fold the legs then)."""
         if self.warm_reseat and not self._rebased and self._inputs_filled():
             self._rebased = True
-            self.feet.rebase(t_us)
-            self.legs.rebase(t_us)
+            share = stance.REBASE_FOLDED_SHARE
+            if share is None or stance.legs_folded(joints, share):
+                self.feet.rebase(t_us)
+                self.legs.rebase(t_us)
 
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
@@ -360,7 +363,7 @@ class Pipeline:
             observed[_TRACKED] = valid
             self.hands.targets(t_us, joints, valid, tracked_pos, targets, observed)
             if self.contacts:
-                self._rebase_when_warm(t_us)
+                self._rebase_when_warm(t_us, joints)
                 bones = self.bone_scale if self.fixed_body else self.served_scale.scale
                 leg_scale = float(bones[_LEG_BONES].mean())
                 still_m = self._stillness_point(pending)

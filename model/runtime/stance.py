@@ -65,7 +65,13 @@ RESEAT_TAU_S: Final = 1.0
 # slack chosen on training crouches and still people, rule 61).
 REBASE_S: Final = 0.3
 REBASE_TAU_S: Final = 0.1
-REBASE_SLACK_M: Final = 0.05
+REBASE_SLACK_M: Final = 0.0
+# ... and, with REBASE_FOLDED_SHARE set, only where the network's legs are folded when the windows fill: its
+# pelvis less than that share of its legs' length above its ankles (a seated person ~0.5, standing ~0.95;
+# evaluate.SEATED_LEG_SHARE's value). A seated person's cold guess is far off; a standing one's is a neutral
+# stand about as near as the warm answers (MODEL_CARD.md, rule 62: chosen with no slack). None: every stream
+# re-seats.
+REBASE_FOLDED_SHARE: Final[float | None] = 0.7
 RELEASE_TAU_S: Final = 0.06  # when the hold ends, what it moved the joints by decays with this time constant
 _LET_GO_M: Final = 1e-3  # ... and below this they are served as without the hold again
 _HELD: Final = np.array(HELD_JOINTS)
@@ -95,6 +101,14 @@ def rebase_of(t_us: int, until_us: int | None, reseat: bool) -> tuple[float, flo
     if until_us is not None and t_us < until_us:
         return REBASE_SLACK_M, REBASE_TAU_S
     return reseat_of(reseat)
+
+
+def legs_folded(joints: np.ndarray, share: float) -> bool:
+    """Whether joints (J, 3) m put the pelvis less than ``share`` of the legs' length (hip-knee-ankle, the
+    mean of the two sides) above the ankles' mean height: a seated person's folded legs."""
+    hips, knees, ankles = joints[[1, 2]], joints[[4, 5]], joints[[7, 8]]
+    length_m = float((np.linalg.norm(knees - hips, axis=1) + np.linalg.norm(ankles - knees, axis=1)).mean())
+    return float(joints[0, 1] - ankles[:, 1].mean()) < share * length_m
 
 
 def _stream_broke(last_us: int | None, t_us: int) -> bool:

@@ -21,6 +21,7 @@ from egoposevr.model.runtime.stance import (
     SETTLE_SPEED_M_S,
     LegHold,
     SteadyStance,
+    legs_folded,
 )
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, REST_JOINTS_M
 
@@ -307,12 +308,16 @@ def test_legs_held_on_a_cold_guess_reseat_at_the_networks_answers_after_a_rebase
     assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01
 
 
-def test_legs_held_on_a_cold_guess_within_the_slack_only_settle_after_a_rebase():
-    """A cold guess nearer the network's warm answers than REBASE_SLACK_M is kept (the warm answers of a short
-    stretch may be the worse ones): after the rebase the held joints move at SETTLE_SPEED_M_S at most."""
+def test_legs_held_on_a_cold_guess_within_the_slack_only_settle_after_a_rebase(monkeypatch):
+    """A cold guess nearer the network's warm answers than a REBASE_SLACK_M (5 cm here) is kept: after the
+    rebase the held joints move at SETTLE_SPEED_M_S at most."""
+    from egoposevr.model.runtime import stance
+
+    slack_m = 0.05
+    monkeypatch.setattr(stance, "REBASE_SLACK_M", slack_m)
     cold = int(0.4 / (STEP_US * 1e-6))
     legs = np.isin(range(22), HELD)[:, None]
-    off = np.array([0.8 * REBASE_SLACK_M, 0.0, 0.0])
+    off = np.array([0.8 * slack_m, 0.0, 0.0])
     network = [standing_joints() + off * legs] + [standing_joints()] * (
         cold + int(2 * REBASE_S / (STEP_US * 1e-6))
     )
@@ -326,9 +331,7 @@ def test_legs_held_on_a_cold_guess_within_the_slack_only_settle_after_a_rebase()
     speed_m_s = np.linalg.norm(np.diff(path, axis=0), axis=-1) / (STEP_US * 1e-6)
     assert speed_m_s.max() <= SETTLE_SPEED_M_S * 1.01
     truth = standing_joints()[HELD]
-    assert (
-        np.abs(path[-1][:, 0] - truth[:, 0]).max() > 0.7 * REBASE_SLACK_M
-    )  # nearly where the cold guess was
+    assert np.abs(path[-1][:, 0] - truth[:, 0]).max() > 0.7 * slack_m  # nearly where the cold guess was
 
 
 @pytest.mark.parametrize("lean", [False, True])
@@ -484,11 +487,12 @@ def test_the_stillness_gates_watch_one_point_of_the_headset_whatever_head_offset
     ("egoposevr", 6, "the eighth frame"),  # frames slower than the headset window fills
 ])  # fmt: skip
 def test_warm_reseat_rebases_the_hold_and_the_feet_once_when_the_nets_windows_fill(
-    name, frame_every, filled_at
+    name, frame_every, filled_at, monkeypatch
 ):
     """With ``warm_reseat`` the leg hold and the planted feet are rebased once, at the first sample whose
     windows hold no padding: ``window`` headset samples and, for a net that reads the camera, its
     ``visual_window`` frames (or twice ``window`` samples without any); off by default."""
+    from egoposevr.model.runtime import stance
     from egoposevr.model.runtime.frames import EncodedFrame
     from egoposevr.model.runtime.loading import LoadedModel
     from egoposevr.model.runtime.pipeline import Pipeline
@@ -496,6 +500,7 @@ def test_warm_reseat_rebases_the_hold_and_the_feet_once_when_the_nets_windows_fi
     from egoposevr.model.synth.procedural import generate
     from egoposevr.model.weights import WEIGHTS_DIR
 
+    monkeypatch.setattr(stance, "REBASE_FOLDED_SHARE", None)  # a standing stream: rebased whatever its legs
     rng = np.random.default_rng(5)
     track = simulate_headset(generate("still_stand", 1.5, 60.0, rng), 90.0, rng)
     model = LoadedModel.load(WEIGHTS_DIR / f"{name}.onnx")
@@ -517,3 +522,39 @@ def test_warm_reseat_rebases_the_hold_and_the_feet_once_when_the_nets_windows_fi
             pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
         at = int(track.t_us[expected - 1])
         assert rebased == ([("feet", at), ("legs", at)] if warm_reseat else []), (filled_at, expected)
+
+
+def test_legs_are_folded_when_the_pelvis_is_low_over_the_ankles():
+    """A standing body's pelvis is about its legs' length above the ankles; a seated one's, thighs level,
+    about a shin's."""
+    standing = standing_joints()
+    assert not legs_folded(standing, 0.7)
+    seated = standing.copy()
+    thigh_m = np.linalg.norm(standing[4] - standing[1])
+    seated[[0, 1, 2, 3]] -= [0.0, thigh_m, 0.0]  # pelvis and hips down to the knees' height
+    seated[[1, 2], 2] -= thigh_m  # thighs level, pointing forward to the knees
+    assert legs_folded(seated, 0.7)
+
+
+def test_warm_reseat_with_a_folded_share_rebases_only_where_the_nets_legs_fold(monkeypatch):
+    """With stance.REBASE_FOLDED_SHARE, a still standing person's stream is not rebased when the windows fill
+    (the net serves straight legs), and is with a share every pose is under."""
+    from egoposevr.model.runtime import stance
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(5)
+    track = simulate_headset(generate("still_stand", 1.5, 60.0, rng), 90.0, rng)
+    model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")  # no frames: its windows fill at 2 x window
+    for share, expected in ((0.7, 0), (5.0, 2)):
+        monkeypatch.setattr(stance, "REBASE_FOLDED_SHARE", share)
+        pipeline = Pipeline(model, warm_reseat=True)
+        rebased: list[int] = []
+        pipeline.legs.rebase = lambda t, r=rebased: r.append(t)
+        pipeline.feet.rebase = lambda t, r=rebased: r.append(t)
+        for i, t_us in enumerate(track.t_us):
+            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        assert len(rebased) == expected, share
