@@ -27,9 +27,9 @@ served with that runtime stage off (the switches are the --no-... flags' names: 
 by default as the model file says), the re-seating hold on (@reseat, off by default), the legs' size kept
 while they are held off or on (@no-body-hold, @body-hold; on by default: MODEL_CARD.md, rule 57), or a
 planted foot the contact head is sure of kept down however high the net lifts it (@sure-plant, off by
-default), or held legs and a still stance's planted feet re-seated past a 5 cm slack once the net's windows
-fill (@warm-reseat, off by default: MODEL_CARD.md, rules 59-61), so --models egoposevr@no-leg-hold,egoposevr
-says, paired, what one stage of the runtime changes.
+default), or held legs and a still stance's planted feet re-seated once the net's windows fill where it
+folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MODEL_CARD.md, rule 62), so
+--models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
 --no-camera (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
@@ -80,8 +80,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--models", default="all",
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
-        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold) or on "
-        "(@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat), without the camera (@no-camera), or "
+        "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
+        "@no-warm-reseat) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat), without the camera (@no-camera), or "
         "with the truth's body (@truth-body)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")

@@ -95,7 +95,7 @@ class Pipeline:
         reseat: bool = False,
         body_hold: bool = True,
         sure_plant: bool = False,
-        warm_reseat: bool = False,
+        warm_reseat: bool = True,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -116,9 +116,9 @@ class Pipeline:
         # a planted foot the contact head is sure of is not let go by the network lifting it (contact.SURE_P)
         self.sure_plant = sure_plant
         # once the net's input windows have filled (a stream's first answers read a padded headset window and
-        # few camera frames), held legs and a steady stance's planted feet re-seat at its answers
-        # (stance.REBASE_S): a hold begun on the session's cold first guess is not what stays (MODEL_CARD.md,
-        # rules 59 and 60)
+        # few camera frames), held legs and a steady stance's planted feet re-seat at its answers where it
+        # folds the legs then (stance.REBASE_S, REBASE_FOLDED_SHARE): a seated session's cold first guess of
+        # the legs is not what stays (MODEL_CARD.md, rules 59-62; on by default since rule 62)
         self.warm_reseat = warm_reseat
         info = model.info
         self.window = info.config.window

@@ -280,7 +280,7 @@ def evaluate(
     reseat: bool = False,
     body_hold: bool = True,
     sure_plant: bool = False,
-    warm_reseat: bool = False,
+    warm_reseat: bool = True,
     send_frames: bool = True,
     truth_body: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -306,8 +306,9 @@ def evaluate(
     default), ``body_hold`` False lets the hips, thighs, shins and feet follow every new body estimate while
     the legs are held (by default they keep their size once the body's first measurement is a second old:
     body.held_target), ``sure_plant`` True keeps a planted foot the contact head is sure of down however
-    high the network lifts it (contact.SURE_P; off by default), ``warm_reseat`` True re-seats held legs and
-    planted feet at the network's answers once its windows fill (Pipeline's; off by default);
+    high the network lifts it (contact.SURE_P; off by default), ``warm_reseat`` False does not re-seat held
+    legs and planted feet at the network's answers once its windows fill where it folds the legs (Pipeline's;
+    on by default: MODEL_CARD.md, rule 62);
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.

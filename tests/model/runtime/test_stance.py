@@ -491,7 +491,7 @@ def test_warm_reseat_rebases_the_hold_and_the_feet_once_when_the_nets_windows_fi
 ):
     """With ``warm_reseat`` the leg hold and the planted feet are rebased once, at the first sample whose
     windows hold no padding: ``window`` headset samples and, for a net that reads the camera, its
-    ``visual_window`` frames (or twice ``window`` samples without any); off by default."""
+    ``visual_window`` frames (or twice ``window`` samples without any); never with it off."""
     from egoposevr.model.runtime import stance
     from egoposevr.model.runtime.frames import EncodedFrame
     from egoposevr.model.runtime.loading import LoadedModel
