@@ -60,9 +60,8 @@ RESEAT_TAU_S: Final = 1.0
 # or no camera frames and a padded headset window), a hold's mean restarts from the next placement and for
 # REBASE_S the held joints (and a steady stance's planted feet's anchors: contact.py) close the part of their
 # gap to it past REBASE_SLACK_M at (gap - slack) / REBASE_TAU_S: a hold begun on the session's cold first
-# guess is not what stays where that guess was far off (a seated person's legs), while a nearer one is kept,
-# since the warm answers of a short stretch can be the worse of the two (MODEL_CARD.md, rules 59-61; the
-# slack chosen on training crouches and still people, rule 61).
+# guess is not what stays (MODEL_CARD.md, rules 59-62). No slack since rule 62, which re-seats folded legs
+# only; rule 61's 5 cm slack, with every stream re-seated, kept a few crouches' nearer cold guesses and failed.
 REBASE_S: Final = 0.3
 REBASE_TAU_S: Final = 0.1
 REBASE_SLACK_M: Final = 0.0
