@@ -81,8 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
-        "@no-warm-reseat) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat), without the camera (@no-camera), or "
-        "with the truth's body (@truth-body)",
+        "@no-warm-reseat) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat), without the "
+        "camera (@no-camera), or with the truth's body (@truth-body)",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")

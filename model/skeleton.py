@@ -78,6 +78,15 @@ REST_JOINTS_M: Final = np.array(
 REST_JOINTS_M.flags.writeable = False
 
 
+def pelvis_over_legs(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """joints (..., J, 3) m -> the pelvis's height above the ankles' mean (...,) m and each leg's length,
+    thigh + shin, (..., 2) m (left, right): how far the legs are folded (a seated person's pelvis is about half
+    a leg's length above the ankles, a standing one's about 0.95)."""
+    hips, knees, ankles = joints[..., [1, 2], :], joints[..., [4, 5], :], joints[..., [7, 8], :]
+    legs_m = np.linalg.norm(knees - hips, axis=-1) + np.linalg.norm(ankles - knees, axis=-1)
+    return joints[..., 0, 1] - ankles[..., 1].mean(-1), legs_m
+
+
 def rest_offsets(bone_scale: np.ndarray | None = None) -> np.ndarray:
     """Offsets of each joint from its parent in the rest pose, (..., J, 3); the pelvis row is zero.
 

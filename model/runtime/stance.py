@@ -35,6 +35,7 @@ from typing import Final
 
 import numpy as np
 
+from ..skeleton import pelvis_over_legs
 from .filters import WindowSpeed, settle_step
 
 QUIET_SPEED_M_S: Final = 0.10
@@ -103,11 +104,10 @@ def rebase_of(t_us: int, until_us: int | None, reseat: bool) -> tuple[float, flo
 
 
 def legs_folded(joints: np.ndarray, share: float) -> bool:
-    """Whether joints (J, 3) m put the pelvis less than ``share`` of the legs' length (hip-knee-ankle, the
-    mean of the two sides) above the ankles' mean height: a seated person's folded legs."""
-    hips, knees, ankles = joints[[1, 2]], joints[[4, 5]], joints[[7, 8]]
-    length_m = float((np.linalg.norm(knees - hips, axis=1) + np.linalg.norm(ankles - knees, axis=1)).mean())
-    return float(joints[0, 1] - ankles[:, 1].mean()) < share * length_m
+    """Whether joints (J, 3) m put the pelvis less than ``share`` of the legs' length (the mean of the two
+    sides) above the ankles' mean height (skeleton.pelvis_over_legs): a seated person's folded legs."""
+    above_m, legs_m = pelvis_over_legs(joints)
+    return float(above_m) < share * float(legs_m.mean())
 
 
 def _stream_broke(last_us: int | None, t_us: int) -> bool:

@@ -36,7 +36,7 @@ from ..runtime.frames import encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
-from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics
+from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics, pelvis_over_legs
 from . import intervals
 from .dataset import DatasetError, Fold, load_fold, load_split, sequence_subject
 from .plausibility import add_totals, plausibility, plausibility_totals, pooled_means, total
@@ -200,18 +200,13 @@ LEG_ACTION_ANKLE_M_S = 0.6  # ... above this without walking: kicks, knee raises
 # Still legs whose pelvis is less than this share of the legs' length above the ankles are folded: a seated
 # person (the truth's pelvis is ~0.5 leg lengths above the ankles seated and ~0.95 standing).
 SEATED_LEG_SHARE = 0.7
-_LEGS: Final = ((1, 4, 7), (2, 5, 8))  # hip, knee, ankle: left, right
 
 
 def _seated(joints: np.ndarray) -> bool:
     """Whether the true joints (N, J, 3) hold the pelvis less than SEATED_LEG_SHARE of the legs' length
-    (thigh + shin, the mean of both sides) above the ankles, at the median sample."""
-    legs = np.array(_LEGS)
-    thigh = np.linalg.norm(joints[:, legs[:, 1]] - joints[:, legs[:, 0]], axis=-1)  # (N, 2)
-    shin = np.linalg.norm(joints[:, legs[:, 2]] - joints[:, legs[:, 1]], axis=-1)
-    length_m = float(np.median(thigh + shin))
-    above_m = float(np.median(joints[:, 0, 1] - joints[:, legs[:, 2], 1].mean(-1)))
-    return above_m < SEATED_LEG_SHARE * length_m
+    (thigh + shin, both sides) above the ankles, at the median sample (skeleton.pelvis_over_legs)."""
+    above_m, legs_m = pelvis_over_legs(joints)
+    return float(np.median(above_m)) < SEATED_LEG_SHARE * float(np.median(legs_m))
 
 
 def motion_category(seq: dict[str, Any]) -> str:
@@ -315,8 +310,9 @@ def evaluate(
     ``runtime`` {label: {option: bool}} serves a label with some of those ten (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
     ``warm_reseat``, ``send_frames``, ``truth_body``) set otherwise: one file served twice, with and without
-    a runtime stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for these arguments, when the caller has
-    already read the split (``eval --keypoints`` reads it once for both reports).
+    a runtime stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
+    these arguments, when the caller has already read the split (``eval --keypoints`` reads it once for both
+    reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R
     resamples of the split's people (:mod:`.intervals`, drawn with ``seed``), and every model after the first
     ``versus`` {``model``: the first, ``difference`` {metric: its value − the first's}, ``intervals`` of

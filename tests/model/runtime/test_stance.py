@@ -481,6 +481,33 @@ def test_the_stillness_gates_watch_one_point_of_the_headset_whatever_head_offset
     np.testing.assert_allclose(stillness_point(head_m[0], head_rot[0], still_offsets[0]), head_m[0])
 
 
+def rebases_of_a_still_stander(
+    model, warm_reseat: bool, frame_every: int | None = None
+) -> tuple[np.ndarray, list[tuple[str, int]]]:
+    """A still standing person's 1.5 s headset stream (90 Hz) served by a Pipeline of ``model``, with a camera
+    frame every ``frame_every`` samples (None: none): the stream's t_us (N,) and each rebase the pipeline
+    asked for, (``legs`` or ``feet``, t_us), in order."""
+    from egoposevr.model.runtime.frames import EncodedFrame
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+
+    rng = np.random.default_rng(5)
+    track = simulate_headset(generate("still_stand", 1.5, 60.0, rng), 90.0, rng)
+    pipeline = Pipeline(model, warm_reseat=warm_reseat)
+    rebased: list[tuple[str, int]] = []
+    pipeline.legs.rebase = lambda t: rebased.append(("legs", t))
+    pipeline.feet.rebase = lambda t: rebased.append(("feet", t))
+    for i, t_us in enumerate(track.t_us):
+        if frame_every and i % frame_every == 0:
+            pipeline.add_frame(EncodedFrame(
+                int(t_us), (160, 128), np.array([100.0, 100.0, 80.0, 64.0]), np.eye(4),
+                np.tile([0.0, 0.5, 1.0], (22, 1)), np.zeros(22), model.info.visual_path, 0,
+            ))  # fmt: skip
+        pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+    return track.t_us, rebased
+
+
 @pytest.mark.parametrize(("name", "frame_every", "filled_at"), [
     ("egoposevr", 1, "window"),  # frames faster than the headset window fills
     ("egoposevr", None, "twice the window"),  # a camera net whose camera does not send
@@ -493,34 +520,18 @@ def test_warm_reseat_rebases_the_hold_and_the_feet_once_when_the_nets_windows_fi
     windows hold no padding: ``window`` headset samples and, for a net that reads the camera, its
     ``visual_window`` frames (or twice ``window`` samples without any); never with it off."""
     from egoposevr.model.runtime import stance
-    from egoposevr.model.runtime.frames import EncodedFrame
     from egoposevr.model.runtime.loading import LoadedModel
-    from egoposevr.model.runtime.pipeline import Pipeline
-    from egoposevr.model.synth.headset import simulate_headset
-    from egoposevr.model.synth.procedural import generate
     from egoposevr.model.weights import WEIGHTS_DIR
 
     monkeypatch.setattr(stance, "REBASE_FOLDED_SHARE", None)  # a standing stream: rebased whatever its legs
-    rng = np.random.default_rng(5)
-    track = simulate_headset(generate("still_stand", 1.5, 60.0, rng), 90.0, rng)
     model = LoadedModel.load(WEIGHTS_DIR / f"{name}.onnx")
     window, visual_window = model.info.config.window, model.info.config.visual_window
     expected = {"window": window, "twice the window": 2 * window,
                 "the eighth frame": (visual_window - 1) * (frame_every or 1) + 1}[filled_at]  # fmt: skip
     assert expected > window or filled_at != "the eighth frame"
     for warm_reseat in (True, False):
-        pipeline = Pipeline(model, warm_reseat=warm_reseat)
-        rebased: list[tuple[str, int]] = []
-        pipeline.legs.rebase = lambda t, r=rebased: r.append(("legs", t))
-        pipeline.feet.rebase = lambda t, r=rebased: r.append(("feet", t))
-        for i, t_us in enumerate(track.t_us):
-            if frame_every and i % frame_every == 0:
-                pipeline.add_frame(EncodedFrame(
-                    int(t_us), (160, 128), np.array([100.0, 100.0, 80.0, 64.0]), np.eye(4),
-                    np.tile([0.0, 0.5, 1.0], (22, 1)), np.zeros(22), model.info.visual_path, 0,
-                ))  # fmt: skip
-            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
-        at = int(track.t_us[expected - 1])
+        t_us, rebased = rebases_of_a_still_stander(model, warm_reseat, frame_every)
+        at = int(t_us[expected - 1])
         assert rebased == ([("feet", at), ("legs", at)] if warm_reseat else []), (filled_at, expected)
 
 
@@ -541,20 +552,10 @@ def test_warm_reseat_with_a_folded_share_rebases_only_where_the_nets_legs_fold(m
     (the net serves straight legs), and is with a share every pose is under."""
     from egoposevr.model.runtime import stance
     from egoposevr.model.runtime.loading import LoadedModel
-    from egoposevr.model.runtime.pipeline import Pipeline
-    from egoposevr.model.synth.headset import simulate_headset
-    from egoposevr.model.synth.procedural import generate
     from egoposevr.model.weights import WEIGHTS_DIR
 
-    rng = np.random.default_rng(5)
-    track = simulate_headset(generate("still_stand", 1.5, 60.0, rng), 90.0, rng)
     model = LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")  # no frames: its windows fill at 2 x window
     for share, expected in ((0.7, 0), (5.0, 2)):
         monkeypatch.setattr(stance, "REBASE_FOLDED_SHARE", share)
-        pipeline = Pipeline(model, warm_reseat=True)
-        rebased: list[int] = []
-        pipeline.legs.rebase = lambda t, r=rebased: r.append(t)
-        pipeline.feet.rebase = lambda t, r=rebased: r.append(t)
-        for i, t_us in enumerate(track.t_us):
-            pipeline.push_hmd(int(t_us), track.poses[i], track.valid[i])
+        _, rebased = rebases_of_a_still_stander(model, warm_reseat=True)
         assert len(rebased) == expected, share
