@@ -34,6 +34,8 @@ folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MOD
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
 estimate (model/runtime/body.py): what a perfect body estimate would buy, a diagnosis no user can have.
+procedural@seat serves the procedural baseline with a seat for a stream that begins seated (@no-seat
+without; off by default: MODEL_CARD.md, rule 63); the network models ignore it.
 
 Examples:
   egoposevr eval --data data/dev --split val --json eval.json
@@ -70,6 +72,8 @@ SWITCHES = {
     "no-warm-reseat": ("warm_reseat", False),
     "no-camera": ("send_frames", False),
     "truth-body": ("truth_body", True),
+    "seat": ("seat", True),
+    "no-seat": ("seat", False),
 }
 
 
@@ -82,7 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat), without the "
-        "camera (@no-camera), or with the truth's body (@truth-body)",
+        "camera (@no-camera), or with the truth's body (@truth-body); procedural@seat: the baseline with a "
+        "seat for a stream that begins seated",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")

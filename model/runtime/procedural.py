@@ -6,6 +6,11 @@ avatar legs that VR users know):
 - the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
 - the neck hangs under the head joint; standing, the pelvis stays over the planted feet (bending over
   tilts the spine with straight legs, a squat bends the knees), walking it goes along under the head;
+- with ``seat``, a stream that begins seated (the head lower than this body's stands) plants the feet in
+  front of the pelvis, ``SEAT_BACK_PER_DROP`` times that drop (the pelvis hanging upright from the head: a
+  chair's sitter has the feet in front of the seat, the seat under the trunk); the seat stays while the sitter
+  leans (a lean steps no foot) and turns (the hips turn only past ``SEATED_DEAD_ZONE_DEG``), and comes forward
+  over the feet as the head rises to stand (then the stream stands like any other);
 - the chest turns with the head, lagging by ``TURN_TIME_S``; the hips turn after it only by as much as the
   head is turned more than ``TURN_DEAD_ZONE_DEG`` from them (a glance, a torso twist or a reach to the side
   turns the shoulders, not the hips or the feet); walking, the dead zone shrinks with speed to none at
@@ -71,6 +76,9 @@ TURN_TIME_S: Final = 0.4
 # served hips and stepped the feet (chosen on the training split's still streams; MODEL_CARD.md, "The procedural
 # baseline: hips that turn only past a dead zone").
 TURN_DEAD_ZONE_DEG: Final = 30.0
+# Seated, the trunk twists further before the chair turns: the feet, in front of the seat, would sweep
+# round it with the hips (MODEL_CARD.md, rule 63).
+SEATED_DEAD_ZONE_DEG: Final = 60.0
 STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
 STEP_TURN_DEG: Final = 35.0
 STEP_S: Final = 0.28
@@ -80,6 +88,13 @@ MAX_LEAN: Final = 0.95  # the neck at most this fraction of the torso's length a
 VELOCITY_TIME_S: Final = 0.15  # smoothing of the pelvis's velocity, which steps lead by STEP_S
 STEP_HEIGHT_M: Final = 0.06
 FOOT_SPREAD_M: Final = 0.02  # feet this much wider than the hips
+# A stream that begins seated: the feet this many metres in front of the pelvis per metre the head hangs the
+# pelvis lower than it stands (MODEL_CARD.md, rule 63).
+SEAT_BACK_PER_DROP: Final = 0.6
+SEAT_STOOD_M: Final = 0.02  # a seat this close over the feet is left: the sitter stood up
+# ... only where that pelvis is lower than this share of its standing height (eval's seated category's 0.7: a
+# short stander's first head is no seat)
+SEATED_SHARE: Final = 0.7
 LEG_CHAINS: Final = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, foot
 ARM_CHAINS: Final = ((16, 18, 20), (17, 19, 21))  # shoulder, elbow, wrist
 FEET_AND_ANKLES: Final = [7, 8, 10, 11]
@@ -166,8 +181,12 @@ class ProceduralPipeline:
     """The Pipeline interface (push_hmd, observe_hmd, push_rgbd, add_frame, reset) for the procedural model.
     Not thread-safe: one caller at a time."""
 
-    def __init__(self, model: ProceduralModel, bone_scale: np.ndarray | None = None) -> None:
+    def __init__(
+        self, model: ProceduralModel, bone_scale: np.ndarray | None = None, seat: bool = True
+    ) -> None:
         self.model = model
+        # a stream that begins seated gets a seat (_update_seat; MODEL_CARD.md, rule 63); False: it stands
+        self.seat = seat
         self.fixed_body = bone_scale is not None
         self.bone_scale = (
             np.ones(NUM_JOINTS) if bone_scale is None else np.asarray(bone_scale, dtype=np.float64)
@@ -207,6 +226,9 @@ class ProceduralPipeline:
         self.position_filter = OneEuroCascade(POSITION_MIN_CUTOFF_HZ, POSITION_BETA)
         self.standing_pelvis_y = 0.0  # the highest an upright pelvis under the head has been
         self.support_shift = np.zeros(3)
+        self.seat_back_m = 0.0  # how far behind the planted feet a seated stream's pelvis is (_update_seat)
+        self._seat_m = 0.0  # the seat's distance behind the feet as the stream began (0: it began standing)
+        self._seat_xz = np.zeros(3)  # where that seat is, on the floor plane
 
     # The camera is not read.
     def push_rgbd(self, *args, **kwargs) -> bool:
@@ -279,6 +301,31 @@ class ProceduralPipeline:
         stance = rest_world[[10, 11]].mean(axis=0) - rest_world[0]  # feet below an upright pelvis
         return (feet_mid - stance) * [1.0, 0.0, 1.0]
 
+    def _update_seat(self, hanging_m: np.ndarray) -> None:
+        """``seat_back_m`` for this sample, the pelvis hanging upright from the head at hanging_m (3,). The
+        stream's first sample sets the seat there (its distance behind the feet SEAT_BACK_PER_DROP times how
+        much lower than this body's standing pelvis that is, where it is under SEATED_SHARE of it and
+        ``seat`` is on; else no seat). Later the seat keeps its place while the head drops (a sitter leaning
+        forward) and comes forward over the feet with the drop as the head rises; once it is within
+        SEAT_STOOD_M of them the stream stands for good."""
+        standing_y_m = FOOT_JOINT_HEIGHT_M - float(self._rest[[10, 11], 1].mean())
+        back_m = SEAT_BACK_PER_DROP * max(standing_y_m - float(hanging_m[1]), 0.0)
+        if self.feet is None:
+            seated = self.seat and hanging_m[1] < SEATED_SHARE * standing_y_m
+            self._seat_m = back_m if seated else 0.0
+            self._seat_xz = hanging_m * [1.0, 0.0, 1.0]
+        self.seat_back_m = min(self._seat_m, back_m)
+        if self.seat_back_m < SEAT_STOOD_M:
+            self._seat_m = self.seat_back_m = 0.0
+
+    def _seat(self, rest_world: np.ndarray) -> np.ndarray:
+        """(3,) on the floor plane: where the pelvis stands over the planted feet, or in a stream that began
+        seated sits: at the seat, coming forward over the feet as ``seat_back_m`` shrinks."""
+        over_feet = self._over_feet(rest_world)
+        if self._seat_m <= 0.0:
+            return over_feet
+        return over_feet + (self._seat_xz - over_feet) * (self.seat_back_m / self._seat_m)
+
     def _walking(self) -> float:
         """How far the body is walking, 0 (standing) to 1 (from WALKING_M_S): the pelvis's smoothed speed."""
         return min(float(np.linalg.norm(self.velocity[[0, 2]])) / WALKING_M_S, 1.0)
@@ -293,7 +340,10 @@ class ProceduralPipeline:
         follow = 1.0 - math.exp(-dt_s / TURN_TIME_S)
         self.chest_yaw += _wrapped(head_yaw - self.chest_yaw) * follow
         gap = _wrapped(head_yaw - self.yaw)
-        dead_zone = math.radians(TURN_DEAD_ZONE_DEG) * (1.0 - self._walking())
+        seated = self.seat_back_m > 0.0
+        dead_zone = math.radians(SEATED_DEAD_ZONE_DEG if seated else TURN_DEAD_ZONE_DEG) * (
+            1.0 - self._walking()
+        )
         self.yaw += math.copysign(max(abs(gap) - dead_zone, 0.0), gap) * follow
         return _yaw_rotation(self.yaw), _yaw_rotation(self.chest_yaw)
 
@@ -315,9 +365,8 @@ class ProceduralPipeline:
         joints = self._torso(upright, rest_world, tracked[0])
         support = upright.copy()  # the hips where the feet belong (see _torso)
         if self.feet is not None:
-            support[[0, 1, 2]] += (
-                self._over_feet(rest_world) - upright[0] * [1.0, 0.0, 1.0] + self.support_shift
-            )
+            support[[0, 1, 2]] += self._seat(rest_world) - upright[0] * [1.0, 0.0, 1.0] + self.support_shift
+        self._update_seat(upright[0])
         self._place_feet(now_s, support, body_rot, scale)
         for side, (hip, knee, ankle, foot) in enumerate(LEG_CHAINS):
             foot_pos = self._foot_position(side, now_s)
@@ -342,8 +391,9 @@ class ProceduralPipeline:
 
     def _torso(self, upright: np.ndarray, rest_world: np.ndarray, head: np.ndarray) -> np.ndarray:
         """The upper body (J, 3). The neck hangs under the head joint. While the body stands, the pelvis stays
-        over the planted feet, at most at its standing height and at the torso's length from the neck: bending
-        over tilts the spine with straight legs, a squat (the head going straight down) bends the knees.
+        over the planted feet (in a stream that began seated, on its seat: :meth:`_seat`), at most at its
+        standing height and at the torso's length from the neck: bending over tilts the spine with straight
+        legs, a squat (the head going straight down) bends the knees.
         Walking (from WALKING_M_S) the pelvis goes along under the head. The spine lies on the line from the
         pelvis to the neck."""
         joints = upright.copy()
@@ -352,13 +402,14 @@ class ProceduralPipeline:
             return joints
         neck, pelvis_upright = upright[12], upright[0]
         flat = np.array([1.0, 0.0, 1.0])
-        over_feet = self._over_feet(rest_world)
+        over_feet = self._seat(rest_world)
         walking = self._walking()
         pelvis = over_feet + walking * (pelvis_upright * flat - over_feet)
         torso = float(np.linalg.norm(rest_world[12] - rest_world[0]))
         # Where the feet should be: under the hips when walking, or once the neck leans so far (more than
         # STEP_LEAN of the torso's length) that standing there would topple; otherwise where they are.
-        leaning = float(np.linalg.norm((neck - over_feet) * flat)) / torso
+        # (seated, a lean is a sitter reaching: nothing topples, so it steps nothing)
+        leaning = 0.0 if self.seat_back_m > 0.0 else float(np.linalg.norm((neck - over_feet) * flat)) / torso
         moving = max(walking, min(max((leaning - STEP_LEAN) / STEP_LEAN, 0.0), 1.0))
         self.support_shift = moving * (pelvis_upright - over_feet) * flat
         lean = (neck - pelvis) * flat
@@ -378,12 +429,14 @@ class ProceduralPipeline:
         return joints
 
     def _ideal_feet(self, joints: np.ndarray, body_rot: np.ndarray) -> np.ndarray:
-        """(2, 3) where the foot joints would stand: under the hips, a little apart, on the floor."""
+        """(2, 3) where the foot joints would stand: under the hips (``seat_back_m`` in front of them with
+        folded legs), a little apart, on the floor."""
         out = np.empty((2, 3))
         rest = self._rest
+        ahead = body_rot @ np.array([0.0, 0.0, self.seat_back_m])
         for side, (hip, _, _, foot) in enumerate(LEG_CHAINS):
             outward = body_rot @ np.array([FOOT_SPREAD_M if side == 0 else -FOOT_SPREAD_M, 0.0, 0.0])
-            out[side] = joints[hip] + outward + body_rot @ (rest[foot] - rest[hip]) * [1.0, 0.0, 1.0]
+            out[side] = joints[hip] + outward + ahead + body_rot @ (rest[foot] - rest[hip]) * [1.0, 0.0, 1.0]
         out[:, 1] = FOOT_JOINT_HEIGHT_M
         return out
 
@@ -430,14 +483,18 @@ NETWORK_PIPELINE_OPTIONS: Final = (
     "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold",
     "sure_plant", "warm_reseat",
 )  # fmt: skip
+# ... and the procedural pipeline's that the network one has no stage for (its net says where seated feet are)
+PROCEDURAL_PIPELINE_OPTIONS: Final = ("seat",)
 
 
 def pipeline_for(model, **kwargs):
-    """A session's pipeline for any servable model: the procedural one's, or the network pipeline."""
+    """A session's pipeline for any servable model: the procedural one's, or the network pipeline; each
+    drops the other's options."""
     from .pipeline import Pipeline
 
+    theirs = NETWORK_PIPELINE_OPTIONS if isinstance(model, ProceduralModel) else PROCEDURAL_PIPELINE_OPTIONS
+    for option in theirs:
+        kwargs.pop(option, None)
     if isinstance(model, ProceduralModel):
-        for option in NETWORK_PIPELINE_OPTIONS:
-            kwargs.pop(option, None)
         return ProceduralPipeline(model, **kwargs)
     return Pipeline(model, **kwargs)

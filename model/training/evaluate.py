@@ -309,8 +309,9 @@ def evaluate(
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
     ``runtime`` {label: {option: bool}} serves a label with some of those ten (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``warm_reseat``, ``send_frames``, ``truth_body``) set otherwise: one file served twice, with and without
-    a runtime stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
+    ``warm_reseat``, ``send_frames``, ``truth_body``) set otherwise, or the procedural baseline's ``seat``
+    (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
+    stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
     these arguments, when the caller has already read the split (``eval --keypoints`` reads it once for both
     reports).
     With ``resamples`` R > 0, each model's metrics also get ``intervals`` {metric: [low, high]}, 95 % over R

@@ -22,11 +22,11 @@ def model():
     return ProceduralModel()
 
 
-def served(model, family, seconds=6.0, seed=3):
+def served(model, family, seconds=6.0, seed=3, **options):
     rng = np.random.default_rng(seed)
     motion = generate(family, seconds, 60.0, rng)
     track = simulate_headset(motion, 90.0, rng)
-    pipeline = pipeline_for(model)
+    pipeline = pipeline_for(model, **options)
     poses = [pipeline.push_hmd(int(t), track.poses[i], track.valid[i]) for i, t in enumerate(track.t_us)]
     return poses, track
 
@@ -40,6 +40,40 @@ def test_standing_and_gesturing_keeps_the_feet_planted_and_on_the_floor(model):
     assert result["floor_float_cm"] < 1.5
     lower = np.linalg.norm(joints - track.joints_m, axis=-1)[:, [0, 1, 2, 4, 5, 7, 8, 10, 11]].mean()
     assert lower < 0.08
+
+
+def ahead_of_pelvis_m(joints: np.ndarray) -> np.ndarray:
+    """(N,) how far the ankles' midpoint is from the pelvis over the floor, joints (N, J, 3)."""
+    return np.linalg.norm((joints[:, [7, 8]].mean(axis=1) - joints[:, 0])[:, [0, 2]], axis=-1)
+
+
+def test_a_stream_that_begins_seated_puts_the_feet_in_front_of_a_seat_that_stays(model):
+    """A person sitting from the first sample has the feet in front of the seat, not under a crouch; the seat
+    and the feet stay while the upper body moves."""
+    poses, track = served(model, "still_sit", seconds=4.0, seat=True)
+    joints = np.array([p.joints for p in poses])
+    true_ahead, served_ahead = ahead_of_pelvis_m(track.joints_m), ahead_of_pelvis_m(joints)
+    assert true_ahead.min() > 0.25  # the truth sits with its feet forward
+    assert np.abs(served_ahead - true_ahead).max() < 0.12  # a crouch puts them under the pelvis (~0.3 off)
+    knees_m = np.abs(joints[:, [4, 5], 1] - track.joints_m[:, [4, 5], 1]).mean()
+    assert knees_m < 0.08  # at the seat's height (a crouch's knees are 10-25 cm lower)
+    moved_m = np.linalg.norm(joints[:, [0, 7, 8, 10, 11]] - joints[:1, [0, 7, 8, 10, 11]], axis=-1).max()
+    assert moved_m < 0.03
+
+
+def test_a_stream_that_begins_standing_has_no_seat_and_the_seat_can_be_turned_off(model):
+    """A stander's first sample sets no seat: the legs are served as with the seat off. Off (seat=False, as
+    eval's procedural@no-seat serves it) a sitter is served the crouch of before, and pipeline_for passes the
+    option to the procedural pipeline only, beside the network pipeline's options it drops."""
+    standing = [
+        np.array([p.joints for p in served(model, "stand_interact", seat=on)[0]]) for on in (True, False)
+    ]
+    assert np.array_equal(*standing)
+    sitting = [
+        np.array([p.joints for p in served(model, "still_sit", 2.0, seat=on)[0]]) for on in (True, False)
+    ]
+    assert np.abs(ahead_of_pelvis_m(sitting[0]) - ahead_of_pelvis_m(sitting[1])).min() > 0.15
+    assert pipeline_for(model, seat=True, warm_reseat=True).seat is True
 
 
 def test_walking_makes_it_step_after_the_body(model):
