@@ -182,7 +182,7 @@ class ProceduralPipeline:
     Not thread-safe: one caller at a time."""
 
     def __init__(
-        self, model: ProceduralModel, bone_scale: np.ndarray | None = None, seat: bool = True
+        self, model: ProceduralModel, bone_scale: np.ndarray | None = None, seat: bool = False
     ) -> None:
         self.model = model
         # a stream that begins seated gets a seat (_update_seat; MODEL_CARD.md, rule 63); False: it stands
