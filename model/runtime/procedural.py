@@ -429,8 +429,8 @@ class ProceduralPipeline:
         return joints
 
     def _ideal_feet(self, joints: np.ndarray, body_rot: np.ndarray) -> np.ndarray:
-        """(2, 3) where the foot joints would stand: under the hips (``seat_back_m`` in front of them with
-        folded legs), a little apart, on the floor."""
+        """(2, 3) where the foot joints would stand: under the hips (``seat_back_m`` in front of them in a
+        stream that began seated), a little apart, on the floor."""
         out = np.empty((2, 3))
         rest = self._rest
         ahead = body_rot @ np.array([0.0, 0.0, self.seat_back_m])
