@@ -130,6 +130,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _number(
         parser,
+        "--drop-camera",
+        "P",
+        "fusion nets: the share P of training windows served with no camera frame at all, which teaches the "
+        "answer a headset without the camera gets, and every stream's before its first frame (default 0.1)",
+    )
+    _number(
+        parser,
         "--arm-swap",
         "P",
         "fusion nets: a share P of the sequences also trains with another sequence's arm motion "
@@ -238,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
             ("keep_joints", args.keep_joints),
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
-            ("arm_swap_p", args.arm_swap),
+            ("arm_swap_p", args.arm_swap), ("drop_camera_p", args.drop_camera),
         )
         if value is not None
     }  # fmt: skip
@@ -318,6 +325,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.keep_joints and not args.keep_upper, "--keep-joints needs --keep-upper W > 0 (the term it chooses joints for)"),
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
+        (args.drop_camera is not None and not 0.0 <= args.drop_camera <= 1.0, "--drop-camera P needs 0 <= P <= 1"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
         (args.batch is not None and not 1 <= args.batch <= 4096, "--batch B needs 1 <= B <= 4096"),
     )  # fmt: skip

@@ -708,18 +708,49 @@ def test_hanging_hands_larger_keypoint_errors_and_swapped_arms_are_training_opti
     assert len(swapped) == 2 * n and all(s["arms_unseen"] for s in swapped[n:])
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
-    options = ["--hanging-loss", "0.3", "--keypoint-error-gain", "1.5", "--arm-swap", "0.5"]
+    options = [
+        "--hanging-loss",
+        "0.3",
+        "--keypoint-error-gain",
+        "1.5",
+        "--arm-swap",
+        "0.5",
+        "--drop-camera",
+        "0.3",
+    ]
     steps = ["--visual-steps", "2", "--fusion-steps", "2"]
     assert main([*args, "--out", str(tmp_path), *options, *steps]) == 0
     recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
-    assert (recorded["hanging_loss_m"], recorded["keypoint_error_gain"], recorded["arm_swap_p"]) == (
-        0.3,
-        1.5,
-        0.5,
-    )
-    for bad in (["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"], ["--arm-swap", "2"]):
+    given = ("hanging_loss_m", "keypoint_error_gain", "arm_swap_p", "drop_camera_p")
+    assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3)
+    for bad in (
+        ["--hanging-loss", "0"],
+        ["--keypoint-error-gain", "-1"],
+        ["--arm-swap", "2"],
+        ["--drop-camera", "1.5"],
+    ):
         assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
         assert bad[0] in capsys.readouterr().err
+
+
+def test_drop_camera_trains_windows_with_no_frame(tiny_data):
+    """`drop_camera_p`: that share of the training windows reach the net with no visual token at all, as a
+    headset without the camera (or a stream before its first frame) sends them."""
+    import dataclasses
+
+    from egoposevr.model.training.train import fusion_config, sample_window
+
+    seeing = dataclasses.replace(PRESETS["tiny"], drop_camera_p=0.0, drop_frame_p=0.0)
+    blind = dataclasses.replace(seeing, drop_camera_p=1.0)
+    fs = prepare_fusion_sequence(load_split(tiny_data, "val")[0], np.random.default_rng(0), seeing, None)
+    cfg = fusion_config("hmd-rgbd", seeing)
+    last = len(fs.t_us) - 1
+    present = -2  # visual_tokens' slot that says a frame is there
+    assert (
+        sample_window(fs, last, cfg, np.random.default_rng(1), seeing)[1][:, present].sum()
+        == cfg.visual_window
+    )
+    assert not sample_window(fs, last, cfg, np.random.default_rng(1), blind)[1].any()
 
 
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
