@@ -70,6 +70,8 @@ SWITCHES = {
     "no-sure-plant": ("sure_plant", False),
     "warm-reseat": ("warm_reseat", True),
     "no-warm-reseat": ("warm_reseat", False),
+    "seated-yaw": ("seated_yaw", True),
+    "no-seated-yaw": ("seated_yaw", False),
     "no-camera": ("send_frames", False),
     "truth-body": ("truth_body", True),
     "seat": ("seat", True),

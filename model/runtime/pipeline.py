@@ -43,6 +43,7 @@ from .frames import (
 from .hands import LostHandPolicy
 from .kpo import KpoWeights, orient_leaves, rederive_rotations, solve_kpo
 from .loading import LoadedModel
+from .seated_yaw import FOLDED_SHARE, SeatedYaw, turn_pelvis, yaw_of
 from .stance import LegHold, SteadyStance
 
 # One Euro on joint positions (paper Eq. 8), two stages (filters.OneEuroCascade), and on the devices' poses
@@ -96,6 +97,7 @@ class Pipeline:
         body_hold: bool = True,
         sure_plant: bool = False,
         warm_reseat: bool = True,
+        seated_yaw: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -120,6 +122,10 @@ class Pipeline:
         # folds the legs then (stance.REBASE_S, REBASE_FOLDED_SHARE): a seated session's cold first guess of
         # the legs is not what stays (MODEL_CARD.md, rules 59-62; on by default since rule 62)
         self.warm_reseat = warm_reseat
+        # while the net's legs are folded and no camera frame is in its window, the pelvis keeps its yaw in the
+        # world inside a dead zone (seated_yaw.py): without the camera the nets turn a seated person's legs
+        # with the head; off by default (MODEL_CARD.md, rule 65)
+        self.seated_yaw = seated_yaw
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -174,6 +180,7 @@ class Pipeline:
         self.legs = LegHold(lean=self.lean_gate, reseat=self.reseat)
         self._stream_samples = 0  # headset samples since the stream (re)started
         self._rebased = False  # warm_reseat's re-seat done this stream
+        self.seat_yaw = SeatedYaw()
 
     @property
     def frames_encoded(self) -> int:
@@ -302,6 +309,19 @@ class Pipeline:
                 self.feet.rebase(t_us)
                 self.legs.rebase(t_us)
 
+    def _keep_seated_yaw(
+        self, local: np.ndarray, joints: np.ndarray, glob: np.ndarray, camera: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """With seated_yaw: the net's rotations local (J, 3, 3) turned in place to keep a seated pelvis's yaw
+        (seated_yaw.SeatedYaw), and the joints (J, 3) and global rotations (J, 3, 3) of FK again; as given where
+        nothing turns."""
+        holds = not camera and stance.legs_folded(joints, FOLDED_SHARE)
+        turn = self.seat_yaw.correction(yaw_of(glob[0]), holds)
+        if turn == 0.0:
+            return joints, glob
+        turn_pelvis(local, turn)
+        return kernels.forward_kinematics_one(local, _ORIGIN, self.offsets, _PARENTS)
+
     def push_hmd(self, t_us: int, poses: np.ndarray, valid: np.ndarray) -> PoseResult:
         """poses (3, 7) head/left/right [p xyz m, q xyzw], valid (3,) -> the pose for this sample."""
         pending = self.begin_hmd(t_us, poses, valid)
@@ -354,6 +374,8 @@ class Pipeline:
         local = kernels.sixd_to_matrices(sixd.astype(np.float64))
         local[0] = pending.heading_rot @ local[0]  # pelvis: heading frame -> world
         joints, glob_pred = kernels.forward_kinematics_one(local, _ORIGIN, self.offsets, _PARENTS)
+        if self.seated_yaw:
+            joints, glob_pred = self._keep_seated_yaw(local, joints, glob_pred, pending.camera is True)
         joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
         lap("fk_filter")
         if self.model.info.kpo:

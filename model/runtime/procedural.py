@@ -68,6 +68,7 @@ from .pipeline import (
     PendingPose,
     PoseResult,
 )
+from .seated_yaw import DEAD_ZONE_DEG
 
 NAME: Final = "procedural"
 DESCRIPTION: Final = "no network: pelvis under the head, planted feet that step, IK knees and arms (baseline)"
@@ -76,9 +77,9 @@ TURN_TIME_S: Final = 0.4
 # served hips and stepped the feet (chosen on the training split's still streams; MODEL_CARD.md, "The procedural
 # baseline: hips that turn only past a dead zone").
 TURN_DEAD_ZONE_DEG: Final = 30.0
-# Seated, the trunk twists further before the chair turns: the feet, in front of the seat, would sweep
-# round it with the hips (MODEL_CARD.md, rule 63).
-SEATED_DEAD_ZONE_DEG: Final = 60.0
+# Seated, the trunk twists further before the chair turns (seated_yaw.DEAD_ZONE_DEG, which the network
+# pipeline's seated yaw shares; MODEL_CARD.md, rule 63).
+SEATED_DEAD_ZONE_DEG: Final = DEAD_ZONE_DEG
 STEP_TRIGGER_M: Final = 0.14  # for a body of SMPL's size
 STEP_TURN_DEG: Final = 35.0
 STEP_S: Final = 0.28
@@ -481,7 +482,7 @@ class ProceduralPipeline:
 # KPO, no leg hold and no estimated body to keep).
 NETWORK_PIPELINE_OPTIONS: Final = (
     "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold",
-    "sure_plant", "warm_reseat",
+    "sure_plant", "warm_reseat", "seated_yaw",
 )  # fmt: skip
 # ... and the procedural pipeline's that the network one has no stage for (its net says where seated feet are)
 PROCEDURAL_PIPELINE_OPTIONS: Final = ("seat",)
