@@ -28,8 +28,10 @@ by default as the model file says), the re-seating hold on (@reseat, off by defa
 while they are held off or on (@no-body-hold, @body-hold; on by default: MODEL_CARD.md, rule 57), or a
 planted foot the contact head is sure of kept down however high the net lifts it (@sure-plant, off by
 default), or held legs and a still stance's planted feet re-seated once the net's windows fill where it
-folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MODEL_CARD.md, rule 62), so
---models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
+folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MODEL_CARD.md, rule 62), or a
+folded pelvis that keeps its heading while no camera frame is in the window on or off (@seated-yaw,
+@no-seated-yaw; off by default: MODEL_CARD.md, rule 65), so --models egoposevr@no-leg-hold,egoposevr says,
+paired, what one stage of the runtime changes.
 --no-camera (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
@@ -87,7 +89,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
-        "@no-warm-reseat) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat), without the "
+        "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
+        "@seated-yaw), without the "
         "camera (@no-camera), or with the truth's body (@truth-body); procedural@seat: the baseline with a "
         "seat for a stream that begins seated",
     )  # fmt: skip
