@@ -708,27 +708,16 @@ def test_hanging_hands_larger_keypoint_errors_and_swapped_arms_are_training_opti
     assert len(swapped) == 2 * n and all(s["arms_unseen"] for s in swapped[n:])
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
-    options = [
-        "--hanging-loss",
-        "0.3",
-        "--keypoint-error-gain",
-        "1.5",
-        "--arm-swap",
-        "0.5",
-        "--drop-camera",
-        "0.3",
-    ]
+    options = ["--hanging-loss", "0.3", "--keypoint-error-gain", "1.5"]
+    options += ["--arm-swap", "0.5", "--drop-camera", "0.3"]
     steps = ["--visual-steps", "2", "--fusion-steps", "2"]
     assert main([*args, "--out", str(tmp_path), *options, *steps]) == 0
     recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
     given = ("hanging_loss_m", "keypoint_error_gain", "arm_swap_p", "drop_camera_p")
     assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3)
-    for bad in (
-        ["--hanging-loss", "0"],
-        ["--keypoint-error-gain", "-1"],
-        ["--arm-swap", "2"],
-        ["--drop-camera", "1.5"],
-    ):
+    refused = [["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"]]
+    refused += [["--arm-swap", "2"], ["--drop-camera", "1.5"]]
+    for bad in refused:
         assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
         assert bad[0] in capsys.readouterr().err
 
@@ -746,10 +735,8 @@ def test_drop_camera_trains_windows_with_no_frame(tiny_data):
     cfg = fusion_config("hmd-rgbd", seeing)
     last = len(fs.t_us) - 1
     present = -2  # visual_tokens' slot that says a frame is there
-    assert (
-        sample_window(fs, last, cfg, np.random.default_rng(1), seeing)[1][:, present].sum()
-        == cfg.visual_window
-    )
+    seen = sample_window(fs, last, cfg, np.random.default_rng(1), seeing)[1]
+    assert seen[:, present].sum() == cfg.visual_window
     assert not sample_window(fs, last, cfg, np.random.default_rng(1), blind)[1].any()
 
 
