@@ -12,10 +12,13 @@ Matrix -> quaternion delegates to ``scipy.spatial.transform.Rotation`` (well kep
 and pi). The conversions on the serving path (quaternion or rotation vector -> matrix, quaternion or matrix ->
 rotation vector, 6D -> matrix) run as compiled kernels (:mod:`.kernels`): scipy's Rotation costs 15-30 µs of
 set-up per call on the three devices of one headset sample; tests hold the kernels to scipy within 1e-12.
-The 6D pair is ours because scipy has no 6D.
+The 6D pair is ours because scipy has no 6D. The yaw helpers at the end are the runtime's, for one turn
+about +y at a time.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -109,3 +112,19 @@ def geodesic_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
     sin = 0.5 * np.linalg.norm(skew, axis=-1)
     return np.arctan2(sin, cos)
+
+
+def wrap_angle(angle_rad: float) -> float:
+    """An angle (rad) wrapped to [-pi, pi)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def about_vertical(angle_rad: float) -> np.ndarray:
+    """(3, 3) a turn by angle_rad about +y (inputs.heading_frame's yaw convention)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def heading_of(matrix: np.ndarray) -> float:
+    """The heading (rad, about +y) of a rotation (3, 3): where its +z axis points over the floor."""
+    return math.atan2(float(matrix[0, 2]), float(matrix[2, 2]))

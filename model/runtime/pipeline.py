@@ -25,6 +25,7 @@ import numpy as np
 from ..hmd import HmdFeatureExtractor, TrackingState, check_poses, ignore_untracked
 from ..inputs import canonicalize_hmd, heading_frame
 from ..rig import TRACKED_JOINTS, joints_from_devices, stillness_point
+from ..rotations import heading_of
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels, stance
 from .body import BodyCalibrator, ServedScale, held_target
@@ -43,7 +44,7 @@ from .frames import (
 from .hands import LostHandPolicy
 from .kpo import KpoWeights, orient_leaves, rederive_rotations, solve_kpo
 from .loading import LoadedModel
-from .seated_yaw import FOLDED_SHARE, SeatedYaw, turn_pelvis, yaw_of
+from .seated_yaw import FOLDED_SHARE, SeatedYaw, turn_pelvis
 from .stance import LegHold, SteadyStance
 
 # One Euro on joint positions (paper Eq. 8), two stages (filters.OneEuroCascade), and on the devices' poses
@@ -180,7 +181,7 @@ class Pipeline:
         self.legs = LegHold(lean=self.lean_gate, reseat=self.reseat)
         self._stream_samples = 0  # headset samples since the stream (re)started
         self._rebased = False  # warm_reseat's re-seat done this stream
-        self.seat_yaw = SeatedYaw()
+        self._seated_heading = SeatedYaw()  # seated_yaw's held heading
 
     @property
     def frames_encoded(self) -> int:
@@ -316,7 +317,7 @@ class Pipeline:
         (seated_yaw.SeatedYaw), and the joints (J, 3) and global rotations (J, 3, 3) of FK again; as given where
         nothing turns."""
         holds = not camera and stance.legs_folded(joints, FOLDED_SHARE)
-        turn = self.seat_yaw.correction(yaw_of(glob[0]), holds)
+        turn = self._seated_heading.correction(heading_of(glob[0]), holds)
         if turn == 0.0:
             return joints, glob
         turn_pelvis(local, turn)

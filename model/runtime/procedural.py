@@ -44,6 +44,7 @@ from ..config import FusionConfig, ModelMetadata
 from ..hmd import check_poses, ignore_untracked
 from ..inputs import heading_frame
 from ..rig import DEFAULT_OFFSETS_M, TRACKED_JOINTS, joints_from_devices
+from ..rotations import about_vertical, wrap_angle
 from ..skeleton import (
     ARM_JOINTS,
     FOOT_JOINT_HEIGHT_M,
@@ -105,24 +106,13 @@ FEET_AND_ANKLES: Final = [7, 8, 10, 11]
 _CHEST: Final = [12, 13, 14, 15, *ARM_CHAINS[0], *ARM_CHAINS[1]]
 
 
-def _wrapped(angle: float) -> float:
-    """angle (rad) in [-pi, pi)."""
-    return (angle + math.pi) % (2 * math.pi) - math.pi
-
-
 _HALF_TURN: Final = np.diag([-1.0, 1.0, -1.0])  # devices look along -z, SMPL faces +z
 _PARENTS: Final = PARENTS.astype(np.int64)  # the compiled kernels' index type, converted once
 
 
-def _about_vertical(angle: float) -> np.ndarray:
-    """(3, 3) a turn by angle (rad) about +y, heading_frame's yaw convention."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def _yaw_rotation(yaw: float) -> np.ndarray:
     """(3, 3) the body turned to a headset yaw, with the half turn between them."""
-    return _about_vertical(yaw) @ _HALF_TURN
+    return about_vertical(yaw) @ _HALF_TURN
 
 
 class ProceduralModel:
@@ -277,7 +267,7 @@ class ProceduralPipeline:
             self.hands.lost_wrist(int(device), joints[TRACKED_JOINTS[device]])
         local = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
         local[0] = body_rot
-        local[[3, 6, 9]] = _about_vertical(_wrapped(self.chest_yaw - self.yaw) / 3)  # the chest's twist
+        local[[3, 6, 9]] = about_vertical(wrap_angle(self.chest_yaw - self.yaw) / 3)  # the chest's twist
         _, glob = kernels.forward_kinematics_one(local, np.zeros(3), self.offsets, _PARENTS)
         local = rederive_rotations(local, joints, self.offsets, glob)
         joints, glob = kernels.forward_kinematics_one(local, joints[0].copy(), self.offsets, _PARENTS)
@@ -339,8 +329,8 @@ class ProceduralPipeline:
         if self.yaw is None:
             self.yaw = self.stood_yaw = self.chest_yaw = head_yaw
         follow = 1.0 - math.exp(-dt_s / TURN_TIME_S)
-        self.chest_yaw += _wrapped(head_yaw - self.chest_yaw) * follow
-        gap = _wrapped(head_yaw - self.yaw)
+        self.chest_yaw += wrap_angle(head_yaw - self.chest_yaw) * follow
+        gap = wrap_angle(head_yaw - self.yaw)
         seated = self.seat_back_m > 0.0
         dead_zone = math.radians(SEATED_DEAD_ZONE_DEG if seated else TURN_DEAD_ZONE_DEG) * (
             1.0 - self._walking()

@@ -22,6 +22,8 @@ from typing import Final
 
 import numpy as np
 
+from ..rotations import about_vertical, wrap_angle
+
 # Seated, the trunk twists further before the chair turns; the feet, in front of the seat, would sweep round
 # it with the hips. Not chosen on numbers: the procedural baseline's seated dead zone (its
 # SEATED_DEAD_ZONE_DEG is this constant), twice its standing one (MODEL_CARD.md, rule 63).
@@ -32,27 +34,11 @@ FOLDED_SHARE: Final = 0.7
 SPINE1: Final = 3  # the pelvis's child in the trunk (skeleton.JOINT_NAMES)
 
 
-def wrap_rad(angle: float) -> float:
-    """An angle in radians wrapped to [-pi, pi)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def yaw_of(rotation: np.ndarray) -> float:
-    """The heading (rad, about +y) of a global rotation (3, 3): where its +z axis points over the floor."""
-    return math.atan2(float(rotation[0, 2]), float(rotation[2, 2]))
-
-
-def yaw_matrix(angle: float) -> np.ndarray:
-    """(3, 3) rotation by angle (rad) about +y."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def turn_pelvis(local: np.ndarray, angle: float) -> None:
     """local (J, 3, 3) rotations, the pelvis's (index 0) global: turn the pelvis by angle (rad) about the
     vertical, in place, and counter-turn the spine's first joint so the trunk keeps its global orientation."""
     pelvis = local[0].copy()
-    turned = yaw_matrix(angle) @ pelvis
+    turned = about_vertical(angle) @ pelvis
     local[0] = turned
     local[SPINE1] = turned.T @ pelvis @ local[SPINE1]
 
@@ -74,8 +60,8 @@ class SeatedYaw:
             return 0.0
         if self.held_rad is None:
             self.held_rad = net_yaw_rad
-        past = wrap_rad(net_yaw_rad - self.held_rad)
+        past = wrap_angle(net_yaw_rad - self.held_rad)
         zone = math.radians(DEAD_ZONE_DEG)
         if abs(past) > zone:  # the net has turned far past the held legs: they follow at the zone's edge
-            self.held_rad = wrap_rad(net_yaw_rad - math.copysign(zone, past))
-        return wrap_rad(self.held_rad - net_yaw_rad)
+            self.held_rad = wrap_angle(net_yaw_rad - math.copysign(zone, past))
+        return wrap_angle(self.held_rad - net_yaw_rad)

@@ -6,15 +6,13 @@ import math
 import numpy as np
 import pytest
 
+from egoposevr.model.rotations import about_vertical, heading_of, wrap_angle
 from egoposevr.model.runtime import kernels
 from egoposevr.model.runtime.seated_yaw import (
     DEAD_ZONE_DEG,
     SPINE1,
     SeatedYaw,
     turn_pelvis,
-    wrap_rad,
-    yaw_matrix,
-    yaw_of,
 )
 from egoposevr.model.skeleton import NUM_JOINTS, PARENTS, rest_offsets
 
@@ -42,14 +40,14 @@ def test_the_hold_wraps_round_the_half_turn_and_lets_go_when_it_ends():
 
 def test_turning_the_pelvis_turns_the_legs_and_keeps_the_trunk():
     rng = np.random.default_rng(0)
-    local = np.stack([yaw_matrix(a) for a in rng.uniform(-0.5, 0.5, NUM_JOINTS)])
+    local = np.stack([about_vertical(a) for a in rng.uniform(-0.5, 0.5, NUM_JOINTS)])
     offsets = rest_offsets()
     origin = np.zeros(3)
     joints, glob = kernels.forward_kinematics_one(local, origin, offsets, PARENTS)
     turned = local.copy()
     turn_pelvis(turned, 0.4)
     joints2, glob2 = kernels.forward_kinematics_one(turned, origin, offsets, PARENTS)
-    assert wrap_rad(yaw_of(glob2[0]) - yaw_of(glob[0])) == pytest.approx(0.4)
+    assert wrap_angle(heading_of(glob2[0]) - heading_of(glob[0])) == pytest.approx(0.4)
     knees = [4, 5]
     assert not np.allclose(joints2[knees], joints[knees], atol=1e-3)  # the legs turned with the pelvis
     trunk = [SPINE1, 6, 9, 12, 15, 16, 17, 18, 19, 20, 21]
