@@ -90,9 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
-        "@seated-yaw), without the "
-        "camera (@no-camera), or with the truth's body (@truth-body); procedural@seat: the baseline with a "
-        "seat for a stream that begins seated",
+        "@seated-yaw), without the camera (@no-camera), or with the truth's body (@truth-body); "
+        "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="at most N sequences")
