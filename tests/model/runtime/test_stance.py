@@ -417,15 +417,15 @@ def test_a_long_pause_forgets_the_hold():
 
 @pytest.mark.parametrize(
     ("family", "stage", "most"),
-    [("still_stand", "leg_hold", 0.7), ("lean_stand", "lean_gate", 0.5)],
+    [("still_stand", "leg_hold", 0.7), ("lean_stand", "lean_gate", 0.5), ("still_sit", "seated_yaw", 0.5)],
 )
 def test_the_served_legs_of_a_user_who_only_moves_the_upper_body_wander_less_with_the_stage(
     family, stage, most
 ):
     """The whole pipeline (bundled egoposevr) on a procedural user who stands still and moves only the upper
-    body (``lean_stand``: leaning and swaying over the still hips too): the leg leakage with the hold (with
-    the lean gate) is well under the runtime's without it, and the served joints are still FK of the
-    rotations."""
+    body (``lean_stand``: leaning and swaying over the still hips too; ``still_sit``: seated and turning, no
+    camera frame ever sent): the leg leakage with the hold (with the lean gate, with the seated yaw) is well
+    under the runtime's without it, and the served joints are still FK of the rotations."""
     from egoposevr.model.runtime.loading import LoadedModel
     from egoposevr.model.runtime.pipeline import Pipeline
     from egoposevr.model.skeleton import forward_kinematics, rest_offsets
