@@ -137,6 +137,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _number(
         parser,
+        "--cold-start",
+        "P",
+        "fusion nets: the share P of training windows that begin as a new stream inside their own span (the "
+        "headset window padded with its first sample, only the frames since), as a session's first answers "
+        "are (default 0)",
+    )
+    _number(
+        parser,
         "--arm-swap",
         "P",
         "fusion nets: a share P of the sequences also trains with another sequence's arm motion "
@@ -246,6 +254,7 @@ def run(args: argparse.Namespace) -> int:
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
             ("arm_swap_p", args.arm_swap), ("drop_camera_p", args.drop_camera),
+            ("cold_start_p", args.cold_start),
         )
         if value is not None
     }  # fmt: skip
@@ -326,6 +335,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.drop_camera is not None and not 0.0 <= args.drop_camera <= 1.0, "--drop-camera P needs 0 <= P <= 1"),
+        (args.cold_start is not None and not 0.0 <= args.cold_start <= 1.0, "--cold-start P needs 0 <= P <= 1"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
         (args.batch is not None and not 1 <= args.batch <= 4096, "--batch B needs 1 <= B <= 4096"),
     )  # fmt: skip

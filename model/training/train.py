@@ -101,6 +101,11 @@ class TrainConfig:
     heatmap_sigma_cells: float = 1.0
     camera_latency_ms: tuple[float, float] = (10.0, 50.0)  # capture -> arrival, drawn per sequence
     drop_camera_p: float = 0.1  # whole visual window missing: teaches the HMD-only fallback
+    # The share of windows that begin as a new stream inside their own span (a session's start or restart):
+    # the headset window padded with its first sample and only the frames captured since. A session's first
+    # answers are such windows, and the runtime's planted feet and held legs begin on them. 0: only the
+    # sequences' own starts are (the bundled nets' recipe).
+    cold_start_p: float = 0.0
     drop_frame_p: float = 0.05
     position_weight: float = 10.0  # L1 metres vs L1 6D
     rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
@@ -721,12 +726,15 @@ def sample_window(
     fs: FusionSequence, i: int, cfg: FusionConfig, rng: np.random.Generator | None, tc: TrainConfig
 ):
     """Inputs at headset sample i, as the runtime builds them: hmd (T, 72) and visual tokens (Tv, 90)."""
-    idx = np.clip(np.arange(i - cfg.window + 1, i + 1), 0, None)  # the runtime pads with the first sample
+    first = _stream_start(i, cfg, rng, tc)
+    idx = np.clip(np.arange(i - cfg.window + 1, i + 1), first, None)  # the runtime pads with the first sample
     rot, origin = heading_frame(fs.head_pose[i])
     hmd = canonicalize_hmd(fs.hmd[idx, : hmd_input_dim(cfg.device_validity)], rot, origin)
     now = int(fs.t_us[i])
     arrived = int(np.searchsorted(fs.arrival_us, now, side="right"))
     frames = visual_window(fs.frame_t_us[:arrived], now, cfg.visual_window)
+    if first > 0:  # a stream begun at sample `first` has only the frames captured since
+        frames = frames[fs.frame_t_us[frames] >= fs.t_us[first]]
     if rng is not None and len(frames):
         if rng.random() < tc.drop_camera_p:
             frames = frames[:0]
@@ -735,6 +743,16 @@ def sample_window(
     age_s = (now - fs.frame_t_us[frames]) * 1e-6
     tokens = visual_tokens(fs.kp_world[frames], fs.confidence[frames], age_s, cfg.visual_window, rot, origin)
     return hmd, tokens
+
+
+def _stream_start(i: int, cfg: FusionConfig, rng: np.random.Generator | None, tc: TrainConfig) -> int:
+    """The sample that the stream a window at sample i belongs to began at: the sequence's first, or, for
+    ``tc.cold_start_p`` of the windows, a sample drawn uniformly among the window's own (a session that began
+    0 to ``cfg.window`` - 1 samples ago). No draw is made while ``cold_start_p`` is 0, so earlier recipes keep
+    their random streams."""
+    if rng is None or tc.cold_start_p <= 0.0 or rng.random() >= tc.cold_start_p:
+        return 0
+    return max(i - int(rng.integers(0, cfg.window)), 0)
 
 
 def fusion_loss_fn(

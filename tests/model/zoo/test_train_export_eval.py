@@ -709,14 +709,14 @@ def test_hanging_hands_larger_keypoint_errors_and_swapped_arms_are_training_opti
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
     options = ["--hanging-loss", "0.3", "--keypoint-error-gain", "1.5"]
-    options += ["--arm-swap", "0.5", "--drop-camera", "0.3"]
+    options += ["--arm-swap", "0.5", "--drop-camera", "0.3", "--cold-start", "0.2"]
     steps = ["--visual-steps", "2", "--fusion-steps", "2"]
     assert main([*args, "--out", str(tmp_path), *options, *steps]) == 0
     recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
-    given = ("hanging_loss_m", "keypoint_error_gain", "arm_swap_p", "drop_camera_p")
-    assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3)
+    given = ("hanging_loss_m", "keypoint_error_gain", "arm_swap_p", "drop_camera_p", "cold_start_p")
+    assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3, 0.2)
     refused = [["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"]]
-    refused += [["--arm-swap", "2"], ["--drop-camera", "1.5"]]
+    refused += [["--arm-swap", "2"], ["--drop-camera", "1.5"], ["--cold-start", "-0.1"]]
     for bad in refused:
         assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
         assert bad[0] in capsys.readouterr().err
@@ -738,6 +738,37 @@ def test_drop_camera_trains_windows_with_no_frame(tiny_data):
     seen = sample_window(fs, last, cfg, np.random.default_rng(1), seeing)[1]
     assert seen[:, present].sum() == cfg.visual_window
     assert not sample_window(fs, last, cfg, np.random.default_rng(1), blind)[1].any()
+
+
+def test_cold_start_trains_windows_of_a_stream_begun_inside_them(tiny_data):
+    """`cold_start_p`: that share of the windows belong to a stream begun inside their span, as a session's
+    first answers do: the headset window repeats the stream's first sample where it began, and no frame
+    captured before then is in the visual window. With the share at 0 no window late in a sequence is."""
+    import dataclasses
+
+    from egoposevr.model.training.train import fusion_config, sample_window
+
+    warm = dataclasses.replace(PRESETS["tiny"], drop_camera_p=0.0, drop_frame_p=0.0)
+    cold = dataclasses.replace(warm, cold_start_p=1.0)
+    fs = prepare_fusion_sequence(load_split(tiny_data, "val")[0], np.random.default_rng(0), warm, None)
+    cfg = fusion_config("hmd-rgbd", warm)
+    last = len(fs.t_us) - 1
+    present = -2  # visual_tokens' slot that says a frame is there
+
+    def padded_rows(hmd: np.ndarray) -> int:
+        """How many rows at the window's start repeat its first row."""
+        return int(np.argmin(np.all(hmd == hmd[:1], axis=1))) if not np.all(hmd == hmd[:1]) else len(hmd)
+
+    hmd, tokens = sample_window(fs, last, cfg, np.random.default_rng(1), warm)
+    assert padded_rows(hmd) == 1 and tokens[:, present].sum() == cfg.visual_window
+    ages = set()
+    for seed in range(8):
+        hmd, tokens = sample_window(fs, last, cfg, np.random.default_rng(seed), cold)
+        age = cfg.window - padded_rows(hmd)  # samples since the stream began
+        since = (fs.frame_t_us >= fs.t_us[last - age]) & (fs.arrival_us <= fs.t_us[last])
+        assert tokens[:, present].sum() == min(since.sum(), cfg.visual_window)
+        ages.add(age)
+    assert len(ages) > 2 and min(ages) < cfg.window - 1  # streams of several ages, some begun inside
 
 
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
