@@ -53,9 +53,11 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from ..protocol import (
+    Body,
     Calibrate,
     Calibration,
     Error,
+    GetBody,
     Hello,
     Hmd,
     Message,
@@ -63,6 +65,7 @@ from ..protocol import (
     Pose,
     Rgbd,
     SelectModel,
+    SetBody,
     Welcome,
     decode_from_server,
     encode,
@@ -103,6 +106,8 @@ class HeadsetClient:
         self.models: Models | None = None
         self.calibration: Calibration | None = None  # the newest calibration message
         self._calibration_changed = asyncio.Event()
+        self.body: Body | None = None  # the newest body message
+        self._body_changed = asyncio.Event()
         self.errors: deque[Error] = deque(maxlen=100)  # the newest error replies
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
@@ -201,6 +206,9 @@ class HeadsetClient:
         elif isinstance(msg, Calibration):
             self.calibration = msg
             self._calibration_changed.set()
+        elif isinstance(msg, Body):
+            self.body = msg
+            self._body_changed.set()
         elif isinstance(msg, Error):
             self.errors.append(msg)
             if msg.fatal and msg.code in PERMANENT_REFUSALS:
@@ -281,6 +289,29 @@ class HeadsetClient:
                 self._calibration_changed.clear()
                 if self.calibration is not None and self.calibration.status != "started":
                     return self.calibration
+
+    async def get_body(self, timeout_s: float = 10.0) -> Body:
+        """The body the session serves now (PROTOCOL.md §4.2). Keep the ``bone_lengths_m`` of a ``measured``
+        one with the wearer's profile, and give them back with :meth:`set_body` at their next session."""
+        return await self._body_request(GetBody(), timeout_s)
+
+    async def set_body(self, bone_lengths_m: Sequence[float] | None, timeout_s: float = 10.0) -> Body:
+        """Serve a known wearer's body (21 bone lengths, m, as ``body`` gave them) from the next sample on, or
+        with None estimate it again (PROTOCOL.md §4.2). Returns the server's ``body``. A body out of range is
+        answered with an ``error`` instead (in ``errors``), and this raises TimeoutError."""
+        msg = (
+            SetBody(clear=True) if bone_lengths_m is None else SetBody(bone_lengths_m=_floats(bone_lengths_m))
+        )
+        return await self._body_request(msg, timeout_s)
+
+    async def _body_request(self, msg: SetBody | GetBody, timeout_s: float) -> Body:
+        self.body = None
+        self._body_changed.clear()
+        await self._send(msg)
+        async with asyncio.timeout(timeout_s):
+            await self._body_changed.wait()
+        assert self.body is not None
+        return self.body
 
     # ------------------------------------------------------------------------------ receiving
     async def poses(self) -> AsyncIterator[Pose]:

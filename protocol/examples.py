@@ -11,9 +11,11 @@ from __future__ import annotations
 import base64
 
 from .messages import (
+    Body,
     Calibrate,
     Calibration,
     Error,
+    GetBody,
     Hello,
     Hmd,
     ListModels,
@@ -27,6 +29,7 @@ from .messages import (
     Rgbd,
     SelectModel,
     SessionStatus,
+    SetBody,
     Welcome,
 )
 
@@ -55,6 +58,9 @@ def example_messages() -> dict[str, Message]:
     joints = [round(0.25 * (i % 8) - 1.0, 2) for i in range(66)]
     body_pose = [0.0] * 63
     body_pose[3 * 3 + 0] = 0.5  # left knee (SMPL joint 4 -> body_pose index 3) bent 0.5 rad about x
+    # joints 1..21, each from its parent: near the mean body's, in 1/16 m steps
+    bone_lengths_m = [0.125] * 3 + [0.375] * 2 + [0.125] + [0.4375] * 2 + [0.0625] + [0.125] * 2 + [0.1875]
+    bone_lengths_m += [0.125] * 5 + [0.25] * 4
     return {
         "hello": Hello(role="input", session="room-1", model="egoposevr", token="s3cret", client="unity/1.0"),
         "hmd": Hmd(
@@ -145,6 +151,9 @@ def example_messages() -> dict[str, Message]:
             arm_span_m=1.5,
             corrections=[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.25, 0.96875, 0.0, 0.0, -0.25, 0.96875],
         ),
+        "set_body": SetBody(bone_lengths_m=bone_lengths_m),
+        "get_body": GetBody(),
+        "body": Body(bone_lengths_m=bone_lengths_m, given=True, measured=False),
     }
 
 

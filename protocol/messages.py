@@ -193,6 +193,37 @@ class Calibrate(Message):
     clear: Bool = False
 
 
+# A bone's length, m: the SMPL mean body's shortest is 5.6 cm (spine2 to spine3), its longest 43 cm (knee to
+# ankle); the server also holds each to 0.5-2 times the mean body's (PROTOCOL.md §4.2).
+BoneLength = Annotated[float, Strict(), AllowInfNan(False), Field(ge=0.01, le=1.0)]
+
+
+class SetBody(Message):
+    """Serve a known wearer's body from now on (PROTOCOL.md §4.2): ``bone_lengths_m`` as a ``body`` message
+    gave them (joints 1..21, each from its parent), or ``clear`` to estimate the body again. Answered by
+    ``body``."""
+
+    TYPE: ClassVar[str] = "set_body"
+    type: Literal["set_body"] = "set_body"
+    bone_lengths_m: vec(21, BoneLength) | None = None
+    clear: Bool = False
+
+    @model_validator(mode="after")
+    def _one_of(self) -> SetBody:
+        if (self.bone_lengths_m is None) == (not self.clear):
+            raise PydanticCustomError(
+                "bad_set_body", "set_body: give bone_lengths_m or clear: true, not both and not neither"
+            )
+        return self
+
+
+class GetBody(Message):
+    """Ask for the body the session serves now; answered by ``body`` (PROTOCOL.md §4.2)."""
+
+    TYPE: ClassVar[str] = "get_body"
+    type: Literal["get_body"] = "get_body"
+
+
 class ListModels(Message):
     """Ask for the ``models`` list."""
 
@@ -325,6 +356,19 @@ class Calibration(Message):
     corrections: vec(12) | None = None
 
 
+class Body(Message):
+    """The body the session serves now, sent to every client of the session after ``get_body`` and
+    ``set_body``: ``bone_lengths_m`` (joints 1..21, each from its parent, m); ``given`` whether a client gave it
+    (``set_body``) or the server estimates it; ``measured`` whether the camera has measured any of the wearer's
+    bones (an estimate worth keeping for the wearer's next session)."""
+
+    TYPE: ClassVar[str] = "body"
+    type: Literal["body"] = "body"
+    bone_lengths_m: vec(21)
+    given: Bool
+    measured: Bool
+
+
 class Pong(Message):
     """Answer to ``ping``: echoes ``nonce``/``t_us`` and adds the server's clock."""
 
@@ -335,6 +379,25 @@ class Pong(Message):
     server_t_us: TimeUs
 
 
-CLIENT_MESSAGES: tuple[type[Message], ...] = (Hello, Hmd, Rgbd, SelectModel, ListModels, Ping, Calibrate)
-SERVER_MESSAGES: tuple[type[Message], ...] = (Welcome, Pose, Models, Error, Pong, SessionStatus, Calibration)
+CLIENT_MESSAGES: tuple[type[Message], ...] = (
+    Hello,
+    Hmd,
+    Rgbd,
+    SelectModel,
+    ListModels,
+    Ping,
+    Calibrate,
+    SetBody,
+    GetBody,
+)
+SERVER_MESSAGES: tuple[type[Message], ...] = (
+    Welcome,
+    Pose,
+    Models,
+    Error,
+    Pong,
+    SessionStatus,
+    Calibration,
+    Body,
+)
 MESSAGE_TYPES: dict[str, type[Message]] = {m.TYPE: m for m in CLIENT_MESSAGES + SERVER_MESSAGES}

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from ..protocol import (
     Calibrate,
     ErrorCode,
+    GetBody,
     Hello,
     Hmd,
     ListModels,
@@ -32,6 +33,7 @@ from ..protocol import (
     Rgbd,
     SelectModel,
     SessionStatus,
+    SetBody,
     Welcome,
     decode,
     encode,
@@ -42,7 +44,7 @@ from .metrics import Metrics
 from .recorder import Recorder
 from .registry import ModelRegistry
 from .scheduler import Scheduler
-from .session import Received, Session, TokenBucket, error_about
+from .session import Received, Session, TokenBucket, check_set_body, error_about
 
 CLOSE_NORMAL, CLOSE_GOING_AWAY, CLOSE_POLICY, CLOSE_TOO_BIG, CLOSE_INTERNAL, CLOSE_TRY_LATER = (
     1000, 1001, 1008, 1009, 1011, 1013,
@@ -228,6 +230,15 @@ class Hub:
         elif isinstance(msg, Calibrate):
             self._record(client, data, received.recv_ns)
             session.request_calibration(msg)
+            self.scheduler.wake(session)
+        elif isinstance(msg, SetBody | GetBody):
+            refusal = check_set_body(msg) if isinstance(msg, SetBody) else None
+            if refusal is not None:
+                self.fail(client, ErrorCode.OUT_OF_RANGE, refusal, about=_about(msg))
+                return
+            if isinstance(msg, SetBody):  # it changes what is served; a get_body does not
+                self._record(client, data, received.recv_ns)
+            session.request_body(msg)
             self.scheduler.wake(session)
         elif isinstance(msg, ListModels):
             client.outbox.put_control(encode(self._models(session)))

@@ -30,13 +30,28 @@ from typing import Any
 import numpy as np
 
 from ..model.inputs import decode_rgbd
+from ..model.runtime.body import bone_lengths_m, scale_of_lengths
 from ..model.runtime.calibration import Calibration as MeasuredCalibration
 from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
 from ..model.runtime.frames import EncodedFrame, check_frame, encode_frames
 from ..model.runtime.loading import LoadedModel
 from ..model.runtime.pipeline import PendingPose, PoseResult, run_fusion
 from ..model.runtime.procedural import pipeline_for
-from ..protocol import Calibrate, Calibration, Error, ErrorCode, Hmd, InputError, Pose, Ref, Rgbd, encode
+from ..protocol import (
+    Body,
+    Calibrate,
+    Calibration,
+    Error,
+    ErrorCode,
+    GetBody,
+    Hmd,
+    InputError,
+    Pose,
+    Ref,
+    Rgbd,
+    SetBody,
+    encode,
+)
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
@@ -64,6 +79,7 @@ class Job:
     encoded: tuple[EncodedFrame, ...] = ()  # frames from the lane, added to the cache before the samples
     image_us: int | None = None  # the lane's image decoding time of those frames
     calibrate: tuple[Calibrate, ...] = ()  # calibrate requests, in arrival order, before the samples
+    body: tuple[SetBody | GetBody, ...] = ()  # body requests, in arrival order, after the calibrate ones
 
 
 @dataclasses.dataclass
@@ -84,7 +100,9 @@ class RunResult:
     timing_us: dict[str, int] = dataclasses.field(default_factory=dict)
     errors: list[Error] = dataclasses.field(default_factory=list)
     stale_frame: bool = False
-    notices: list[Calibration] = dataclasses.field(default_factory=list)  # for every client of the session
+    notices: list[Calibration | Body] = dataclasses.field(
+        default_factory=list
+    )  # for every client of the session
 
 
 @dataclasses.dataclass
@@ -145,6 +163,7 @@ class Session:
         self._next_model: tuple[str, LoadedModel] | None = None
         self._reset = False
         self._calibrate: list[Calibrate] = []  # requests for the next job
+        self._body: list[SetBody | GetBody] = []  # requests for the next job
         self._make_pipeline = make_pipeline  # a model -> its per-session pipeline (tests inject a fake)
         self._pipeline = make_pipeline(model)  # run() only
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
@@ -185,6 +204,11 @@ class Session:
         """A ``calibrate`` request: the next job starts (or clears) it, with or without headset samples."""
         self._calibrate.append(msg)
 
+    def request_body(self, msg: SetBody | GetBody) -> None:
+        """A ``set_body`` or ``get_body`` request: the next job applies or answers it, with or without headset
+        samples."""
+        self._body.append(msg)
+
     def restart_stream(self) -> None:
         """A new input client: forget the previous headset's history at the next job; drop its leftovers."""
         self.pending.clear()
@@ -199,7 +223,8 @@ class Session:
 
     @property
     def has_work(self) -> bool:
-        return bool(self.pending) or bool(self._calibrate) or (self.frame is not None and not self.frame_lane)
+        requests = bool(self._calibrate) or bool(self._body)
+        return bool(self.pending) or requests or (self.frame is not None and not self.frame_lane)
 
     def take_job(self) -> Job | None:
         if not self.has_work:
@@ -216,8 +241,10 @@ class Session:
             encoded=tuple(r.encoded for r in lane if r.encoded is not None),
             image_us=sum(r.image_us for r in lane) if lane else None,
             calibrate=tuple(self._calibrate),
+            body=tuple(self._body),
         )
         self._calibrate.clear()
+        self._body.clear()
         self.pending.clear()
         if samples:
             self._encoded.clear()
@@ -265,14 +292,18 @@ class Session:
         result = started.result
         if job.model is not None:
             self._pipeline_model_name, model = job.model
-            calibration = self._pipeline.calibration  # the wearer's: it outlives the model
+            # the wearer's calibration and given body outlive the model
+            calibration, given = self._pipeline.calibration, self._pipeline.given_body
             self._pipeline = self._make_pipeline(model)
             self._pipeline.calibrate(calibration)
+            self._pipeline.give_body(given)
         elif job.reset:
             self._pipeline.reset()
             self._abandon_calibration("the input client reconnected", result)
         for request in job.calibrate:
             self._start_calibration(request, result)
+        for request in job.body:
+            self._body_request(request, result)
         started.image_us = (
             self._push_frame(job.frame, result) if job.frame is not None else job.image_us
         )  # µs or None
@@ -337,6 +368,17 @@ class Session:
         what = "arms out sideways, palms down" if request.pose == "tpose" else "arms relaxed"
         message = f"hold still for {request.seconds:g} s: standing straight, looking ahead, {what}"
         result.notices.append(Calibration(status="started", pose=request.pose, message=message))
+
+    def _body_request(self, request: SetBody | GetBody, result: RunResult) -> None:
+        """Apply a ``set_body`` (the hub has checked its lengths: :func:`check_set_body`), then tell every client
+        the body served now."""
+        if isinstance(request, SetBody):
+            scale = None if request.clear else scale_of_lengths(np.asarray(request.bone_lengths_m))
+            self._pipeline.give_body(scale)
+        scale, measured = self._pipeline.served_body()
+        lengths = [float(x) for x in bone_lengths_m(scale)]
+        given = self._pipeline.given_body is not None
+        result.notices.append(Body(bone_lengths_m=lengths, given=given, measured=measured))
 
     def _abandon_calibration(self, reason: str, result: RunResult) -> None:
         if self._collector is not None:
@@ -456,6 +498,18 @@ def error_about(
     ref_type, seq = about
     ref = Ref(type=ref_type, seq=seq) if ref_type is not None else None
     return Error(code=code.value, message=message[:1024], fatal=fatal, seq=seq, ref=ref)
+
+
+def check_set_body(msg: SetBody) -> str | None:
+    """Why a ``set_body`` cannot be served (a bone outside body.GIVEN_SCALE_RANGE times the mean body's), or
+    None. The hub asks before queueing it, so the error goes to the client that sent it."""
+    if msg.clear:
+        return None
+    try:
+        scale_of_lengths(np.asarray(msg.bone_lengths_m))
+    except ValueError as exc:
+        return f"set_body: {exc}"
+    return None
 
 
 def _error(code: ErrorCode, message: str, msg: Hmd | Rgbd) -> Error:

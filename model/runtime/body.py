@@ -412,6 +412,68 @@ class BodyCalibrator:
         return scale
 
 
+# A body a client gives (PROTOCOL.md §4.2, ``set_body``): each bone between these multiples of the mean body's.
+GIVEN_SCALE_RANGE: Final = (0.5, 2.0)
+
+
+def bone_lengths_m(bone_scale: np.ndarray) -> np.ndarray:
+    """The skeleton's bone lengths (J - 1,) m, joints 1..21 (each from its parent), for a bone scale (J,)."""
+    return _REST_BONE_M[1:] * np.asarray(bone_scale, dtype=np.float64)[1:]
+
+
+def scale_of_lengths(lengths_m: np.ndarray) -> np.ndarray:
+    """The bone scale (J,) of bone lengths (J - 1,) m as :func:`bone_lengths_m` gives them; the pelvis row is 1.
+    Raises ValueError naming the first bone outside GIVEN_SCALE_RANGE times the mean body's."""
+    lengths_m = np.asarray(lengths_m, dtype=np.float64)
+    if lengths_m.shape != (NUM_JOINTS - 1,) or not np.isfinite(lengths_m).all():
+        raise ValueError(f"bone lengths must be {NUM_JOINTS - 1} finite numbers, got shape {lengths_m.shape}")
+    scale = np.ones(NUM_JOINTS)
+    scale[1:] = lengths_m / _REST_BONE_M[1:]
+    low, high = GIVEN_SCALE_RANGE
+    for j in range(1, NUM_JOINTS):
+        if not low <= scale[j] <= high:
+            raise ValueError(
+                f"bone {j} ({lengths_m[j - 1]:.3f} m) is not {low}-{high} times the mean body's "
+                f"({_REST_BONE_M[j]:.3f} m)"
+            )
+    return scale
+
+
+class GivenBody:
+    """A pipeline's body as a client gives it (``set_body``, PROTOCOL.md §4.2) or estimates it. The pipeline
+    holds ``fixed_body``, ``bone_scale`` (J,) and ``body`` (its :class:`BodyCalibrator`), and says what to do when
+    the body changes (``_body_changed``) and what it serves while it estimates (``_estimated_scale``)."""
+
+    fixed_body: bool
+    bone_scale: np.ndarray
+    body: BodyCalibrator
+
+    def give_body(self, bone_scale: np.ndarray | None) -> None:
+        """Serve this bone scale (J,) from the next sample on, across reset() and calibrations; None: estimate
+        the wearer's body again, from where the estimate is."""
+        self.fixed_body = bone_scale is not None
+        self.bone_scale = (
+            np.ones(NUM_JOINTS) if bone_scale is None else np.array(bone_scale, dtype=np.float64)
+        )
+        self._body_changed()
+
+    @property
+    def given_body(self) -> np.ndarray | None:
+        """The bone scale (J,) a client gave, or None while the body is estimated."""
+        return self.bone_scale.copy() if self.fixed_body else None
+
+    def served_body(self) -> tuple[np.ndarray, bool]:
+        """The bone scale (J,) served now, and whether the camera has measured any of the wearer's bones."""
+        scale = self.bone_scale if self.fixed_body else self._estimated_scale()
+        return np.array(scale, dtype=np.float64), bool(self.body.measured)
+
+    def _body_changed(self) -> None:
+        raise NotImplementedError
+
+    def _estimated_scale(self) -> np.ndarray:
+        raise NotImplementedError
+
+
 def held_target(
     estimate: np.ndarray, served: np.ndarray | None, t_us: int, since_us: int | None
 ) -> np.ndarray:

@@ -28,7 +28,7 @@ from ..rig import TRACKED_JOINTS, joints_from_devices, stillness_point
 from ..rotations import heading_of
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels, stance
-from .body import BodyCalibrator, ServedScale, held_target
+from .body import BodyCalibrator, GivenBody, ServedScale, held_target
 from .calibration import Calibration, body_measurements, canonical_poses
 from .contact import FootContacts
 from .filters import DevicePoseFilter, OneEuroCascade
@@ -75,7 +75,7 @@ class PoseResult:
     timing_us: dict[str, int]
 
 
-class Pipeline:
+class Pipeline(GivenBody):
     """Per-session state machine around one :class:`LoadedModel`. Not thread-safe: one caller at a time.
 
     Body size: with ``bone_scale`` (J,) given, the skeleton is that body's. Otherwise a
@@ -143,6 +143,16 @@ class Pipeline:
         self.calibration = calibration
         self._apply_calibration()
         self._hold_clock_us = None  # a calibration resizes held legs too: the body_hold waits again
+
+    def _body_changed(self) -> None:
+        """A body given or taken back (GivenBody.give_body): the skeleton is resized from the next sample on."""
+        served = self.served_scale.scale if self.served_scale.scale is not None else self.body.bone_scale
+        self.offsets = rest_offsets(self.bone_scale if self.fixed_body else served)
+
+    def _estimated_scale(self) -> np.ndarray:
+        """What the served skeleton follows while the body is estimated: the served scale, or before the first
+        sample the estimate."""
+        return self.served_scale.scale if self.served_scale.scale is not None else self.body.bone_scale
 
     def _apply_calibration(self) -> None:
         """The body takes the calibration's measures; the served skeleton follows from the next sample."""

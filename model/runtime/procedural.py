@@ -55,7 +55,7 @@ from ..skeleton import (
     rest_offsets,
 )
 from . import kernels
-from .body import BodyCalibrator
+from .body import BodyCalibrator, GivenBody
 from .calibration import Calibration, body_measurements, canonical_poses
 from .filters import DevicePoseFilter, OneEuroCascade
 from .hands import LostHandPolicy
@@ -168,7 +168,7 @@ def _reach(root: np.ndarray, target: np.ndarray, length: float) -> np.ndarray:
     return target if dist <= length else root + axis * (length / dist)
 
 
-class ProceduralPipeline:
+class ProceduralPipeline(GivenBody):
     """The Pipeline interface (push_hmd, observe_hmd, push_rgbd, add_frame, reset) for the procedural model.
     Not thread-safe: one caller at a time."""
 
@@ -191,6 +191,13 @@ class ProceduralPipeline:
         self.body.calibrate(*body_measurements(calibration, self.model.info.rig_offsets_m[0]))
         if not self.fixed_body:
             self._set_offsets(rest_offsets(self.body.bone_scale))
+
+    def _body_changed(self) -> None:
+        """As :meth:`Pipeline._body_changed <egoposevr.model.runtime.pipeline.Pipeline._body_changed>`."""
+        self._set_offsets(rest_offsets(self.bone_scale if self.fixed_body else self.body.bone_scale))
+
+    def _estimated_scale(self) -> np.ndarray:
+        return self.body.bone_scale
 
     def reset(self) -> None:
         self.body = BodyCalibrator()

@@ -129,3 +129,33 @@ async def test_calibrate_returns_the_servers_verdict_while_the_rig_streams():
             assert result.status == "done" and result.head_height_m > 1.6
             cleared = await headset.clear_calibration()
             assert cleared.status == "cleared"
+
+
+@pytest.mark.asyncio
+async def test_a_body_read_at_the_end_of_one_session_is_given_back_at_the_next():
+    """PROTOCOL.md §4.2 from the client: get_body after a stream, set_body with it in a new session, whose poses
+    then have those bone lengths from the first sample; None gives the estimate back."""
+    from egoposevr.model.skeleton import PARENTS
+
+    t_us, poses, valid = holding(User(height_scale=1.1), seconds=0.5)
+
+    async def stream_lengths(headset: HeadsetClient) -> np.ndarray:
+        """Stream the samples -> the bone lengths (21,) of the first pose, m."""
+        poses_seen = headset.poses()
+        for t, p, v in zip(t_us, poses, valid, strict=True):
+            await headset.send_hmd(int(t), p[0], p[1], p[2], v)
+        first = await asyncio.wait_for(anext(poses_seen), 20)
+        joints = np.asarray(first.joints).reshape(22, 3)
+        return np.linalg.norm(joints[1:] - joints[PARENTS[1:]], axis=-1)
+
+    with running_server() as server:
+        async with HeadsetClient(server.url, "wearer-1", model="procedural") as headset:
+            await stream_lengths(headset)
+            kept = await headset.get_body()
+            assert not kept.given and len(kept.bone_lengths_m) == 21
+        async with HeadsetClient(server.url, "wearer-2", model="procedural") as headset:
+            smaller = [0.9 * x for x in kept.bone_lengths_m]
+            given = await headset.set_body(smaller)
+            assert given.given
+            assert np.allclose(await stream_lengths(headset), smaller, atol=2e-3)
+            assert not (await headset.set_body(None)).given

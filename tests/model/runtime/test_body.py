@@ -374,3 +374,57 @@ def test_with_body_hold_a_calibration_still_resizes_held_legs():
     assert holding == [True, True]
     assert np.abs(served[True] - before[True]).max() > 0.1  # the held legs took the calibration's body ...
     np.testing.assert_allclose(served[True], served[False], atol=1e-3)  # ... as legs without the hold do
+
+
+def test_bone_lengths_round_trip_through_a_scale_and_a_wrong_body_is_refused():
+    from egoposevr.model.runtime.body import GIVEN_SCALE_RANGE, bone_lengths_m, scale_of_lengths
+
+    scale = np.linspace(0.85, 1.2, 22)
+    lengths = bone_lengths_m(scale)
+    assert lengths.shape == (21,)
+    assert np.allclose(lengths, np.linalg.norm(rest_offsets(scale), axis=-1)[1:])
+    back = scale_of_lengths(lengths)
+    assert back[0] == 1.0 and np.allclose(back[1:], scale[1:])
+    too_long = lengths.copy()
+    too_long[3] *= GIVEN_SCALE_RANGE[1] * 1.01 / scale[4]  # the left thigh (joint 4, the knee: hip to knee)
+    with pytest.raises(ValueError, match="bone 4"):
+        scale_of_lengths(too_long)
+    with pytest.raises(ValueError, match="21 finite"):
+        scale_of_lengths(lengths[:20])
+
+
+@pytest.mark.parametrize("model_name", ["egoposevr", "procedural"])
+def test_a_given_body_is_served_from_the_next_sample_kept_across_a_reset_and_taken_back(model_name):
+    """GivenBody: a pipeline given a bone scale serves a skeleton of those bone lengths from the next sample,
+    whatever the headset says about the wearer's height, keeps it after reset() (a reconnect), and estimates the
+    body again once given None."""
+    from egoposevr.model.runtime.body import bone_lengths_m
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
+    from egoposevr.model.skeleton import PARENTS
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    model = (
+        ProceduralModel() if model_name == "procedural" else LoadedModel.load(WEIGHTS_DIR / "egoposevr.onnx")
+    )
+    pipeline = pipeline_for(model)
+    tall = head_at(1.2 * STANDING_HEAD_HEIGHT_M)
+    poses = np.concatenate([tall, np.tile([0.0, 0.0, 0.0, 1.0], (3, 1))], axis=1)
+
+    def served_lengths(t_us: int) -> np.ndarray:
+        joints = pipeline.push_hmd(t_us, poses, ALL).joints
+        return np.linalg.norm(joints[1:] - joints[PARENTS[1:]], axis=-1)
+
+    small = np.full(22, 0.9)
+    assert pipeline.given_body is None
+    served_lengths(0)
+    pipeline.give_body(small)
+    assert np.allclose(served_lengths(11_111), bone_lengths_m(small), atol=2e-3)
+    assert np.array_equal(pipeline.given_body, small) and np.array_equal(pipeline.served_body()[0], small)
+    pipeline.reset()
+    assert np.allclose(served_lengths(22_222), bone_lengths_m(small), atol=2e-3)
+    pipeline.give_body(None)
+    assert pipeline.given_body is None
+    for i in range(3, 200):  # the estimate from a tall headset: the skeleton grows back, a little per sample
+        lengths = served_lengths(i * 11_111)
+    assert lengths[3] > bone_lengths_m(small)[3] * 1.2
