@@ -36,6 +36,8 @@ paired, what one stage of the runtime changes.
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
 estimate (model/runtime/body.py): what a perfect body estimate would buy, a diagnosis no user can have.
+--returning (or @returning) serves each sequence twice, the second time with the body the first ended with
+given from its first sample: a returning wearer whose client kept their body (PROTOCOL.md §4.2's set_body).
 procedural@seat serves the procedural baseline with a seat for a stream that begins seated (@no-seat
 without; off by default: MODEL_CARD.md, rule 63); the network models ignore it.
 
@@ -76,6 +78,7 @@ SWITCHES = {
     "no-seated-yaw": ("seated_yaw", False),
     "no-camera": ("send_frames", False),
     "truth-body": ("truth_body", True),
+    "returning": ("returning", True),
     "seat": ("seat", True),
     "no-seat": ("seat", False),
 }
@@ -90,7 +93,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
-        "@seated-yaw), without the camera (@no-camera), or with the truth's body (@truth-body); "
+        "@seated-yaw), without the camera (@no-camera), with the truth's body (@truth-body), or as a returning "
+        "wearer whose body the client kept (@returning); "
         "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
@@ -165,6 +169,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="a diagnosis: every model serves each sequence the truth's body (its bone lengths) from the first "
         "sample instead of the session's running estimate (model/runtime/body.py)",
+    )
+    parser.add_argument(
+        "--returning",
+        action="store_true",
+        help="every model serves each sequence twice and reports the second: given from its first sample the "
+        "body the first ended with, as a client that kept a returning wearer's body (PROTOCOL.md §4.2)",
     )
     parser.add_argument(
         "--providers",
@@ -247,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
             reseat=args.reseat,
             send_frames=not args.no_camera,
             truth_body=args.truth_body,
+            returning=args.returning,
             runtime=runtime,
             fold=fold,
             loaded=loaded,

@@ -291,7 +291,7 @@ class HeadsetClient:
                     return self.calibration
 
     async def get_body(self, timeout_s: float = 10.0) -> Body:
-        """The body the session serves now (PROTOCOL.md §4.2). Keep the ``bone_lengths_m`` of a ``measured``
+        """The wearer's body as the session knows it (PROTOCOL.md §4.2). Keep the ``bone_lengths_m`` of a ``measured``
         one with the wearer's profile, and give them back with :meth:`set_body` at their next session."""
         return await self._body_request(GetBody(), timeout_s)
 

@@ -218,7 +218,7 @@ class SetBody(Message):
 
 
 class GetBody(Message):
-    """Ask for the body the session serves now; answered by ``body`` (PROTOCOL.md §4.2)."""
+    """Ask for the wearer's body as the session knows it; answered by ``body`` (PROTOCOL.md §4.2)."""
 
     TYPE: ClassVar[str] = "get_body"
     type: Literal["get_body"] = "get_body"
@@ -357,7 +357,7 @@ class Calibration(Message):
 
 
 class Body(Message):
-    """The body the session serves now, sent to every client of the session after ``get_body`` and
+    """The wearer's body as the session knows it, sent to every client of the session after ``get_body`` and
     ``set_body``: ``bone_lengths_m`` (joints 1..21, each from its parent, m); ``given`` whether a client gave it
     (``set_body``) or the server estimates it; ``measured`` whether the camera has measured any of the wearer's
     bones (an estimate worth keeping for the wearer's next session)."""

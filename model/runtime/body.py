@@ -463,7 +463,8 @@ class GivenBody:
         return self.bone_scale.copy() if self.fixed_body else None
 
     def served_body(self) -> tuple[np.ndarray, bool]:
-        """The bone scale (J,) served now, and whether the camera has measured any of the wearer's bones."""
+        """The wearer's bone scale (J,) as the session knows it now (the one given, or the running estimate,
+        which the served skeleton follows), and whether the camera has measured any of the wearer's bones."""
         scale = self.bone_scale if self.fixed_body else self._estimated_scale()
         return np.array(scale, dtype=np.float64), bool(self.body.measured)
 

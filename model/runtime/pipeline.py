@@ -150,9 +150,9 @@ class Pipeline(GivenBody):
         self.offsets = rest_offsets(self.bone_scale if self.fixed_body else served)
 
     def _estimated_scale(self) -> np.ndarray:
-        """What the served skeleton follows while the body is estimated: the served scale, or before the first
-        sample the estimate."""
-        return self.served_scale.scale if self.served_scale.scale is not None else self.body.bone_scale
+        """The running estimate of the wearer's body (the served skeleton follows it over a few samples, and
+        keeps still legs' size while they are held: body.held_target)."""
+        return self.body.bone_scale
 
     def _apply_calibration(self) -> None:
         """The body takes the calibration's measures; the served skeleton follows from the next sample."""

@@ -278,6 +278,7 @@ def evaluate(
     warm_reseat: bool = True,
     send_frames: bool = True,
     truth_body: bool = False,
+    returning: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
     loaded: tuple[list[dict[str, Any]], np.ndarray] | None = None,
@@ -307,9 +308,13 @@ def evaluate(
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
-    ``runtime`` {label: {option: bool}} serves a label with some of those ten (as ``contacts``,
+    ``returning`` True serves each sequence twice, first to learn the wearer's body (the estimate its end
+    gives, what ``get_body`` answers), then with that body given from the first sample (``set_body``,
+    PROTOCOL.md §4.2), and reads the second: a returning wearer whose client kept their body (the same clip
+    standing in for their earlier session).
+    ``runtime`` {label: {option: bool}} serves a label with some of those eleven (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``warm_reseat``, ``send_frames``, ``truth_body``) set otherwise, or with the network pipeline's
+    ``warm_reseat``, ``send_frames``, ``truth_body``, ``returning``) set otherwise, or with the network pipeline's
     ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame is in the window; Pipeline's,
     off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
     (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
@@ -343,6 +348,7 @@ def evaluate(
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
+        returns = options.pop("returning", returning)
         pipeline = pipeline_for(model, **options)
         errors = []
         for i, seq in enumerate(seqs):
@@ -350,6 +356,8 @@ def evaluate(
                 pipeline = pipeline_for(model, bone_scale=seq["bone_scale"], **options)
             if calibrate:
                 calibrate_like_a_user(pipeline, seq, rigs[i])
+            if returns:
+                learn_the_wearer(pipeline, seq, frames)
             errors.append(sequence_errors(*replay_sequence(pipeline, seq, send_frames=frames), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
@@ -380,6 +388,15 @@ def evaluate(
                     [people[i] for i in members], resamples, seed,
                 )  # fmt: skip
     return results
+
+
+def learn_the_wearer(pipeline: Any, seq: dict[str, Any], send_frames: bool) -> None:
+    """A returning wearer (``evaluate``'s ``returning``): the sequence served once with the body estimated, and
+    the body it ends with given to the pipeline, as a client that kept it sends ``set_body`` (PROTOCOL.md
+    §4.2)."""
+    pipeline.give_body(None)
+    replay_sequence(pipeline, seq, send_frames=send_frames)
+    pipeline.give_body(pipeline.served_body()[0])
 
 
 def _add_intervals(

@@ -1,5 +1,6 @@
 """End to end on data the test synthesizes: train -> checkpoints -> export (parity) -> runtime -> eval."""
 
+import itertools
 import json
 from pathlib import Path
 
@@ -1299,6 +1300,41 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
     assert any(served["switch"]["hmd-rgbd@truth-body"][k] != served["switch"]["hmd-rgbd"][k] for k in keys)
     assert max(e.max() for e in served_bones["truth"]) < 1e-4  # metres, every bone of every sample
     assert max(e.max() for e in served_bones["estimate"]) > 5e-3
+
+
+def test_eval_serves_a_returning_wearer_the_body_their_first_pass_ended_with(
+    tiny_data, tiny_weights, tmp_path, monkeypatch
+):
+    """--returning (or NAME@returning beside NAME) serves each sequence twice and reads the second: given from
+    its first sample the body the first pass's estimate ended with (what get_body would have answered)."""
+    from egoposevr.model.runtime.body import bone_lengths_m as bone_lengths_m_of
+
+    passes: list[tuple[bool, np.ndarray, np.ndarray]] = []  # (given, served bones (N, J-1), the scale after)
+    replay = evaluate_module.replay_sequence
+
+    def recording_replay(pipeline, seq, *args, **kwargs):
+        joints, rots = replay(pipeline, seq, *args, **kwargs)
+        lengths = np.linalg.norm(joints[:, 1:] - joints[:, PARENTS[1:]], axis=-1)
+        passes.append((pipeline.fixed_body, lengths, pipeline.served_body()[0]))
+        return joints, rots
+
+    monkeypatch.setattr(evaluate_module, "replay_sequence", recording_replay)
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    served = _eval_runs(
+        args,
+        (
+            ("switch", ["--models", "hmd-rgbd,hmd-rgbd@returning"]),
+            ("flag", ["--models", "hmd-rgbd", "--returning"]),
+        ),
+        tmp_path,
+    )
+    keys = ("mpjpe_u_cm", "mpjpe_l_cm", "foot_skate_cm_s")
+    assert all(served["switch"]["hmd-rgbd@returning"][k] == served["flag"]["hmd-rgbd"][k] for k in keys)
+    pairs = [(before, now) for before, now in itertools.pairwise(passes) if now[0]]  # the given passes
+    assert len(pairs) == 2 * len(load_split(tiny_data, "val"))  # each sequence once per run, switch and flag
+    for (was_given, _, learnt), (_, lengths, _) in pairs:
+        assert not was_given  # each given pass follows a pass that learnt the body
+        assert np.abs(lengths - bone_lengths_m_of(learnt)).max() < 1e-4  # every bone, from the first sample
 
 
 def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between_people(
