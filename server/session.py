@@ -100,9 +100,8 @@ class RunResult:
     timing_us: dict[str, int] = dataclasses.field(default_factory=dict)
     errors: list[Error] = dataclasses.field(default_factory=list)
     stale_frame: bool = False
-    notices: list[Calibration | Body] = dataclasses.field(
-        default_factory=list
-    )  # for every client of the session
+    # for every client of the session
+    notices: list[Calibration | Body] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass
