@@ -36,8 +36,10 @@ paired, what one stage of the runtime changes.
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
 estimate (model/runtime/body.py): what a perfect body estimate would buy, a diagnosis no user can have.
---returning (or @returning) serves each sequence twice, the second time with the body the first ended with
-given from its first sample: a returning wearer whose client kept their body (PROTOCOL.md §4.2's set_body).
+--returning (or @returning) serves each sequence with the body an earlier session ended with given from its
+first sample: another sequence of the same body where the split has one (a synthetic set's bodies come from a
+bank), else the same sequence served once before; a returning wearer whose client kept their body
+(PROTOCOL.md §4.2's set_body).
 procedural@seat serves the procedural baseline with a seat for a stream that begins seated (@no-seat
 without; off by default: MODEL_CARD.md, rule 63); the network models ignore it.
 
@@ -173,8 +175,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--returning",
         action="store_true",
-        help="every model serves each sequence twice and reports the second: given from its first sample the "
-        "body the first ended with, as a client that kept a returning wearer's body (PROTOCOL.md §4.2)",
+        help="every model serves each sequence given from its first sample the body an earlier session ended "
+        "with (another sequence of the same body, else the same one served before), as a client that kept a "
+        "returning wearer's body (PROTOCOL.md §4.2)",
     )
     parser.add_argument(
         "--providers",

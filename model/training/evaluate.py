@@ -308,10 +308,10 @@ def evaluate(
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
-    ``returning`` True serves each sequence twice, first to learn the wearer's body (the estimate its end
-    gives, what ``get_body`` answers), then with that body given from the first sample (``set_body``,
-    PROTOCOL.md §4.2), and reads the second: a returning wearer whose client kept their body (the same clip
-    standing in for their earlier session).
+    ``returning`` True serves each sequence after learning the wearer's body from an earlier session (the
+    estimate the end of another sequence of the same body gives, or of the same sequence where the split has no
+    other: :func:`earlier_sessions`; what ``get_body`` answers), given from the first sample (``set_body``,
+    PROTOCOL.md §4.2): a returning wearer whose client kept their body.
     ``runtime`` {label: {option: bool}} serves a label with some of those eleven (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
     ``warm_reseat``, ``send_frames``, ``truth_body``, ``returning``) set otherwise, or with the network pipeline's
@@ -350,6 +350,7 @@ def evaluate(
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
         returns = options.pop("returning", returning)
         pipeline = pipeline_for(model, **options)
+        earlier = earlier_sessions(seqs) if returns else []
         errors = []
         for i, seq in enumerate(seqs):
             if known_body:
@@ -357,7 +358,7 @@ def evaluate(
             if calibrate:
                 calibrate_like_a_user(pipeline, seq, rigs[i])
             if returns:
-                learn_the_wearer(pipeline, seq, frames)
+                learn_the_wearer(pipeline, seqs[earlier[i]], frames)
             errors.append(sequence_errors(*replay_sequence(pipeline, seq, send_frames=frames), seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
@@ -390,10 +391,25 @@ def evaluate(
     return results
 
 
+def earlier_sessions(seqs: list[dict[str, Any]]) -> list[int]:
+    """For each sequence, the index of the one that stands in for its wearer's earlier session: the next
+    sequence (cyclically) of the same body (equal bone scales: a synthetic set draws its bodies from a bank, so
+    several sequences share one, each with its own motion and rig), or itself where no other has its body."""
+    keys = [np.asarray(s["bone_scale"], dtype=np.float64).round(6).tobytes() for s in seqs]
+    members: dict[bytes, list[int]] = {}
+    for i, key in enumerate(keys):
+        members.setdefault(key, []).append(i)
+    out = []
+    for i, key in enumerate(keys):
+        same = members[key]
+        out.append(same[(same.index(i) + 1) % len(same)])
+    return out
+
+
 def learn_the_wearer(pipeline: Any, seq: dict[str, Any], send_frames: bool) -> None:
-    """A returning wearer (``evaluate``'s ``returning``): the sequence served once with the body estimated, and
-    the body it ends with given to the pipeline, as a client that kept it sends ``set_body`` (PROTOCOL.md
-    §4.2)."""
+    """A returning wearer (``evaluate``'s ``returning``): the wearer's earlier session ``seq`` served with the
+    body estimated, and the body it ends with given to the pipeline, as a client that kept it sends
+    ``set_body`` (PROTOCOL.md §4.2)."""
     pipeline.give_body(None)
     replay_sequence(pipeline, seq, send_frames=send_frames)
     pipeline.give_body(pipeline.served_body()[0])

@@ -1305,8 +1305,8 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
 def test_eval_serves_a_returning_wearer_the_body_their_first_pass_ended_with(
     tiny_data, tiny_weights, tmp_path, monkeypatch
 ):
-    """--returning (or NAME@returning beside NAME) serves each sequence twice and reads the second: given from
-    its first sample the body the first pass's estimate ended with (what get_body would have answered)."""
+    """--returning (or NAME@returning beside NAME) serves each sequence given from its first sample the body an
+    earlier pass's estimate ended with (what get_body would have answered): every bone, every sample."""
     from egoposevr.model.runtime.body import bone_lengths_m as bone_lengths_m_of
 
     passes: list[tuple[bool, np.ndarray, np.ndarray]] = []  # (given, served bones (N, J-1), the scale after)
@@ -1335,6 +1335,13 @@ def test_eval_serves_a_returning_wearer_the_body_their_first_pass_ended_with(
     for (was_given, _, learnt), (_, lengths, _) in pairs:
         assert not was_given  # each given pass follows a pass that learnt the body
         assert np.abs(lengths - bone_lengths_m_of(learnt)).max() < 1e-4  # every bone, from the first sample
+
+
+def test_a_returning_wearers_earlier_session_is_another_sequence_of_the_same_body():
+    from egoposevr.model.training.evaluate import earlier_sessions
+
+    bodies = [np.full(22, x) for x in (1.0, 1.1, 1.0, 0.9, 1.0)]
+    assert earlier_sessions([{"bone_scale": b} for b in bodies]) == [2, 1, 4, 3, 0]
 
 
 def test_eval_tells_a_difference_between_two_model_files_from_the_spread_between_people(
