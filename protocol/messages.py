@@ -359,8 +359,8 @@ class Calibration(Message):
 class Body(Message):
     """The wearer's body as the session knows it, sent to every client of the session after ``get_body`` and
     ``set_body``: ``bone_lengths_m`` (joints 1..21, each from its parent, m); ``given`` whether a client gave it
-    (``set_body``) or the server estimates it; ``measured`` whether the camera has measured any of the wearer's
-    bones (an estimate worth keeping for the wearer's next session)."""
+    (``set_body``) or the server estimates it; ``measured`` whether the camera has measured some of the wearer's
+    bones and they have stood (or calibrated): a body worth keeping for their next session."""
 
     TYPE: ClassVar[str] = "body"
     type: Literal["body"] = "body"

@@ -342,6 +342,18 @@ class BodyCalibrator:
             return 1.0
         return height_scale(head_m)
 
+    @property
+    def stood(self) -> bool:
+        """Whether the height is a standing wearer's: a calibration's, or a highest head within SCALE_RANGE
+        that the measured shins do not call seated (:meth:`_height_scale_at`). A body sized while the wearer
+        only sat has its height from the legs or the mean body's."""
+        if self.height_locked:
+            return True
+        head_scale = max(self.highest_head_m, 0.0) / STANDING_HEAD_HEIGHT_M
+        shins = [self.measured[j] for j in SEATED_BONES if j in self.measured]
+        seated = bool(shins) and float(np.mean(shins)) > SEATED_RATIO * head_scale
+        return head_scale >= SCALE_RANGE[0] and not seated
+
     def calibrate(self, head_height_m: float | None, arm_scale: float | None) -> None:
         """A calibration's standing head-joint height and arm scale (runtime/calibration.py) replace the
         running estimates; None, None goes back to estimating (from the height reached so far)."""
@@ -464,9 +476,12 @@ class GivenBody:
 
     def served_body(self) -> tuple[np.ndarray, bool]:
         """The wearer's bone scale (J,) as the session knows it now (the one given, or the running estimate,
-        which the served skeleton follows), and whether the camera has measured any of the wearer's bones."""
+        which the served skeleton follows), and whether it is worth keeping for their next session: the camera
+        has measured some of their bones and they have stood (or calibrated) this session
+        (:attr:`BodyCalibrator.stood`). A body learnt while the wearer only sat, given to them standing, made
+        their feet skate six times as fast (MODEL_CARD.md, "A known wearer's body from the first sample")."""
         scale = self.bone_scale if self.fixed_body else self._estimated_scale()
-        return np.array(scale, dtype=np.float64), bool(self.body.measured)
+        return np.array(scale, dtype=np.float64), bool(self.body.measured) and self.body.stood
 
     def _body_changed(self) -> None:
         raise NotImplementedError

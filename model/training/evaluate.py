@@ -409,10 +409,12 @@ def earlier_sessions(seqs: list[dict[str, Any]]) -> list[int]:
 def learn_the_wearer(pipeline: Any, seq: dict[str, Any], send_frames: bool) -> None:
     """A returning wearer (``evaluate``'s ``returning``): the wearer's earlier session ``seq`` served with the
     body estimated, and the body it ends with given to the pipeline, as a client that kept it sends
-    ``set_body`` (PROTOCOL.md §4.2)."""
+    ``set_body`` (PROTOCOL.md §4.2); none where ``body.measured`` says it is not worth keeping (the wearer only
+    sat, or the camera measured nothing), and the body is estimated as usual."""
     pipeline.give_body(None)
     replay_sequence(pipeline, seq, send_frames=send_frames)
-    pipeline.give_body(pipeline.served_body()[0])
+    scale, worth_keeping = pipeline.served_body()
+    pipeline.give_body(scale if worth_keeping else None)  # a client keeps only a body worth keeping
 
 
 def _add_intervals(

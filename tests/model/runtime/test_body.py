@@ -428,3 +428,20 @@ def test_a_given_body_is_served_from_the_next_sample_kept_across_a_reset_and_tak
     for i in range(3, 200):  # the estimate from a tall headset: the skeleton grows back, a little per sample
         lengths = served_lengths(i * 11_111)
     assert lengths[3] > bone_lengths_m(small)[3] * 1.2
+
+
+def test_a_body_is_worth_keeping_once_the_wearer_has_stood():
+    """BodyCalibrator.stood: a standing head, or a calibration, gives a standing height; a head that only sat
+    (below SCALE_RANGE, or with shins the camera measures far longer than its height says) does not."""
+    seated = BodyCalibrator()
+    seated.push(head_at(1.1), ALL)
+    assert not seated.stood
+    tall_sitter = BodyCalibrator()
+    tall_sitter.push(head_at(0.85 * STANDING_HEAD_HEIGHT_M), ALL)
+    tall_sitter.measured = {7: 1.15, 8: 1.15}  # shins 1.15 x the mean body's under a head of 0.85
+    assert not tall_sitter.stood
+    standing = BodyCalibrator()
+    standing.push(head_at(STANDING_HEAD_HEIGHT_M), ALL)
+    assert standing.stood
+    seated.calibrate(STANDING_HEAD_HEIGHT_M, None)
+    assert seated.stood
