@@ -22,7 +22,7 @@ from websockets.protocol import State
 from websockets.sync.client import ClientConnection, connect
 from websockets.uri import parse_uri
 
-from egoposevr.protocol import Hello, Message, decode, encode
+from egoposevr.protocol import Hello, Hmd, Message, decode, encode
 from egoposevr.protocol.examples import example_messages
 from egoposevr.recordings.egrec import KIND_CLIENT, read_records
 from egoposevr.server.app import Server
@@ -220,6 +220,16 @@ def replay_until(
 
 
 # ------------------------------------------------------------------------------------------ raw and odd clients
+def hmd_messages(t_us: Any, poses: Any, valid: Any, first_seq: int = 0) -> list[Hmd]:
+    """``hmd`` messages for samples at t_us (N,) with device poses (N, 3, 7) and valid (N, 3), numbered from
+    ``first_seq``."""
+    return [
+        Hmd(seq=first_seq + k, t_us=int(t), head=p[0].tolist(), left=p[1].tolist(), right=p[2].tolist(),
+            valid=[bool(x) for x in v])
+        for k, (t, p, v) in enumerate(zip(t_us, poses, valid, strict=True))
+    ]  # fmt: skip
+
+
 def address(url: str) -> tuple[str, int]:
     """(host, port) of a ws:// URL."""
     parts = urllib.parse.urlsplit(url)

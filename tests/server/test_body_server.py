@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from loopback import Client, pack
+from loopback import Client, hmd_messages, pack
 from syntheticusers import User, holding
 
 from egoposevr.model.runtime.body import bone_lengths_m
 from egoposevr.model.skeleton import PARENTS
-from egoposevr.protocol import GetBody, Hmd, SelectModel, SetBody
+from egoposevr.protocol import GetBody, SelectModel, SetBody
 
 USER = User(height_scale=1.05, arm_scale=1.0, head_tilt_deg=0.0, grip_pitch_deg=(0.0, 0.0))
 KNOWN = bone_lengths_m(np.full(22, 0.9))  # a smaller wearer than the headset's height says
@@ -24,12 +24,9 @@ def _bodies(client: Client) -> list:
 def _served_lengths(headset: Client, first_seq: int, count: int = 15) -> np.ndarray:
     """Stream the user standing still for ``count`` samples -> the bone lengths (21,) of the last pose, m."""
     t_us, poses, valid = holding(USER, seconds=count / 90.0 + 0.05)
-    for k in range(count):
-        p = poses[k]
-        headset.send(
-            Hmd(seq=first_seq + k, t_us=int(t_us[k]) + first_seq * 11_111, head=p[0].tolist(), left=p[1].tolist(),
-                right=p[2].tolist(), valid=[bool(x) for x in valid[k]])
-        )  # fmt: skip
+    t_us = t_us[:count] + first_seq * 11_111
+    for msg in hmd_messages(t_us, poses[:count], valid[:count], first_seq=first_seq):
+        headset.send(msg)
     last = first_seq + count - 1
     headset.wait_for(lambda: any(m.seq == last for m in headset.poses()), timeout=30)
     joints = np.asarray(next(m for m in headset.poses() if m.seq == last).joints).reshape(22, 3)

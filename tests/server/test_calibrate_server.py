@@ -7,20 +7,12 @@ import time
 
 import numpy as np
 import pytest
-from loopback import Client, pack
+from loopback import Client, hmd_messages, pack
 from syntheticusers import User, device_poses, holding, posed_joints
 
 from egoposevr.protocol import Calibrate, Hmd, SelectModel
 
 USER = User(height_scale=0.94, arm_scale=1.1, head_tilt_deg=10.0, grip_pitch_deg=(30.0, -30.0))
-
-
-def _hmd_messages(t_us, poses, valid, first_seq: int = 0) -> list[Hmd]:
-    return [
-        Hmd(seq=first_seq + k, t_us=int(t), head=p[0].tolist(), left=p[1].tolist(), right=p[2].tolist(),
-            valid=[bool(x) for x in v])
-        for k, (t, p, v) in enumerate(zip(t_us, poses, valid, strict=True))
-    ]  # fmt: skip
 
 
 def _send_paced(client: Client, messages: list[Hmd]) -> None:
@@ -40,7 +32,7 @@ def _served_wrist_error_m(headset: Client, pose_yaw_deg: float, first_seq: int) 
     joints, glob = posed_joints(USER, pose_yaw_deg, -50.0)
     still = np.repeat(device_poses(USER, joints, glob)[None], 30, axis=0)
     t_us = 100_000_000 + first_seq * 11_111 + np.arange(30) * 11_111
-    _send_paced(headset, _hmd_messages(t_us, still, np.ones((30, 3), bool), first_seq=first_seq))
+    _send_paced(headset, hmd_messages(t_us, still, np.ones((30, 3), bool), first_seq=first_seq))
     last_seq = first_seq + 29
     headset.wait_for(lambda: any(p.seq == last_seq for p in headset.poses()), timeout=30)
     served = np.asarray(next(p for p in headset.poses() if p.seq == last_seq).joints).reshape(22, 3)
@@ -50,7 +42,7 @@ def _served_wrist_error_m(headset: Client, pose_yaw_deg: float, first_seq: int) 
 def _calibrate_tpose(headset: Client, t0_us: int) -> None:
     headset.send(Calibrate(pose="tpose", seconds=1.0))
     t_us, poses, valid = holding(USER, seconds=1.5)
-    _send_paced(headset, _hmd_messages(t_us + t0_us, poses, valid, first_seq=t0_us // 11_111))
+    _send_paced(headset, hmd_messages(t_us + t0_us, poses, valid, first_seq=t0_us // 11_111))
     headset.wait_for(lambda: any(m.status == "done" for m in _statuses(headset)), timeout=30)
 
 
@@ -64,7 +56,7 @@ def test_a_tpose_calibration_is_announced_to_every_client_and_puts_the_wrists_in
         headset.collect()
         headset.send(Calibrate(pose="tpose", seconds=1.0))
         t_us, poses, valid = holding(USER, seconds=1.5)
-        _send_paced(headset, _hmd_messages(t_us, poses, valid))
+        _send_paced(headset, hmd_messages(t_us, poses, valid))
         for client in (headset, viewer):
             client.wait_for(lambda c=client: any(m.status == "done" for m in _statuses(c)), timeout=30)
             assert [m.status for m in _statuses(client)] == ["started", "done"]
@@ -81,7 +73,7 @@ def test_a_tpose_calibration_is_announced_to_every_client_and_puts_the_wrists_in
         headset.send(Calibrate(pose="tpose", seconds=1.0))
         t_us, poses, valid = holding(USER, seconds=1.5)
         poses[:, 1, :3] += np.linspace(0.0, 0.4, len(poses))[:, None]
-        _send_paced(headset, _hmd_messages(t_us + 200_000_000, poses, valid, first_seq=20000))
+        _send_paced(headset, hmd_messages(t_us + 200_000_000, poses, valid, first_seq=20000))
         headset.wait_for(lambda: _statuses(headset)[-1].status == "failed", timeout=30)
         assert "left controller moved" in _statuses(headset)[-1].message
         headset.send(Calibrate(clear=True))  # answered without any headset sample

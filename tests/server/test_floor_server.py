@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from loopback import Client
+from loopback import Client, hmd_messages
 
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M
 from egoposevr.model.synth.headset import simulate_headset
 from egoposevr.model.synth.procedural import generate
 from egoposevr.model.training.plausibility import FEET
-from egoposevr.protocol import Hmd
 
 STANDING_SKATING_BAR_M_S = 0.02  # issue 25: a standing user's served feet skate at most 2 cm/s
 
@@ -35,9 +34,8 @@ def served_feet(server, session: str, drop_m: float) -> np.ndarray:
     with Client(server.url, session) as headset:
         headset.hello("input", session, model="egoposevr")
         headset.collect()
-        for k, (t_us, p, valid) in enumerate(zip(track.t_us, poses, track.valid, strict=True)):
-            headset.send(Hmd(seq=k, t_us=int(t_us), head=p[0].tolist(), left=p[1].tolist(),
-                             right=p[2].tolist(), valid=[bool(v) for v in valid]))  # fmt: skip
+        for k, msg in enumerate(hmd_messages(track.t_us, poses, track.valid)):
+            headset.send(msg)
             headset.wait_for(lambda k=k: answered(headset, k), timeout=10, poll_s=0.001)
         last = len(track.t_us) - 1
         late = [m for m in headset.poses() if m.seq >= last - 180]
