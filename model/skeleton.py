@@ -107,6 +107,19 @@ def bone_lengths(offsets: np.ndarray) -> np.ndarray:
     return np.linalg.norm(offsets, axis=-1)
 
 
+def joint_bone_lengths(joints: np.ndarray) -> np.ndarray:
+    """(..., J, 3) joint positions -> (..., J - 1) lengths of bones 1..21 (each joint from its parent)."""
+    return np.linalg.norm(joints[..., 1:, :] - joints[..., PARENTS[1:], :], axis=-1)
+
+
+def bone_scale_of(lengths_m: np.ndarray) -> np.ndarray:
+    """(..., J - 1) lengths of bones 1..21, m -> (..., J) bone scale against the mean body's (pelvis: 1)."""
+    lengths_m = np.asarray(lengths_m, dtype=np.float64)
+    scale = np.ones((*lengths_m.shape[:-1], NUM_JOINTS))
+    scale[..., 1:] = lengths_m / bone_lengths(rest_offsets())[1:]
+    return scale
+
+
 def forward_kinematics(
     local_rot: np.ndarray, root_pos_m: np.ndarray, offsets_m: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

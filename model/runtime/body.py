@@ -47,7 +47,16 @@ from typing import Any, Final
 import numpy as np
 
 from ..rig import STILLNESS_OFFSET_M
-from ..skeleton import FOOT_JOINT_HEIGHT_M, HEAD, NUM_JOINTS, PARENTS, REST_JOINTS_M, rest_offsets
+from ..skeleton import (
+    FOOT_JOINT_HEIGHT_M,
+    HEAD,
+    NUM_JOINTS,
+    PARENTS,
+    REST_JOINTS_M,
+    bone_lengths,
+    bone_scale_of,
+    rest_offsets,
+)
 
 # The head joint of the mean SMPL body standing straight, above the floor (left foot joint at 3.5 cm).
 STANDING_HEAD_HEIGHT_M: Final = float(REST_JOINTS_M[HEAD, 1] - REST_JOINTS_M[10, 1] + FOOT_JOINT_HEIGHT_M)
@@ -94,7 +103,7 @@ REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -
 # The head offset's height (rig.HEAD_OFFSET_M[1]) of the head joints a regressor file without one was fitted
 # on: every model's until 2026-11-27, which rig keeps as the stillness gates' point.
 LEGACY_REGRESSOR_HEAD_OFFSET_Y_M: Final = STILLNESS_OFFSET_M[1]
-_REST_BONE_M: Final = np.linalg.norm(rest_offsets(), axis=-1)
+_REST_BONE_M: Final = bone_lengths(rest_offsets())
 _SIGHTED: Final = np.array(SIGHTED_BONES)
 _SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
 _HELD_LEGS: Final = np.array(HELD_LEG_BONES)
@@ -430,7 +439,7 @@ GIVEN_SCALE_RANGE: Final = (0.5, 2.0)
 
 def bone_lengths_m(bone_scale: np.ndarray) -> np.ndarray:
     """The skeleton's bone lengths (J - 1,) m, joints 1..21 (each from its parent), for a bone scale (J,)."""
-    return _REST_BONE_M[1:] * np.asarray(bone_scale, dtype=np.float64)[1:]
+    return bone_lengths(rest_offsets(bone_scale))[1:]
 
 
 def scale_of_lengths(lengths_m: np.ndarray) -> np.ndarray:
@@ -439,8 +448,7 @@ def scale_of_lengths(lengths_m: np.ndarray) -> np.ndarray:
     lengths_m = np.asarray(lengths_m, dtype=np.float64)
     if lengths_m.shape != (NUM_JOINTS - 1,) or not np.isfinite(lengths_m).all():
         raise ValueError(f"bone lengths must be {NUM_JOINTS - 1} finite numbers, got shape {lengths_m.shape}")
-    scale = np.ones(NUM_JOINTS)
-    scale[1:] = lengths_m / _REST_BONE_M[1:]
+    scale = bone_scale_of(lengths_m)
     low, high = GIVEN_SCALE_RANGE
     for j in range(1, NUM_JOINTS):
         if not low <= scale[j] <= high:

@@ -28,7 +28,7 @@ from typing import Final
 import numpy as np
 from numba import njit, prange
 
-from ..skeleton import NUM_JOINTS, PARENTS, REST_JOINTS_M, rest_offsets
+from ..skeleton import NUM_JOINTS, PARENTS, REST_JOINTS_M, bone_scale_of, joint_bone_lengths, rest_offsets
 from .archive import write_npz
 from .bvh import best_rotations, smallest_rotations
 from .motion import ANKLE_JOINT_HEIGHT_M, Motion, ground
@@ -153,9 +153,7 @@ class BodyBank:
 
 def body_bone_scale(rest_joints: np.ndarray) -> np.ndarray:
     """(J,) bone-length scales of a body whose SMPL-22 joints are rest_joints (J, 3)."""
-    smpl = np.linalg.norm(rest_offsets()[1:], axis=-1)
-    have = np.linalg.norm(rest_joints[1:] - rest_joints[PARENTS[1:]], axis=-1)
-    return np.concatenate([[1.0], have / smpl])
+    return bone_scale_of(joint_bone_lengths(rest_joints))
 
 
 # Which children set each joint's rest alignment: one child -> the smallest rotation onto SMPL's bone, several

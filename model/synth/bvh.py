@@ -25,7 +25,16 @@ from typing import TYPE_CHECKING, Final
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, REST_JOINTS_M, global_to_local, rest_offsets
+from ..skeleton import (
+    JOINT_NAMES,
+    NUM_JOINTS,
+    PARENTS,
+    REST_JOINTS_M,
+    bone_scale_of,
+    global_to_local,
+    joint_bone_lengths,
+    rest_offsets,
+)
 from .motion import Motion, fix_feet, ground, resample
 
 if TYPE_CHECKING:
@@ -446,10 +455,7 @@ def retarget(
     fit_weight:   (J,) each joint's weight in its parent's multi-child fit; None = 1.
     Returns (local_rot (F, J, 3, 3), root_pos_m (F, 3), bone_scale (J,)).
     """
-    rest = rest_offsets()
-    bone_len = np.linalg.norm(target_pos_m[:, 1:] - target_pos_m[:, PARENTS[1:]], axis=-1)
-    bone_scale = np.ones(NUM_JOINTS)
-    bone_scale[1:] = np.median(bone_len, axis=0) / np.linalg.norm(rest[1:], axis=-1)
+    bone_scale = bone_scale_of(np.median(joint_bone_lengths(target_pos_m), axis=0))
     offsets = rest_offsets(bone_scale)
     children = [np.flatnonzero(j == PARENTS) for j in range(NUM_JOINTS)]
     weight = np.ones(NUM_JOINTS) if fit_weight is None else np.asarray(fit_weight, dtype=np.float64)

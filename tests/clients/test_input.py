@@ -135,7 +135,7 @@ async def test_calibrate_returns_the_servers_verdict_while_the_rig_streams():
 async def test_a_body_read_at_the_end_of_one_session_is_given_back_at_the_next():
     """PROTOCOL.md §4.2 from the client: get_body after a stream, set_body with it in a new session, whose poses
     then have those bone lengths from the first sample; None gives the estimate back."""
-    from egoposevr.model.skeleton import PARENTS
+    from egoposevr.model.skeleton import joint_bone_lengths
 
     t_us, poses, valid = holding(User(height_scale=1.1), seconds=0.5)
 
@@ -146,7 +146,7 @@ async def test_a_body_read_at_the_end_of_one_session_is_given_back_at_the_next()
             await headset.send_hmd(int(t), p[0], p[1], p[2], v)
         first = await asyncio.wait_for(anext(poses_seen), 20)
         joints = np.asarray(first.joints).reshape(22, 3)
-        return np.linalg.norm(joints[1:] - joints[PARENTS[1:]], axis=-1)
+        return joint_bone_lengths(joints)
 
     with running_server() as server:
         async with HeadsetClient(server.url, "wearer-1", model="procedural") as headset:

@@ -10,7 +10,7 @@ from loopback import Client, hmd_messages, pack
 from syntheticusers import User, holding
 
 from egoposevr.model.runtime.body import bone_lengths_m
-from egoposevr.model.skeleton import PARENTS
+from egoposevr.model.skeleton import joint_bone_lengths
 from egoposevr.protocol import GetBody, SelectModel, SetBody
 
 USER = User(height_scale=1.05, arm_scale=1.0, head_tilt_deg=0.0, grip_pitch_deg=(0.0, 0.0))
@@ -30,7 +30,7 @@ def _served_lengths(headset: Client, first_seq: int, count: int = 15) -> np.ndar
     last = first_seq + count - 1
     headset.wait_for(lambda: any(m.seq == last for m in headset.poses()), timeout=30)
     joints = np.asarray(next(m for m in headset.poses() if m.seq == last).joints).reshape(22, 3)
-    return np.linalg.norm(joints[1:] - joints[PARENTS[1:]], axis=-1)
+    return joint_bone_lengths(joints)
 
 
 @pytest.mark.protocol("known-body")

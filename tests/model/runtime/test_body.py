@@ -401,7 +401,7 @@ def test_a_given_body_is_served_from_the_next_sample_kept_across_a_reset_and_tak
     from egoposevr.model.runtime.body import bone_lengths_m
     from egoposevr.model.runtime.loading import LoadedModel
     from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
-    from egoposevr.model.skeleton import PARENTS
+    from egoposevr.model.skeleton import joint_bone_lengths
     from egoposevr.model.weights import WEIGHTS_DIR
 
     model = (
@@ -413,7 +413,7 @@ def test_a_given_body_is_served_from_the_next_sample_kept_across_a_reset_and_tak
 
     def served_lengths(t_us: int) -> np.ndarray:
         joints = pipeline.push_hmd(t_us, poses, ALL).joints
-        return np.linalg.norm(joints[1:] - joints[PARENTS[1:]], axis=-1)
+        return joint_bone_lengths(joints)
 
     small = np.full(22, 0.9)
     assert pipeline.given_body is None

@@ -15,7 +15,7 @@ from egoposevr.model.runtime.kpo import KpoWeights
 from egoposevr.model.runtime.loading import LoadedModel, ModelError
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.model.runtime.procedural import ProceduralModel, pipeline_for
-from egoposevr.model.skeleton import PARENTS, forward_kinematics, rest_offsets
+from egoposevr.model.skeleton import forward_kinematics, joint_bone_lengths, rest_offsets
 from egoposevr.model.training import evaluate as evaluate_module
 from egoposevr.model.training.augment import MIRROR_JOINTS, mirror_sequence
 from egoposevr.model.training.dataset import (
@@ -1278,7 +1278,7 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
 
     def recording_replay(pipeline, seq, *args, **kwargs):
         joints, rots = replay(pipeline, seq, *args, **kwargs)
-        lengths = np.linalg.norm(joints[:, 1:] - joints[:, PARENTS[1:]], axis=-1)  # (N, J-1) served bones
+        lengths = joint_bone_lengths(joints)  # (N, J-1) served bones
         true = np.linalg.norm(rest_offsets(seq["bone_scale"])[1:], axis=-1)
         served_bones.setdefault("truth" if pipeline.fixed_body else "estimate", []).append(
             np.abs(lengths - true).max(axis=1)
@@ -1314,7 +1314,7 @@ def test_eval_serves_a_returning_wearer_the_body_their_first_pass_ended_with(
 
     def recording_replay(pipeline, seq, *args, **kwargs):
         joints, rots = replay(pipeline, seq, *args, **kwargs)
-        lengths = np.linalg.norm(joints[:, 1:] - joints[:, PARENTS[1:]], axis=-1)
+        lengths = joint_bone_lengths(joints)
         passes.append((pipeline.fixed_body, lengths, pipeline.served_body()[0]))
         return joints, rots
 
