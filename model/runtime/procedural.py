@@ -189,8 +189,7 @@ class ProceduralPipeline(GivenBody):
         """As :meth:`Pipeline.calibrate <egoposevr.model.runtime.pipeline.Pipeline.calibrate>`."""
         self.calibration = calibration
         self.body.calibrate(*body_measurements(calibration, self.model.info.rig_offsets_m[0]))
-        if not self.fixed_body:
-            self._set_offsets(rest_offsets(self.body.bone_scale))
+        self._body_changed()
 
     def _body_changed(self) -> None:
         """As :meth:`Pipeline._body_changed <egoposevr.model.runtime.pipeline.Pipeline._body_changed>`."""
