@@ -77,6 +77,12 @@ def test_golden_fixtures_round_trip_byte_for_byte(program: Path) -> None:
     assert run(program, "golden", str(GOLDEN), str(OPENXR)).startswith("ok: ")
 
 
+def test_body_keeper_asks_keeps_forgets_and_stores(program: Path) -> None:
+    """BodyKeeper (PROTOCOL.md §4.2): asks while nothing is kept, keeps only a measured estimate, forgets a body the
+    server refuses, and its text store reads back exactly or, damaged, as no body."""
+    assert run(program, "keeper").startswith("ok: ")
+
+
 def _unity_device(pose: list[float], flags: int) -> dict[str, object]:
     """What Unity's XR input reports for an OpenXR location: the pose mirrored, and InputTrackingState bits."""
     state = (1 if flags & POSITION_VALID else 0) | (2 if flags & ORIENTATION_VALID else 0)

@@ -3,11 +3,13 @@
 //
 //   golden GOLDEN_DIR OPENXR_DIR    every fixture decodes and re-encodes to the same bytes (generic and typed);
 //                                   the client messages built from their fields give the fixtures' bytes
+//   keeper                          BodyKeeper: what it asks, keeps, forgets, stores and reads back
 //   convert IN.msgpack OUT.msgpack  frame conversions and SMPL retargeting on inputs from Python, results back
 //   live URL SESSION RGB DEPTH      a session against a real server: hello, hmd at 90 Hz, rgbd at 30 Hz, poses
-//                                   back, a render client seeing them, select_model, a malformed message
+//                                   back, a render client seeing them, select_model, a malformed message, a kept
+//                                   body given after the welcome, one out of range refused and forgotten
 //   reconnect URL SESSION           the server goes away (after "up" is printed, until the test restarts it once
-//                                   "down" is printed): the client comes back by itself, with its model
+//                                   "down" is printed): the client comes back by itself, with its model and body
 //
 // Exit status 0: every check passed; otherwise the first failed check is printed.
 using System;
@@ -30,6 +32,7 @@ static class CoreTests
             switch (args[0])
             {
                 case "golden": Golden(args[1], args[2]); break;
+                case "keeper": Keeper(); break;
                 case "convert": Convert(args[1], args[2]); break;
                 case "live": Live(args[1], args[2], args[3], args[4]); break;
                 case "reconnect": Reconnect(args[1], args[2]); break;
@@ -77,7 +80,7 @@ static class CoreTests
         foreach (var built in ClientExamples(golden))
             SameBytes(File.ReadAllBytes(Path.Combine(goldenDir, built.Key + ".msgpack")), built.Value.Encode(),
                 built.Key + " built from fields");
-        foreach (string serverType in new[] { "welcome", "pose", "models", "error", "session", "calibration", "pong" })
+        foreach (string serverType in new[] { "welcome", "pose", "models", "error", "session", "calibration", "body", "pong" })
             Check(Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, serverType + ".msgpack"))) != null,
                 serverType + " decodes as a server message");
         Check(Protocol.DecodeFromServer(MsgPack.Encode(new MsgMap().Add("type", "from_the_future").Add("v", 1L))) == null,
@@ -86,6 +89,10 @@ static class CoreTests
         Check(pose.Seq == 42 && pose.BodyPose[9] == 0.5f && pose.GlobalOrient[1] == 3.125f, "pose fields");
         var error = (Error)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "error.msgpack")));
         Check(error.Code == "wrong_length" && !error.Fatal && error.RefType == "hmd" && error.RefSeq == 43, "error fields");
+        var body = (Body)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "body.msgpack")));
+        Check(body.BoneLengthsM.SequenceEqual(ExampleBoneLengths()) && body.Given && !body.Measured, "body fields");
+        SameBytes(MsgPack.Encode(new MsgMap().Add("type", "set_body").Add("v", 1L).Add("clear", true)),
+            new SetBody { Clear = true }.Encode(), "set_body clear leaves the lengths out");
         MustRefuse(new byte[] { 0x81, 0xa4 }, "truncated");
         MustRefuse(new byte[] { 0xd4, 0x01, 0x02 }, "an extension type");
         MustRefuse(new byte[] { 0x81, 0x01, 0x02 }, "a non-string key");
@@ -137,7 +144,73 @@ static class CoreTests
             { "list_models", new ListModels() },
             { "ping", new Ping { Nonce = 3, TUs = 1000900 } },
             { "calibrate", new Calibrate { Pose = "tpose", Seconds = 2f } },
+            { "get_body", new GetBody() },
+            { "set_body", new SetBody { BoneLengthsM = ExampleBoneLengths() } },
         };
+    }
+
+    /// <summary>protocol/examples.py's bone lengths: near the mean body's, in 1/16 m steps.</summary>
+    static float[] ExampleBoneLengths()
+    {
+        return new[]
+        {
+            0.125f, 0.125f, 0.125f, 0.375f, 0.375f, 0.125f, 0.4375f, 0.4375f, 0.0625f, 0.125f, 0.125f, 0.1875f,
+            0.125f, 0.125f, 0.125f, 0.125f, 0.125f, 0.25f, 0.25f, 0.25f, 0.25f,
+        };
+    }
+
+    // ------------------------------------------------------------------------------------------------ keeper
+    static void Keeper()
+    {
+        var lengths = ExampleBoneLengths();
+        lengths[3] = 0.3912345f; // a length with many digits survives the text store exactly
+        Check(BodyKeeper.Parse(BodyKeeper.Format(lengths)).SequenceEqual(lengths), "format and parse round trip");
+        foreach (string damaged in new[] { null, "", "0.1,0.2", BodyKeeper.Format(lengths) + ",0.1",
+                                           BodyKeeper.Format(lengths).Replace("0.125", "NaN"),
+                                           BodyKeeper.Format(lengths).Replace("0.25", "-0.25"),
+                                           BodyKeeper.Format(lengths).Replace("0.125", "x") })
+            Check(BodyKeeper.Parse(damaged) == null, "damaged text reads as no body: " + damaged);
+
+        var keeper = new BodyKeeper(null, 10.0);
+        Check(keeper.Poll(0.0) is GetBody, "nothing kept: ask at once");
+        Check(keeper.Poll(9.9) == null && keeper.Poll(10.0) is GetBody, "then every 10 s");
+        Check(!keeper.Take(new Body { BoneLengthsM = lengths, Given = false, Measured = false }) && keeper.Kept == null,
+            "an estimate the camera has not measured is not kept");
+        Check(!keeper.Take(new Body { BoneLengthsM = lengths, Given = true, Measured = true }) && keeper.Kept == null,
+            "a body some client gave is not kept as measured");
+        Check(keeper.Take(new Body { BoneLengthsM = lengths, Given = false, Measured = true }), "a measured body is kept");
+        Check(keeper.Kept.SequenceEqual(lengths) && keeper.Poll(100.0) == null, "kept: no more asking");
+        var other = (float[])lengths.Clone();
+        other[0] = 0.2f;
+        Check(!keeper.Take(new Body { BoneLengthsM = other, Given = false, Measured = true }) && keeper.Kept[0] == lengths[0],
+            "the first measured body stays kept");
+        Check(!keeper.Take(new Error { Code = "out_of_range", RefType = "calibrate" }), "another request's refusal");
+        Check(keeper.Take(new Error { Code = "out_of_range", RefType = "set_body" }) && keeper.Kept == null,
+            "a kept body the server refuses is forgotten");
+
+        keeper = new BodyKeeper(lengths, 10.0);
+        Check(keeper.Poll(0.0) == null, "a kept body: nothing to ask");
+        var clear = keeper.Forget();
+        Check(clear.Clear && clear.BoneLengthsM == null && keeper.Kept == null, "forget: set_body clear");
+        Check(keeper.Poll(0.5) is GetBody, "forgotten: ask again at once");
+        MustThrow(() => new BodyKeeper(new float[20]), "a kept body of 20 lengths");
+        MustThrow(() => new SetBody().Encode(), "set_body with neither lengths nor clear");
+        MustThrow(() => new SetBody { BoneLengthsM = lengths, Clear = true }.Encode(), "set_body with both");
+        MustThrow(() => new EgoPoseConnection(new ConnectionOptions { Body = new float[3] }), "a connection given 3 lengths");
+    }
+
+    static void MustThrow(Action action, string what)
+    {
+        checks++;
+        try
+        {
+            action();
+        }
+        catch (ArgumentException)
+        {
+            return;
+        }
+        throw new Exception("accepted " + what);
     }
 
     // ----------------------------------------------------------------------------------------------- convert
@@ -183,12 +256,15 @@ static class CoreTests
     // -------------------------------------------------------------------------------------------------- live
     static void Live(string url, string session, string rgbPath, string depthPath)
     {
-        var input = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Model = "egoposevr" });
+        var kept = ExampleBoneLengths(); // the wearer's body, kept from an earlier session
+        var input = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Model = "egoposevr", Body = kept });
         var render = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Role = "render" });
         input.Start();
         WaitFor(() => input.State == ConnectionState.Open, "the input client is welcomed");
         Check(input.Welcome.Session == session && input.Welcome.Role == "input" && input.Welcome.Model == "egoposevr",
             "welcome names the session, the role and the model");
+        var given = WaitForMessage<Body>(input, m => m.Given, "body answers the set_body sent after the welcome");
+        Check(MaxDifference(given.BoneLengthsM, kept) < 1e-6, "the session serves the kept body");
         render.Start();
         WaitFor(() => render.State == ConnectionState.Open, "the render client is welcomed");
         var joined = WaitForMessage<SessionStatus>(render, m => m.Event == "joined", "the render client's session message");
@@ -204,6 +280,7 @@ static class CoreTests
         Check(pose.GlobalOrient.Length == 3 && pose.BodyPose.Length == 63 && pose.Transl.Length == 3
               && pose.Joints.Length == 66, "pose shapes");
         Check(pose.Model == "egoposevr", "the session's model answers");
+        Check(MaxDifference(BoneLengths(pose.Joints), kept) < 2e-3, "the served skeleton has the kept body's bones");
         // A busy server answers the samples that come before it has read the session's first frame without
         // it (§frames: a sample never waits for a frame), so keep streaming, as a headset does, until one used it.
         int next = 90;
@@ -229,6 +306,7 @@ static class CoreTests
         Check(pose.Model == "hmd", "poses come from the new model");
 
         MalformedMessage(url, session);
+        RefusedBody(url, session + "-giant", kept);
         input.Send(new Ping { Nonce = 77 });
         WaitForMessage<Pong>(input, m => m.Nonce == 77, "the input client still answers pings");
         Check(input.Reconnects == 0 && input.DroppedSends == 0, "no reconnects and nothing dropped");
@@ -237,14 +315,49 @@ static class CoreTests
         Console.WriteLine("poses: input " + input.PosesReceived + ", render " + render.PosesReceived);
     }
 
+    /// <summary>A kept body the server refuses (a 1.5 m shin): out_of_range, and the connection stops giving it.</summary>
+    static void RefusedBody(string url, string session, float[] kept)
+    {
+        var giant = (float[])kept.Clone();
+        giant[4] = 1.5f;
+        var input = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Body = giant });
+        input.Start();
+        var error = WaitForMessage<Error>(input, m => m.RefType == "set_body", "the server refuses the body");
+        Check(error.Code == "out_of_range" && !error.Fatal, "out_of_range, not fatal");
+        WaitFor(() => input.BodyGivenOnConnect == null, "the refused body is no longer given");
+        input.Send(new GetBody());
+        Check(!WaitForMessage<Body>(input, m => true, "body answers get_body").Given, "the session estimates the body");
+        input.Dispose();
+    }
+
+    static float[] BoneLengths(float[] joints)
+    {
+        var lengths = new float[Body.BoneCount];
+        for (int j = 1; j <= lengths.Length; j++)
+        {
+            int p = SmplRetarget.Parents[j];
+            double dx = joints[3 * j] - joints[3 * p], dy = joints[3 * j + 1] - joints[3 * p + 1], dz = joints[3 * j + 2] - joints[3 * p + 2];
+            lengths[j - 1] = (float)Math.Sqrt(dx * dx + dy * dy + dz * dz);
+        }
+        return lengths;
+    }
+
+    static double MaxDifference(float[] a, float[] b)
+    {
+        return a.Zip(b, (x, y) => (double)Math.Abs(x - y)).Max();
+    }
+
     static void Reconnect(string url, string session)
     {
+        var kept = ExampleBoneLengths();
         var input = new EgoPoseConnection(new ConnectionOptions
         {
             Url = url, Session = session, MinBackoff = TimeSpan.FromMilliseconds(50), MaxBackoff = TimeSpan.FromMilliseconds(400),
+            Body = kept,
         });
         input.Start();
         WaitFor(() => input.State == ConnectionState.Open, "the input client is welcomed");
+        WaitForMessage<Body>(input, m => m.Given, "the kept body is given after the welcome");
         input.Send(new SelectModel { Model = "hmd" });
         WaitForMessage<Models>(input, m => m.Active == "hmd", "models answers select_model");
         StreamHeadset(input, new byte[0], new byte[0], 90, 0, 9);
@@ -256,6 +369,8 @@ static class CoreTests
         Console.WriteLine("down");
         WaitFor(() => input.State == ConnectionState.Open, "the client reconnects by itself");
         Check(input.Welcome.Model == "hmd", "the new session resumes the model");
+        var given = WaitForMessage<Body>(input, m => m.Given, "the kept body is given to the new server's session");
+        Check(MaxDifference(given.BoneLengthsM, kept) < 1e-6, "the same body");
         Check(input.Reconnects >= 1 && input.DroppedSends == 1, "one reconnect counted, the refused hmd counted");
         StreamHeadset(input, new byte[0], new byte[0], 90, 200, 9);
         WaitFor(() => input.TryTakePose(out pose) && pose.Seq >= 200, "poses after the reconnect");

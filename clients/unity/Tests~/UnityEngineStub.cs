@@ -75,6 +75,19 @@ namespace UnityEngine
         public static event Events.UnityAction onBeforeRender { add { } remove { } }
     }
 
+    public static class PlayerPrefs
+    {
+        public static string GetString(string key, string defaultValue) { return defaultValue; }
+        public static void SetString(string key, string value) { }
+        public static void DeleteKey(string key) { }
+        public static void Save() { }
+    }
+
+    public static class Time
+    {
+        public static float unscaledTime { get { return 0f; } }
+    }
+
     public static class SystemInfo
     {
         public static string deviceModel { get { return ""; } }

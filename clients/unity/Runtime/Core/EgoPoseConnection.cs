@@ -1,6 +1,7 @@
 // One persistent WebSocket to an EgoPose server (PROTOCOL.md §1, §4): hello/welcome, a receive loop and a send
-// loop off the caller's thread, reconnection with backoff that resumes the session, and hand-over to the main
-// thread (Unity's, or any other) through a latest-pose slot and a message queue.
+// loop off the caller's thread, reconnection with backoff that resumes the session (its model, and the wearer's
+// body when one is given), and hand-over to the main thread (Unity's, or any other) through a latest-pose slot
+// and a message queue.
 //
 //   var connection = new EgoPoseConnection(new ConnectionOptions { Url = "ws://host:8765/ws", Session = "room-1" });
 //   connection.Start();
@@ -43,6 +44,7 @@ namespace EgoPose.Protocol
         public TimeSpan HandshakeTimeout = TimeSpan.FromSeconds(10);
         public int MaxMessageBytes = 8 * 1024 * 1024; // the server's default limit (§1)
         public int MaxPendingSends = 64; // a stalled network: beyond this, Send refuses hmd/rgbd (and counts them)
+        public float[] Body; // optional: the wearer's kept body (21 bone lengths, m), given after every welcome (§4.2)
     }
 
     public sealed class EgoPoseConnection : IDisposable
@@ -61,11 +63,13 @@ namespace EgoPose.Protocol
         long latestTaken = -1;
         int state = (int)ConnectionState.Idle;
         string activeModel;
+        float[] givenBody;
 
         public EgoPoseConnection(ConnectionOptions options)
         {
             this.options = options;
             activeModel = options.Model;
+            if (options.Body != null) GiveBodyOnConnect(options.Body);
         }
 
         public ConnectionState State { get { return (ConnectionState)Volatile.Read(ref state); } }
@@ -84,6 +88,22 @@ namespace EgoPose.Protocol
 
         /// <summary>The session's active model as the server last said (kept across reconnects).</summary>
         public string ActiveModel { get { return Volatile.Read(ref activeModel); } }
+
+        /// <summary>
+        /// The body given (<c>set_body</c>) as the first message after every welcome, before anything queued, so
+        /// that every sample of a connection is served with it (§4.2); null: none. Takes effect at the next
+        /// connection: send a <see cref="SetBody"/> as well to change the current session's. Forgotten when the
+        /// server refuses it (<c>out_of_range</c>).
+        /// </summary>
+        public void GiveBodyOnConnect(float[] boneLengthsM)
+        {
+            if (boneLengthsM != null && boneLengthsM.Length != Body.BoneCount)
+                throw new ArgumentException("a body holds " + Body.BoneCount + " bone lengths");
+            Volatile.Write(ref givenBody, boneLengthsM == null ? null : (float[])boneLengthsM.Clone());
+        }
+
+        /// <summary>The body given after every welcome (<see cref="GiveBodyOnConnect"/>), or null.</summary>
+        public float[] BodyGivenOnConnect { get { return Volatile.Read(ref givenBody); } }
 
         /// <summary>Microseconds on this process's monotonic clock, for <c>t_us</c>.</summary>
         public static long NowUs()
@@ -136,7 +156,7 @@ namespace EgoPose.Protocol
             return true;
         }
 
-        /// <summary>Every other server message (welcome, models, error, session, calibration, pong), in order.</summary>
+        /// <summary>Every other server message (welcome, models, error, session, calibration, body, pong), in order.</summary>
         public bool TryDequeue(out Message message) { return inbox.TryDequeue(out message); }
 
         public async Task StopAsync()
@@ -219,7 +239,13 @@ namespace EgoPose.Protocol
                     var message = await ReceiveAsync(socket, timeout.Token).ConfigureAwait(false);
                     if (message == null) return false; // closed
                     Dispatch(message);
-                    if (message is Welcome) return true;
+                    if (message is Welcome)
+                    {
+                        float[] body = BodyGivenOnConnect;
+                        if (body != null)
+                            await SendRawAsync(socket, new SetBody { BoneLengthsM = body }.Encode(), timeout.Token).ConfigureAwait(false);
+                        return true;
+                    }
                     var error = message as Error;
                     if (error != null && error.Fatal) return false;
                 }
@@ -348,6 +374,8 @@ namespace EgoPose.Protocol
             var models = message as Models;
             if (models != null) Volatile.Write(ref activeModel, models.Active);
             var error = message as Error;
+            if (error != null && error.RefType == "set_body" && error.Code == "out_of_range")
+                Volatile.Write(ref givenBody, null); // would be refused again at every reconnect
             if (error != null && error.Fatal)
             {
                 LastError = error.Code + ": " + error.Text;

@@ -1,7 +1,7 @@
 // The EgoPose protocol v1 messages (PROTOCOL.md §5) as typed classes, encoded and decoded with MsgPack.cs.
 //
-// Client -> server: Hello, Hmd, Rgbd, SelectModel, Calibrate, ListModels, Ping.
-// Server -> client: Welcome, Pose, Models, Error, SessionStatus, Calibration, Pong.
+// Client -> server: Hello, Hmd, Rgbd, SelectModel, Calibrate, GetBody, SetBody, ListModels, Ping.
+// Server -> client: Welcome, Pose, Models, Error, SessionStatus, Calibration, Body, Pong.
 // Each writes its fields in the order the server's own encoder does (type, v, then the table's order) and leaves
 // absent optional fields out, so Encode(Decode(bytes)) gives back the golden fixtures byte for byte.
 // Floats go on the wire as float32 (§2). Protocol.DecodeFromServer returns null for a message type this
@@ -129,6 +129,34 @@ namespace EgoPose.Protocol
         protected override void WriteFields(MsgMap map)
         {
             map.Add("pose", Pose).Add("seconds", Seconds).Add("clear", Clear);
+        }
+    }
+
+    /// <summary>Ask for the wearer's body as the session knows it (§4.2); answered by <see cref="Body"/>.</summary>
+    public sealed class GetBody : Message
+    {
+        public override string Type { get { return "get_body"; } }
+
+        protected override void WriteFields(MsgMap map) { }
+    }
+
+    /// <summary>
+    /// Serve a known wearer's body from the next hmd sample on (§4.2): <see cref="BoneLengthsM"/> as a
+    /// <see cref="Body"/> gave them, or <see cref="Clear"/> to estimate the body again. Answered by <see cref="Body"/>.
+    /// </summary>
+    public sealed class SetBody : Message
+    {
+        public float[] BoneLengthsM; // 21, m: joints 1..21 (the §3 order), each from its parent; null with Clear
+        public bool Clear;
+
+        public override string Type { get { return "set_body"; } }
+
+        protected override void WriteFields(MsgMap map)
+        {
+            if ((BoneLengthsM == null) != Clear)
+                throw new ArgumentException("set_body: give BoneLengthsM or Clear, not both and not neither");
+            if (BoneLengthsM != null) map.Add("bone_lengths_m", Fields.Checked(BoneLengthsM, Body.BoneCount, "set_body.bone_lengths_m"));
+            map.Add("clear", Clear);
         }
     }
 
@@ -387,6 +415,35 @@ namespace EgoPose.Protocol
         }
     }
 
+    /// <summary>
+    /// The wearer's body as the session knows it (§4.2), sent to every client after <see cref="GetBody"/> and
+    /// <see cref="SetBody"/>. Keep a <see cref="Measured"/> one with the wearer's profile; give it back next time.
+    /// </summary>
+    public sealed class Body : Message
+    {
+        public const int BoneCount = 21;
+        public float[] BoneLengthsM = new float[BoneCount]; // m: joints 1..21, each from its parent
+        public bool Given; // a client gave it (set_body); otherwise the server's estimate
+        public bool Measured; // the camera measured the wearer's bones and they stood (or calibrated)
+
+        public override string Type { get { return "body"; } }
+
+        protected override void WriteFields(MsgMap map)
+        {
+            map.Add("bone_lengths_m", BoneLengthsM).Add("given", Given).Add("measured", Measured);
+        }
+
+        internal static Body Read(MsgMap map)
+        {
+            return new Body
+            {
+                BoneLengthsM = Fields.Floats(map, "bone_lengths_m", BoneCount),
+                Given = Fields.Bool(map, "given"),
+                Measured = Fields.Bool(map, "measured"),
+            };
+        }
+    }
+
     public sealed class Pong : Message
     {
         public long? Nonce;
@@ -450,6 +507,7 @@ namespace EgoPose.Protocol
                 case "error": return Error.Read(map);
                 case "session": return SessionStatus.Read(map);
                 case "calibration": return Calibration.Read(map);
+                case "body": return Body.Read(map);
                 case "pong": return Pong.Read(map);
                 default: return null;
             }

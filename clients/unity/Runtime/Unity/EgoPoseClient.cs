@@ -1,5 +1,6 @@
 // The scene's connection to an EgoPose server: a MonoBehaviour around Core/EgoPoseConnection.cs that hands the
-// newest pose and every other server message to Unity's main thread once per frame.
+// newest pose and every other server message to Unity's main thread once per frame, and (for the headset) keeps
+// the wearer's measured body in PlayerPrefs between sessions (Core/BodyKeeper.cs, PROTOCOL.md §4.2).
 //
 // Needs UnityEngine: not compiled by the project's tests (the Core it wraps is; clients/unity/README.md).
 using System;
@@ -26,7 +27,14 @@ namespace EgoPose
         [Tooltip("Shared secret, when the server requires one")]
         public string token = "";
 
+        [Tooltip("Input role: the PlayerPrefs key under which the wearer's measured body is kept and given back at the next session (one per wearer); empty: none kept")]
+        public string bodyKey = "EgoPose.body";
+
+        [Tooltip("While no body is kept, ask the server for its estimate this often (s)")]
+        public float askBodyEverySeconds = 15f;
+
         EgoPoseConnection connection;
+        BodyKeeper bodyKeeper;
 
         /// <summary>The newest pose, updated at the start of each frame on the main thread.</summary>
         public Pose LatestPose { get; private set; }
@@ -44,8 +52,14 @@ namespace EgoPose
         /// <summary>The last fatal error or connection failure, for the user.</summary>
         public string LastError { get { return connection == null ? null : connection.LastError; } }
 
+        /// <summary>The wearer's kept body (21 bone lengths, m) given at every connection, or null while none is.</summary>
+        public float[] KeptBody { get { return bodyKeeper == null ? null : bodyKeeper.Kept; } }
+
+        bool KeepsBody { get { return role == "input" && !string.IsNullOrEmpty(bodyKey); } }
+
         void OnEnable()
         {
+            bodyKeeper = KeepsBody ? new BodyKeeper(BodyKeeper.Parse(PlayerPrefs.GetString(bodyKey, "")), askBodyEverySeconds) : null;
             connection = new EgoPoseConnection(new ConnectionOptions
             {
                 Url = url,
@@ -54,6 +68,7 @@ namespace EgoPose
                 Model = string.IsNullOrEmpty(model) ? null : model,
                 Token = string.IsNullOrEmpty(token) ? null : token,
                 ClientName = "unity/" + Application.unityVersion + " " + SystemInfo.deviceModel,
+                Body = KeptBody,
             });
             connection.Start();
         }
@@ -73,7 +88,13 @@ namespace EgoPose
             {
                 var error = message as Error;
                 if (error != null) Debug.LogWarning("EgoPose: " + error.Code + ": " + error.Text);
+                if (bodyKeeper != null && bodyKeeper.Take(message)) StoreKeptBody();
                 if (MessageReceived != null) MessageReceived(message);
+            }
+            if (bodyKeeper != null && connection.State == ConnectionState.Open)
+            {
+                var ask = bodyKeeper.Poll(Time.unscaledTime);
+                if (ask != null) Send(ask);
             }
             Pose pose;
             if (connection.TryTakePose(out pose))
@@ -97,5 +118,25 @@ namespace EgoPose
         public void Calibrate(string pose = "tpose", float seconds = 2f) { Send(new Calibrate { Pose = pose, Seconds = seconds }); }
 
         public void ClearCalibration() { Send(new Calibrate { Clear = true }); }
+
+        /// <summary>
+        /// Forget the kept body (another wearer puts the headset on): deleted from PlayerPrefs, the session
+        /// estimates the body again, and the next measured one is kept.
+        /// </summary>
+        public void ForgetBody()
+        {
+            if (bodyKeeper == null) return;
+            Send(bodyKeeper.Forget());
+            StoreKeptBody();
+        }
+
+        void StoreKeptBody()
+        {
+            float[] kept = bodyKeeper.Kept;
+            if (kept == null) PlayerPrefs.DeleteKey(bodyKey);
+            else PlayerPrefs.SetString(bodyKey, BodyKeeper.Format(kept));
+            PlayerPrefs.Save();
+            if (connection != null) connection.GiveBodyOnConnect(kept);
+        }
     }
 }

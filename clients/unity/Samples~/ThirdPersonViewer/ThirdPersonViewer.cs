@@ -1,6 +1,7 @@
 // Sample: a third-person viewer. Put it on a GameObject with an EgoPoseClient (role "render") and a
 // SmplHumanoidDriver driving any humanoid avatar: it watches a session, lists the server's models as buttons
-// that switch the session's model, and shows the session's state and the last calibration message.
+// that switch the session's model, and shows the session's state, the last calibration message and the wearer's
+// body as the session knows it (given by the headset app, or estimated; PROTOCOL.md §4.2).
 //
 // Needs UnityEngine (clients/unity/README.md, "Third-person viewer").
 using System.Collections.Generic;
@@ -16,6 +17,7 @@ namespace EgoPose.Samples
         readonly List<ModelInfo> models = new List<ModelInfo>();
         string status = "connecting";
         string calibration = "";
+        string body = "";
         Pose lastPose;
 
         void Awake()
@@ -38,6 +40,13 @@ namespace EgoPose.Samples
             if (session != null) status = session.Input ? "headset connected" : "waiting for the headset";
             var calibrated = message as Calibration;
             if (calibrated != null) calibration = calibrated.Status + ": " + calibrated.Text;
+            var known = message as Body;
+            if (known != null)
+            {
+                // Joint 4 is the left knee: its bone is the thigh (the order of PROTOCOL.md §3).
+                body = "body " + (known.Given ? "given" : "estimated") + (known.Measured ? ", measured" : "")
+                       + ", thigh " + (100 * known.BoneLengthsM[3]).ToString("F1") + " cm";
+            }
         }
 
         void OnGUI()
@@ -53,6 +62,8 @@ namespace EgoPose.Samples
             }
             if (GUILayout.Button("calibrate (T-pose, 2 s)")) client.Calibrate();
             if (calibration.Length > 0) GUILayout.Label(calibration);
+            if (GUILayout.Button("ask for the wearer's body")) client.Send(new GetBody());
+            if (body.Length > 0) GUILayout.Label(body);
             if (!string.IsNullOrEmpty(client.LastError)) GUILayout.Label("error: " + client.LastError);
             GUILayout.EndArea();
         }
