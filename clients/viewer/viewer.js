@@ -28,6 +28,8 @@ const state = (window.viewerState = {
   serverMs: null, camera: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
   headset: null, // from `session` messages: is an input client connected (null: not told yet)
   calibration: null, // the newest `calibration` message: {status, message, ...}
+  body: null, // the newest `body` message: {bone_lengths_m, given, measured} (PROTOCOL.md §4.2)
+  bodyNote: null, // what the body buttons last did, for the operator
   avatar: { loaded: false, name: null, error: null }, // the skinned avatar (null name: capsules only)
 });
 
@@ -59,9 +61,13 @@ function onMessage(msg) {
   if (msg.type === "welcome") { state.connected = true; state.model = msg.model; }
   else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(); }
   else if (msg.type === "pose") { onPose(msg); }
-  else if (msg.type === "error") { state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`]; }
+  else if (msg.type === "error") {
+    state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`];
+    if (msg.ref && msg.ref.type === "set_body") state.bodyNote = `body refused: ${msg.message}`;
+  }
   else if (msg.type === "session") { state.headset = msg.input; }
   else if (msg.type === "calibration") { state.calibration = msg; }
+  else if (msg.type === "body") { onBody(msg); }
   // Any other type is one this viewer does not know: ignored (PROTOCOL.md §8).
 }
 
@@ -96,6 +102,61 @@ function fillModels() {
   const select = $("model");
   select.replaceChildren(...state.models.map((n) => new Option(n, n, false, n === state.model)));
 }
+
+// ------------------------------------------------------------------------------------------ a returning wearer's body
+// Kept in this browser's localStorage under the wearer's name (PROTOCOL.md §4.2): "keep body" asks the session for
+// its body and keeps it if it is worth keeping (measured by the server, or one a client gave); "give kept body"
+// serves it to the session from the next sample on; "estimate body" gives the estimate back.
+const BODY_KEY = "egoposevr.body.";
+let keepAsked = null; // the wearer a get_body was sent for, until its answer
+
+function wearer() {
+  const name = $("wearer").value.trim();
+  if (!name) state.bodyNote = "name the wearer first";
+  return name || null;
+}
+
+function sendToSession(msg) {
+  if (!ws || ws.readyState !== 1) { state.bodyNote = "not connected"; return false; }
+  ws.send(encode({ type: msg.type, v: 1, ...msg }));
+  return true;
+}
+
+function keptBody(name) {
+  try {
+    const kept = JSON.parse(localStorage.getItem(BODY_KEY + name));
+    const lengths = kept && kept.bone_lengths_m;
+    return Array.isArray(lengths) && lengths.length === 21 && lengths.every((x) => Number.isFinite(x) && x > 0) ? lengths : null;
+  } catch { return null; } // damaged: as if none were kept
+}
+
+function onBody(body) {
+  state.body = body;
+  if (keepAsked === null) return;
+  const name = keepAsked;
+  keepAsked = null;
+  if (!body.measured && !body.given) {
+    state.bodyNote = `not kept: the server has not measured ${name} yet (keep it after they have stood and the camera has seen their legs)`;
+    return;
+  }
+  localStorage.setItem(BODY_KEY + name, JSON.stringify({ bone_lengths_m: body.bone_lengths_m, kept_at: new Date().toISOString() }));
+  state.bodyNote = `body kept for ${name}`;
+}
+
+$("keepBody").onclick = () => {
+  const name = wearer();
+  if (name && sendToSession({ type: "get_body" })) keepAsked = name;
+};
+$("giveBody").onclick = () => {
+  const name = wearer();
+  if (!name) return;
+  const lengths = keptBody(name);
+  if (!lengths) { state.bodyNote = `no body kept for ${name}`; return; }
+  if (sendToSession({ type: "set_body", bone_lengths_m: lengths })) state.bodyNote = `gave ${name}'s body`;
+};
+$("estimateBody").onclick = () => {
+  if (sendToSession({ type: "set_body", clear: true })) state.bodyNote = "the server estimates the body";
+};
 
 $("session").onchange = (e) => connect(e.target.value);
 $("calibrate").onclick = () =>
@@ -258,7 +319,8 @@ function frame() {
   const s = state;
   const headset = s.headset === null ? "" : s.headset ? " · headset connected" : " · no headset";
   const calibration = s.calibration ? ` · calibration ${s.calibration.status}: ${s.calibration.message}` : "";
-  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}${headset}${calibration}` : "connecting…";
+  const body = s.bodyNote ? ` · ${s.bodyNote}` : s.body ? ` · body ${s.body.given ? "given" : "estimated"}` : "";
+  $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}${headset}${calibration}${body}` : "connecting…";
   $("hud").textContent = s.poses
     ? `poses ${s.poses}  ·  ${s.fps} FPS  ·  server ${s.serverMs?.toFixed(1) ?? "?"} ms  ·  camera ${s.camera === null ? "n/a" : s.camera ? "on" : "off"}  ·  skipped ${s.skipped}` +
       (s.errors.length ? `  ·  last error ${s.errors[s.errors.length - 1]}` : "")

@@ -26,6 +26,7 @@ from websockets.sync.client import connect
 
 from egoposevr.clients.avatar import VRM_BONES
 from egoposevr.clients.replay import Recording, Replayer
+from egoposevr.model.runtime.body import bone_lengths_m
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 from egoposevr.server.app import VIEWER_DIR
 
@@ -220,3 +221,63 @@ def test_the_viewer_is_served_offline_with_its_vendored_libraries():
             headset.hello("input", "listed")
             sessions = json.loads(server.get("/api/sessions")[1])
         assert {"session": "listed", "model": "egoposevr", "input": True, "viewers": 0} in sessions
+
+
+def test_the_viewer_keeps_a_wearers_body_and_gives_it_back(tmp_path):
+    """PROTOCOL.md §4.2 from the operator's viewer: a body is kept under the wearer's name only when it is worth
+    keeping, given back to the session (the headset hears it), refused bodies and damaged stores say so, and
+    "estimate body" gives the estimate back."""
+    known = bone_lengths_m(np.full(22, 0.9))
+    with running_server() as server, Client(server.url, "wearer") as headset:
+        headset.hello("input", "wearer", model="procedural")
+        browser = Browser(f"{server.http}/viewer/?session=wearer", str(tmp_path / "profile"))
+        try:
+            browser.wait_for(lambda s: s.get("connected"))
+
+            def press(button: str, wearer: str | None = None) -> str:
+                if wearer is not None:
+                    browser.evaluate(f'document.getElementById("wearer").value = {json.dumps(wearer)}')
+                browser.evaluate("window.viewerState.bodyNote = null")
+                browser.evaluate(f'document.getElementById("{button}").click()')
+                return browser.wait_for(lambda s: s.get("bodyNote"))["bodyNote"]
+
+            def store(wearer: str, text: str) -> None:
+                browser.evaluate(
+                    f"localStorage.setItem({json.dumps('egoposevr.body.' + wearer)}, {json.dumps(text)})"
+                )
+
+            def stored(wearer: str) -> Any:
+                return json.loads(
+                    browser.evaluate(f"localStorage.getItem({json.dumps('egoposevr.body.' + wearer)})")
+                    or "null"
+                )
+
+            assert press("keepBody", "") == "name the wearer first"
+            assert press("keepBody", "ann").startswith("not kept: the server has not measured ann")
+            assert not headset.recv_type("body").given and stored("ann") is None  # an estimate from nothing
+            assert press("giveBody") == "no body kept for ann"
+
+            store("ann", json.dumps({"bone_lengths_m": known.tolist()}))
+            assert press("giveBody") == "gave ann's body"
+            given = headset.recv_type("body")
+            assert given.given and np.allclose(given.bone_lengths_m, known, atol=1e-6)
+            browser.wait_for(lambda s: (s.get("body") or {}).get("given"))
+            browser.wait_for_text("status", "gave ann's body")
+            assert press("keepBody", "carol") == "body kept for carol"  # a given body is worth keeping
+            assert np.allclose(stored("carol")["bone_lengths_m"], known, atol=1e-9)
+
+            store("bob", '{"bone_lengths_m": [0.2, "x"')  # a damaged store reads as none kept
+            assert press("giveBody", "bob") == "no body kept for bob"
+            giant = known.copy()
+            giant[4] = 1.0  # a 1 m shin: within the wire's range, not a body's
+            store("dave", json.dumps({"bone_lengths_m": giant.tolist()}))
+            press("giveBody", "dave")  # "gave dave's body", soon replaced by the refusal
+            note = browser.wait_for(lambda s: (s.get("bodyNote") or "").startswith("body refused"))[
+                "bodyNote"
+            ]
+            assert "bone 5" in note
+            assert press("estimateBody") == "the server estimates the body"
+            # the headset heard carol's get_body answered first, then the estimate
+            assert [headset.recv_type("body").given for _ in range(2)] == [True, False]
+        finally:
+            browser.close()

@@ -315,11 +315,11 @@ static class CoreTests
         Console.WriteLine("poses: input " + input.PosesReceived + ", render " + render.PosesReceived);
     }
 
-    /// <summary>A kept body the server refuses (a 1.5 m shin): out_of_range, and the connection stops giving it.</summary>
+    /// <summary>A kept body the server refuses (a 1 m shin): out_of_range, and the connection stops giving it.</summary>
     static void RefusedBody(string url, string session, float[] kept)
     {
         var giant = (float[])kept.Clone();
-        giant[4] = 1.5f;
+        giant[4] = 1.0f; // within the wire's range (§5), not a body's (§4.2)
         var input = new EgoPoseConnection(new ConnectionOptions { Url = url, Session = session, Body = giant });
         input.Start();
         var error = WaitForMessage<Error>(input, m => m.RefType == "set_body", "the server refuses the body");
