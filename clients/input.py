@@ -36,6 +36,11 @@ Connection handling: the client says ``hello`` as ``input``, and if the connecti
 exponential backoff and resumes the same session (same id, model and sequence counters). Samples sent while
 offline are dropped and counted (``dropped_offline``): for a real-time stream, stale data is worth nothing.
 A fatal refusal that retrying cannot fix (``auth_failed``, ``session_busy``) stops the client and is raised.
+
+A returning wearer (PROTOCOL.md §4.2): pass the body kept from their last session as ``body=`` (or give it
+with :meth:`HeadsetClient.set_body`); the client gives it first after every welcome, reconnects included, so no
+sample is served without it. At the session's end, ``await headset.get_body()`` and keep its
+``bone_lengths_m`` with the user's profile if it is ``measured``.
 """
 
 from __future__ import annotations
@@ -84,6 +89,11 @@ class InputClientError(RuntimeError):
     """The server refused the session for good, or the client was used after closing."""
 
 
+class BodyRefused(ValueError):
+    """The server refused a body this client gave (``out_of_range``: not a body's proportions, PROTOCOL.md §4.2);
+    the session's body stayed as it was, and the client no longer gives it at a reconnect."""
+
+
 class HeadsetClient:
     """One headset's connection; use ``async with`` or ``connect`` / ``close``."""
 
@@ -99,6 +109,7 @@ class HeadsetClient:
         backoff_s: tuple[float, float] = (0.25, 5.0),
         jpeg_quality: int = 90,
         pose_buffer: int = 64,
+        body: Sequence[float] | None = None,
     ) -> None:
         self.url, self.session, self.model, self.token, self.label = url, session, model, token, label
         self.reconnect, self.backoff_s, self.jpeg_quality = reconnect, backoff_s, jpeg_quality
@@ -108,6 +119,9 @@ class HeadsetClient:
         self._calibration_changed = asyncio.Event()
         self.body: Body | None = None  # the newest body message
         self._body_changed = asyncio.Event()
+        self._body_refusal: Error | None = None  # the server's refusal of the last body given, until read
+        # The wearer's body given after every welcome (set_body, PROTOCOL.md §4.2), or None: the server estimates it.
+        self.given_body: list[float] | None = None if body is None else _bone_lengths(body)
         self.errors: deque[Error] = deque(maxlen=100)  # the newest error replies
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
@@ -145,6 +159,9 @@ class HeadsetClient:
         if isinstance(first, Error):
             await ws.close()
             raise InputClientError(f"the server refused the session: {first.code}: {first.message}")
+        # Before anything else this connection sends, so that every sample is served with the body.
+        if self.given_body is not None:
+            await ws.send(encode(SetBody(bone_lengths_m=self.given_body)))
         self.welcome, self._ws = first, ws
         self._online.set()
         return first
@@ -211,6 +228,10 @@ class HeadsetClient:
             self._body_changed.set()
         elif isinstance(msg, Error):
             self.errors.append(msg)
+            if msg.ref is not None and msg.ref.type == "set_body":
+                self.given_body = None  # refused: giving it again at a reconnect would be refused again
+                self._body_refusal = msg
+                self._body_changed.set()
             if msg.fatal and msg.code in PERMANENT_REFUSALS:
                 self._failure = InputClientError(f"the server ended the session: {msg.code}: {msg.message}")
 
@@ -296,20 +317,23 @@ class HeadsetClient:
         return await self._body_request(GetBody(), timeout_s)
 
     async def set_body(self, bone_lengths_m: Sequence[float] | None, timeout_s: float = 10.0) -> Body:
-        """Serve a known wearer's body (21 bone lengths, m, as ``body`` gave them) from the next sample on, or
-        with None estimate it again (PROTOCOL.md §4.2). Returns the server's ``body``. A body out of range is
-        answered with an ``error`` instead (in ``errors``), and this raises TimeoutError."""
-        msg = (
-            SetBody(clear=True) if bone_lengths_m is None else SetBody(bone_lengths_m=_floats(bone_lengths_m))
-        )
+        """Serve a known wearer's body (21 bone lengths, m, as ``body`` gave them) from the next sample on, and
+        give it again after every reconnect; with None, estimate it again (PROTOCOL.md §4.2). Returns the server's
+        ``body``. Raises :class:`BodyRefused` for a body the server refuses (not a body's proportions; the
+        session's body stays as it was) and ValueError for one that is not 21 positive finite lengths."""
+        lengths = None if bone_lengths_m is None else _bone_lengths(bone_lengths_m)
+        self.given_body = lengths
+        msg = SetBody(clear=True) if lengths is None else SetBody(bone_lengths_m=lengths)
         return await self._body_request(msg, timeout_s)
 
     async def _body_request(self, msg: SetBody | GetBody, timeout_s: float) -> Body:
-        self.body = None
+        self.body, self._body_refusal = None, None
         self._body_changed.clear()
         await self._send(msg)
         async with asyncio.timeout(timeout_s):
             await self._body_changed.wait()
+        if self._body_refusal is not None:
+            raise BodyRefused(f"{self._body_refusal.code}: {self._body_refusal.message}")
         assert self.body is not None
         return self.body
 
@@ -349,3 +373,14 @@ def encode_frame(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int = 90) 
 
 def _floats(values: Any) -> list[float]:
     return [float(v) for v in values]
+
+
+def _bone_lengths(values: Any) -> list[float]:
+    """A body's 21 bone lengths (m) as floats; ValueError for any other count, or a length not positive and finite
+    (the server would refuse it as malformed, PROTOCOL.md §4.2)."""
+    lengths = np.asarray(values, dtype=float).reshape(-1)
+    if lengths.shape != (21,) or not np.all(np.isfinite(lengths) & (lengths > 0)):
+        raise ValueError(
+            f"a body is 21 positive finite bone lengths in metres, got {np.asarray(values).tolist()}"
+        )
+    return lengths.tolist()

@@ -10,7 +10,7 @@ import pytest
 from loopback import RECORDINGS, running_server
 from syntheticusers import User, holding
 
-from egoposevr.clients.input import HeadsetClient, InputClientError, encode_frame
+from egoposevr.clients.input import BodyRefused, HeadsetClient, InputClientError, encode_frame
 from egoposevr.model.inputs import decode_rgbd
 from egoposevr.protocol import decode
 from egoposevr.recordings.egrec import KIND_CLIENT, read_records
@@ -159,3 +159,51 @@ async def test_a_body_read_at_the_end_of_one_session_is_given_back_at_the_next()
             assert given.given
             assert np.allclose(await stream_lengths(headset), smaller, atol=2e-3)
             assert not (await headset.set_body(None)).given
+
+
+@pytest.mark.asyncio
+async def test_a_body_given_at_construction_is_given_again_after_a_server_restart_and_a_refused_one_raises():
+    """The client gives its wearer's body first after every welcome (PROTOCOL.md §4.2): served from the first
+    sample, and again on a restarted server; a body the server refuses raises at once and is given no more."""
+    from egoposevr.model.runtime.body import bone_lengths_m
+    from egoposevr.model.skeleton import joint_bone_lengths
+
+    known = bone_lengths_m(np.full(22, 0.9))
+    t_us, poses, valid = holding(User(height_scale=1.1), seconds=0.2)
+
+    async def first_lengths(headset: HeadsetClient) -> np.ndarray:
+        """Stream the samples -> the bone lengths (21,) of the first pose that answers one of them, m."""
+        seqs = [
+            await headset.send_hmd(int(t), p[0], p[1], p[2], v)
+            for t, p, v in zip(t_us, poses, valid, strict=True)
+        ]
+        async for pose in headset.poses():
+            if pose.seq in seqs:
+                return joint_bone_lengths(np.asarray(pose.joints).reshape(22, 3))
+        raise AssertionError("no pose")
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with running_server(port=port) as server:
+        headset = HeadsetClient(server.url, "kept", model="procedural", backoff_s=(0.05, 0.2), body=known)
+        await headset.connect()
+        assert np.allclose(await asyncio.wait_for(first_lengths(headset), 20), known, atol=2e-3)
+    # A new server knows nothing of the session: the client gives the body again.
+    with running_server(port=port):
+        async with asyncio.timeout(10):
+            while headset.reconnects == 0 or not headset.online:
+                await asyncio.sleep(0.02)
+        assert np.allclose(await asyncio.wait_for(first_lengths(headset), 20), known, atol=2e-3)
+        giant = known.copy()
+        giant[4] = 1.0  # a 1 m shin: within the wire's range, not a body's
+        with pytest.raises(BodyRefused, match="bone 5"):
+            await headset.set_body(giant, timeout_s=5)
+        assert headset.given_body is None  # not given again at a reconnect
+        session_body = await headset.get_body()  # the session's body stayed as it was
+        assert session_body.given and np.allclose(session_body.bone_lengths_m, known, atol=1e-6)
+        with pytest.raises(ValueError, match="21 positive finite"):
+            await headset.set_body([0.2] * 20)
+        await headset.close()
+    with pytest.raises(ValueError, match="21 positive finite"):
+        HeadsetClient("ws://127.0.0.1:1/ws", "x", body=[0.3] * 20 + [float("nan")])
