@@ -71,6 +71,14 @@ void UEgoPoseComponent::OnRawMessage(const void* Data, SIZE_T Size, SIZE_T Bytes
         if (Type == "welcome") {
             bWelcomed = true;
             Backoff = 0.25;
+            if (KeptBoneLengths.Num() == egopose::kBoneCount) {  // before any hmd: every sample is served with it
+                egopose::BoneLengths Lengths;
+                for (int32 B = 0; B < KeptBoneLengths.Num(); ++B) Lengths[B] = KeptBoneLengths[B];
+                Send(egopose::encode(egopose::SetBody{Lengths, false}));
+            }
+        } else if (Type == "body") {
+            const egopose::Body Body = egopose::read_body(Handle);
+            if (Body.measured && !Body.given) MeasuredBoneLengths = TArray<float>(Body.bone_lengths_m.data(), egopose::kBoneCount);
         } else if (Type == "pose") {
             const egopose::Pose Pose = egopose::read_pose(Handle);
             const FTransform TrackingToWorld = UHeadMountedDisplayFunctionLibrary::GetTrackingToWorldTransform(this);
@@ -83,6 +91,7 @@ void UEgoPoseComponent::OnRawMessage(const void* Data, SIZE_T Size, SIZE_T Bytes
         } else if (Type == "error") {
             const egopose::Error Error = egopose::read_error(Handle);
             UE_LOG(LogTemp, Warning, TEXT("EgoPose: %hs: %hs"), Error.code.c_str(), Error.message.c_str());
+            if (Error.ref_type == std::optional<std::string>("set_body")) KeptBoneLengths.Reset();  // refused: not again
         }  // other types (models, session, calibration, pong, later ones) are ignored (PROTOCOL.md §8)
     } catch (const std::exception& Exc) {
         UE_LOG(LogTemp, Warning, TEXT("EgoPose: unreadable server message: %hs"), Exc.what());
@@ -121,6 +130,8 @@ void UEgoPoseComponent::SendHmd() {
 void UEgoPoseComponent::SelectModel(const FString& Name) {
     Send(egopose::encode(egopose::SelectModel{TCHAR_TO_UTF8(*Name)}));
 }
+
+void UEgoPoseComponent::RequestBody() { Send(egopose::encode(egopose::GetBody{})); }
 
 void UEgoPoseComponent::Send(const msgpack::sbuffer& Buffer) {
     if (Socket && Socket->IsConnected()) Socket->Send(Buffer.data(), Buffer.size(), /*bIsBinary=*/true);

@@ -27,10 +27,21 @@ class UEgoPoseComponent : public UActorComponent {
     UPROPERTY(EditAnywhere, Category = "EgoPose") FString Model;  // empty: the session's or the server's default
     UPROPERTY(EditAnywhere, Category = "EgoPose") bool bDrawSkeleton = true;
 
+    // A returning wearer's body (PROTOCOL.md §4.2): the 21 bone lengths (m) kept from their last session (load them
+    // from your SaveGame before BeginPlay), given first after every welcome; empty: the server estimates the body.
+    UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "EgoPose") TArray<float> KeptBoneLengths;
+
+    // The newest body the server said is measured and was not given (after RequestBody): save it with the
+    // wearer's profile and put it in KeptBoneLengths at their next session.
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<float> MeasuredBoneLengths;
+
     // The newest served joints (22, SMPL order of PROTOCOL.md §3), Unreal world space, cm.
     UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<FVector> Joints;
 
     UFUNCTION(BlueprintCallable, Category = "EgoPose") void SelectModel(const FString& Name);
+
+    // Ask the server for the wearer's body (get_body); a measured answer lands in MeasuredBoneLengths.
+    UFUNCTION(BlueprintCallable, Category = "EgoPose") void RequestBody();
 
    protected:
     virtual void BeginPlay() override;

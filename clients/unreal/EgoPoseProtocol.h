@@ -41,6 +41,27 @@ struct SelectModel {
     std::string model;
 };
 
+// Ask the server to measure the wearer (§4.1): hold `pose` ("tpose" or "stand") still for `seconds`; `clear`
+// forgets the session's calibration.
+struct Calibrate {
+    std::string pose = "tpose";
+    float seconds = 2.0f;
+    bool clear = false;
+};
+
+constexpr size_t kBoneCount = 21;  // bone lengths: joints 1..21 (the §3 order), each from its parent
+using BoneLengths = std::array<float, kBoneCount>;
+
+// Ask for the wearer's body as the session knows it (§4.2); answered by `body`.
+struct GetBody {};
+
+// Serve a known wearer's body from the next hmd sample on (§4.2): the lengths a `body` gave (kept with the
+// wearer's profile from an earlier session), or none with `clear` to estimate the body again.
+struct SetBody {
+    std::optional<BoneLengths> bone_lengths_m;
+    bool clear = false;
+};
+
 struct Pose {
     int64_t seq = 0, t_us = 0;
     std::string model;
@@ -56,6 +77,15 @@ struct Pose {
 struct Error {
     std::string code, message;
     bool fatal = false;
+    std::optional<std::string> ref_type;  // the type of the client message that caused it, when readable
+};
+
+// The wearer's body (§4.2), to every client after get_body and set_body. Keep a `measured` one with the wearer's
+// profile and give it back (SetBody) first after the welcome of their next session.
+struct Body {
+    BoneLengths bone_lengths_m{};  // m
+    bool given = false;            // a client gave it; otherwise the server's estimate
+    bool measured = false;         // the camera measured the wearer's bones and they stood (or calibrated)
 };
 
 class ProtocolError : public std::runtime_error {
@@ -161,6 +191,42 @@ inline msgpack::sbuffer encode(const SelectModel& m) {
     return buffer;
 }
 
+inline msgpack::sbuffer encode(const Calibrate& m) {
+    msgpack::sbuffer buffer;
+    msgpack::packer<msgpack::sbuffer> pk(&buffer);
+    detail::header(pk, 3, "calibrate");
+    detail::key(pk, "pose");
+    pk.pack(m.pose);
+    detail::key(pk, "seconds");
+    detail::float32(buffer, m.seconds);
+    detail::key(pk, "clear");
+    pk.pack(m.clear);
+    return buffer;
+}
+
+inline msgpack::sbuffer encode(const GetBody&) {
+    msgpack::sbuffer buffer;
+    msgpack::packer<msgpack::sbuffer> pk(&buffer);
+    detail::header(pk, 0, "get_body");
+    return buffer;
+}
+
+// Throws std::invalid_argument for both lengths and clear, or neither (the server would refuse it).
+inline msgpack::sbuffer encode(const SetBody& m) {
+    if (m.bone_lengths_m.has_value() == m.clear)
+        throw std::invalid_argument("set_body: give bone_lengths_m or clear, not both and not neither");
+    msgpack::sbuffer buffer;
+    msgpack::packer<msgpack::sbuffer> pk(&buffer);
+    detail::header(pk, m.clear ? 1 : 2, "set_body");
+    if (m.bone_lengths_m) {
+        detail::key(pk, "bone_lengths_m");
+        detail::floats(buffer, pk, *m.bone_lengths_m);
+    }
+    detail::key(pk, "clear");
+    pk.pack(m.clear);
+    return buffer;
+}
+
 // The `type` of a server message; throws ProtocolError for bytes that are not one msgpack map with a type.
 inline std::string message_type(const msgpack::object_handle& handle) {
     const msgpack::object& root = handle.get();
@@ -202,8 +268,18 @@ inline Pose read_pose(const msgpack::object_handle& handle) {
 
 inline Error read_error(const msgpack::object_handle& handle) {
     const msgpack::object_map& map = handle.get().via.map;
-    return {detail::field(map, "code").as<std::string>(), detail::field(map, "message").as<std::string>(),
-            detail::field(map, "fatal").as<bool>()};
+    Error error{detail::field(map, "code").as<std::string>(), detail::field(map, "message").as<std::string>(),
+                detail::field(map, "fatal").as<bool>(), std::nullopt};
+    if (auto ref = detail::find(map, "ref"); ref && ref->type == msgpack::type::MAP)
+        error.ref_type = detail::field(ref->via.map, "type").as<std::string>();
+    return error;
+}
+
+// A `body` message's fields (the caller checked message_type == "body").
+inline Body read_body(const msgpack::object_handle& handle) {
+    const msgpack::object_map& map = handle.get().via.map;
+    return {detail::read_floats<kBoneCount>(map, "bone_lengths_m"), detail::field(map, "given").as<bool>(),
+            detail::field(map, "measured").as<bool>()};
 }
 
 // ------------------------------------------------------------------------------ frames (PROTOCOL.md §3.2, §3.3)

@@ -40,6 +40,24 @@ static void golden(const std::string& dir) {
     hmd.valid = {true, true, false};
     same_bytes(read_file(dir + "/hmd.msgpack"), encode(hmd), "hmd");
     same_bytes(read_file(dir + "/select_model.msgpack"), encode(SelectModel{"hmd"}), "select_model");
+    same_bytes(read_file(dir + "/calibrate.msgpack"), encode(Calibrate{"tpose", 2.0f, false}), "calibrate");
+    same_bytes(read_file(dir + "/get_body.msgpack"), encode(GetBody{}), "get_body");
+    // protocol/examples.py's body: near the mean body's, in 1/16 m steps
+    const BoneLengths lengths{0.125f, 0.125f, 0.125f, 0.375f, 0.375f, 0.125f, 0.4375f, 0.4375f, 0.0625f, 0.125f, 0.125f,
+                              0.1875f, 0.125f, 0.125f, 0.125f, 0.125f, 0.125f, 0.25f, 0.25f, 0.25f, 0.25f};
+    same_bytes(read_file(dir + "/set_body.msgpack"), encode(SetBody{lengths, false}), "set_body");
+    const char clear_only[] = "\x83\xa4" "type" "\xa8" "set_body" "\xa1" "v" "\x01\xa5" "clear" "\xc3";
+    same_bytes(std::string(clear_only, sizeof clear_only - 1), encode(SetBody{std::nullopt, true}),
+               "set_body clear, without lengths");
+    for (const SetBody& bad : {SetBody{std::nullopt, false}, SetBody{lengths, true}}) {
+        bool refused = false;
+        try {
+            encode(bad);
+        } catch (const std::invalid_argument&) {
+            refused = true;
+        }
+        check(refused, "set_body with neither lengths nor clear, or both, is refused");
+    }
 
     std::string bytes = read_file(dir + "/pose.msgpack");
     auto handle = unpack(bytes.data(), bytes.size());
@@ -53,6 +71,13 @@ static void golden(const std::string& dir) {
     auto error_handle = unpack(bytes.data(), bytes.size());
     Error error = read_error(error_handle);
     check(message_type(error_handle) == "error" && error.code == "wrong_length" && !error.fatal, "error fields");
+    check(error.ref_type == std::optional<std::string>("hmd"), "error.ref names the message that caused it");
+
+    bytes = read_file(dir + "/body.msgpack");
+    auto body_handle = unpack(bytes.data(), bytes.size());
+    Body body = read_body(body_handle);
+    check(message_type(body_handle) == "body" && body.bone_lengths_m == lengths && body.given && !body.measured,
+          "body fields");
 
     for (std::string bad : {std::string("\x81\xa4", 2), std::string("\x90\x90", 2), std::string("\x93\x01\x02\x03", 4)}) {
         bool refused = false;
