@@ -176,20 +176,25 @@ static class CoreTests
         Check(keeper.Poll(9.9) == null && keeper.Poll(10.0) is GetBody, "then every 10 s");
         Check(!keeper.Take(new Body { BoneLengthsM = lengths, Given = false, Measured = false }) && keeper.Kept == null,
             "an estimate the camera has not measured is not kept");
-        Check(!keeper.Take(new Body { BoneLengthsM = lengths, Given = true, Measured = true }) && keeper.Kept == null,
-            "a body some client gave is not kept as measured");
         Check(keeper.Take(new Body { BoneLengthsM = lengths, Given = false, Measured = true }), "a measured body is kept");
-        Check(keeper.Kept.SequenceEqual(lengths) && keeper.Poll(100.0) == null, "kept: no more asking");
-        var other = (float[])lengths.Clone();
-        other[0] = 0.2f;
-        Check(!keeper.Take(new Body { BoneLengthsM = other, Given = false, Measured = true }) && keeper.Kept[0] == lengths[0],
-            "the first measured body stays kept");
+        Check(keeper.Kept.SequenceEqual(lengths), "its lengths");
+        Check(!keeper.Take(new Body { BoneLengthsM = lengths, Given = false, Measured = true }), "the same body again: no change");
+        Check(keeper.Poll(20.0) is GetBody, "the session still estimates: keep asking");
+        var later = (float[])lengths.Clone();
+        later[0] = 0.2f;
+        Check(keeper.Take(new Body { BoneLengthsM = later, Given = false, Measured = true }) && keeper.Kept[0] == 0.2f,
+            "a later measured estimate replaces it (the camera has seen more)");
+        Check(!keeper.Take(new Body { BoneLengthsM = lengths, Given = true, Measured = true }) && keeper.Kept[0] == 0.2f,
+            "a body some client gave is not kept as measured");
+        Check(keeper.Poll(100.0) == null, "the session serves a given body: nothing to ask");
         Check(!keeper.Take(new Error { Code = "out_of_range", RefType = "calibrate" }), "another request's refusal");
         Check(keeper.Take(new Error { Code = "out_of_range", RefType = "set_body" }) && keeper.Kept == null,
             "a kept body the server refuses is forgotten");
 
         keeper = new BodyKeeper(lengths, 10.0);
-        Check(keeper.Poll(0.0) == null, "a kept body: nothing to ask");
+        keeper.Poll(0.0);
+        keeper.Take(new Body { BoneLengthsM = lengths, Given = true, Measured = true }); // given after the welcome
+        Check(keeper.Poll(20.0) == null, "a kept body the session serves: nothing to ask");
         var clear = keeper.Forget();
         Check(clear.Clear && clear.BoneLengthsM == null && keeper.Kept == null, "forget: set_body clear");
         Check(keeper.Poll(0.5) is GetBody, "forgotten: ask again at once");

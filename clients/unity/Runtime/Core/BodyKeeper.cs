@@ -7,9 +7,11 @@
 //   each frame:   Message ask = keeper.Poll(nowS); if (ask != null) connection.Send(ask);
 //                 foreach message: if (keeper.Take(message)) store(BodyKeeper.Format(keeper.Kept));   // or delete
 //
-// While nothing is kept it asks the server (get_body) every AskEverySeconds and keeps the first body the server
-// says is measured and was not given. A kept body the server refuses (out_of_range) is forgotten. Pure C#, no
-// UnityEngine, not thread-safe: call it from one thread (Unity's main thread).
+// While the session estimates the body (no body given to it) it asks the server (get_body) every
+// AskEverySeconds and keeps the newest body the server says is measured: the later, the more the camera has seen.
+// Once the session serves a given body (ours, after the next welcome) there is nothing new to learn, and it stops
+// asking. A kept body the server refuses (out_of_range) is forgotten. Pure C#, no UnityEngine, not thread-safe:
+// call it from one thread (Unity's main thread).
 using System;
 using System.Globalization;
 
@@ -19,9 +21,10 @@ namespace EgoPose.Protocol
     {
         readonly double askEverySeconds;
         double nextAskS = double.NegativeInfinity;
+        bool sessionGiven; // the newest body message said the session serves a given body
 
         /// <param name="kept">the body kept from an earlier session (21 bone lengths, m), or null</param>
-        /// <param name="askEverySeconds">while none is kept, how often to ask the server for its estimate</param>
+        /// <param name="askEverySeconds">while the session estimates the body, how often to ask for its estimate</param>
         public BodyKeeper(float[] kept, double askEverySeconds = 15.0)
         {
             if (kept != null && !Valid(kept)) throw new ArgumentException("a kept body must hold 21 positive finite lengths");
@@ -33,22 +36,24 @@ namespace EgoPose.Protocol
         /// <summary>The wearer's kept body (21 bone lengths, m), or null while none is.</summary>
         public float[] Kept { get; private set; }
 
-        /// <summary>A <see cref="GetBody"/> to send now (nothing kept, and the last ask is old enough), or null.</summary>
+        /// <summary>A <see cref="GetBody"/> to send now (the session estimates, and the last ask is old enough), or null.</summary>
         public Message Poll(double nowS)
         {
-            if (Kept != null || nowS < nextAskS) return null;
+            if (sessionGiven || nowS < nextAskS) return null;
             nextAskS = nowS + askEverySeconds;
             return new GetBody();
         }
 
         /// <summary>
         /// Read a server message; true when <see cref="Kept"/> changed (store it, or delete what was stored when it
-        /// is null): a measured body the server estimated, while none was kept, or a kept body the server refused.
+        /// is null): a new measured body the server estimated, or a kept body the server refused.
         /// </summary>
         public bool Take(Message message)
         {
             var body = message as Body;
-            if (body != null && Kept == null && body.Measured && !body.Given && Valid(body.BoneLengthsM))
+            if (body != null) sessionGiven = body.Given;
+            if (body != null && body.Measured && !body.Given && Valid(body.BoneLengthsM)
+                && (Kept == null || !SameLengths(Kept, body.BoneLengthsM)))
             {
                 Kept = (float[])body.BoneLengthsM.Clone();
                 return true;
@@ -66,6 +71,7 @@ namespace EgoPose.Protocol
         public SetBody Forget()
         {
             Kept = null;
+            sessionGiven = false;
             nextAskS = double.NegativeInfinity;
             return new SetBody { Clear = true };
         }
@@ -91,6 +97,15 @@ namespace EgoPose.Protocol
                 if (!float.TryParse(items[i], NumberStyles.Float, CultureInfo.InvariantCulture, out lengths[i])) return null;
             }
             return Valid(lengths) ? lengths : null;
+        }
+
+        static bool SameLengths(float[] a, float[] b)
+        {
+            for (int i = 0; i < a.Length; i++)
+            {
+                if (a[i] != b[i]) return false;
+            }
+            return true;
         }
 
         static bool Valid(float[] lengths)

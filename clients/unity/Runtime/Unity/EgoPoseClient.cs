@@ -30,7 +30,7 @@ namespace EgoPose
         [Tooltip("Input role: the PlayerPrefs key under which the wearer's measured body is kept and given back at the next session (one per wearer); empty: none kept")]
         public string bodyKey = "EgoPose.body";
 
-        [Tooltip("While no body is kept, ask the server for its estimate this often (s)")]
+        [Tooltip("While the session estimates the wearer's body, ask the server for it this often (s)")]
         public float askBodyEverySeconds = 15f;
 
         EgoPoseConnection connection;
