@@ -38,6 +38,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--strict", action="store_true", help="refuse a recording cut short (default: replay its good part)"
     )
+    parser.add_argument(
+        "--body",
+        type=Path,
+        default=None,
+        metavar="FILE.json",
+        help="a returning wearer (PROTOCOL.md §4.2): give the body kept in FILE before the first sample, and at "
+        "the end keep the body the server measured there (the file is made if missing)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,9 +62,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if (warning := recording.cut_warning("replaying")) is not None:
         print(f"egoposevr replay: {warning} (--strict refuses such files)", file=sys.stderr)
-    replayer = Replayer(
-        recording, args.url, args.session, args.model, args.speed, args.loop, args.seconds, args.token
-    )
+    try:
+        replayer = Replayer(
+            recording, args.url, args.session, args.model, args.speed, args.loop, args.seconds, args.token,
+            body_file=args.body,
+        )  # fmt: skip
+    except ReplayError as exc:
+        print(f"egoposevr replay: {exc}", file=sys.stderr)
+        return 2
     live = (
         None
         if args.quiet

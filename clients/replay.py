@@ -4,7 +4,9 @@
 that comes back is matched to the sample it answers. The report gives end-to-end latency (sample sent → pose
 received, one clock), answered and skipped samples, and, when the recording carries ground truth, MPJPE of
 the upper and lower body. With ``loop`` the recording repeats, with ``seq`` and ``t_us`` shifted so they keep
-increasing (the server sees one continuous stream).
+increasing (the server sees one continuous stream). With ``body_file`` the mock headset is a returning wearer
+(PROTOCOL.md §4.2): a body kept in that file is given before the first sample, and at the end the body the
+server measured, if it did, is written there for the next run.
 
 Shape legend: ``J`` = 22 joints.
 """
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 import time
 from collections import deque
 from collections.abc import Callable
@@ -24,13 +27,23 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from ..model.skeleton import LOWER_BODY, NUM_JOINTS, UPPER_BODY
-from ..protocol import Hello, Message, ProtocolError, decode, decode_from_server, encode
+from ..protocol import (
+    GetBody,
+    Hello,
+    Message,
+    ProtocolError,
+    SetBody,
+    decode,
+    decode_from_server,
+    encode,
+)
 from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, Cut, read_header, read_records
 from . import session_url
 
 LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
 KEEP_SAMPLES = 200_000  # per measured quantity: about 37 minutes of poses at 90 Hz
 MAX_UNANSWERED = 10_000  # samples awaiting their pose
+BODY_ANSWER_S = 5.0  # how long the end of a replay waits for the server's body
 REPORT_KEYS = ("latency_ms", "answered", "skipped", "mpjpe_u_cm", "mpjpe_l_cm")
 
 
@@ -141,6 +154,7 @@ class ReplayStats:
     error_l_m: deque[float] = dataclasses.field(default_factory=lambda: deque(maxlen=KEEP_SAMPLES))
     models: set[str] = dataclasses.field(default_factory=set)
     stages_us: dict[str, deque[int]] = dataclasses.field(default_factory=dict)  # the server's timing_us
+    body: str | None = None  # with a body file: "given", then "kept" or why not
 
     def report(self) -> dict[str, Any]:
         lat = np.asarray(self.latency_ms)
@@ -155,6 +169,7 @@ class ReplayStats:
             "mpjpe_l_cm": 100 * float(np.mean(self.error_l_m)) if self.error_l_m else None,
             "errors": dict(self.errors),
             "models": sorted(self.models),
+            "body": self.body,
         }
 
 
@@ -169,7 +184,25 @@ def summary_line(report: dict[str, Any]) -> str:
         text += f"  MPJPE upper {report['mpjpe_u_cm']:.1f} cm  lower {report['mpjpe_l_cm']:.1f} cm"
     if report["errors"]:
         text += "  errors " + ", ".join(f"{k} {v}" for k, v in sorted(report["errors"].items()))
+    if report.get("body"):
+        text += f"  body {report['body']}"
     return text
+
+
+def read_body_file(path: Path) -> list[float] | None:
+    """The bone lengths (21, m) kept in a body file, None when there is no file; ReplayError for one that is
+    not a kept body (damaged, or not written by a replay)."""
+    try:
+        kept = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ReplayError(f"{path}: not a kept body ({exc})") from None
+    lengths = kept.get("bone_lengths_m") if isinstance(kept, dict) else None
+    ok = isinstance(lengths, list) and len(lengths) == 21
+    if not ok or not all(isinstance(x, int | float) and 0 < x < 10 for x in lengths):
+        raise ReplayError(f'{path}: not a kept body (expected {{"bone_lengths_m": 21 lengths in metres}})')
+    return [float(x) for x in lengths]
 
 
 class Replayer:
@@ -185,6 +218,7 @@ class Replayer:
         loop: bool = False,
         seconds: float | None = None,
         token: str | None = None,
+        body_file: Path | None = None,
     ) -> None:
         if speed <= 0:
             raise ValueError(f"speed must be > 0, got {speed}")
@@ -195,6 +229,11 @@ class Replayer:
         )
         self.model = model or (recorded.model if recorded else None)
         self.token = token
+        self.body_file = body_file
+        self._kept_body = (
+            None if body_file is None else read_body_file(body_file)
+        )  # checked before connecting
+        self._body_answer: asyncio.Queue[Any] | None = None
         self.stats = ReplayStats()
         self.stopping = False  # set by stop(): the replay ends after the current message, cleanly
         self._sent_at: dict[int, float] = {}  # hmd seq -> perf_counter at send
@@ -209,11 +248,19 @@ class Replayer:
                                max_size=None, open_timeout=10) as ws:  # fmt: skip
                 await ws.send(encode(Hello(role="input", session=self.session, model=self.model,
                                            token=self.token, client="egoposevr replay")))  # fmt: skip
+                self._body_answer = asyncio.Queue()
+                if (
+                    self._kept_body is not None
+                ):  # before the first sample, so that every one is served with it
+                    await ws.send(encode(SetBody(bone_lengths_m=self._kept_body)))
+                    self.stats.body = "given"
                 reader = asyncio.create_task(self._receive(ws))
                 ticker = asyncio.create_task(self._tick(on_second)) if on_second else None
                 try:
                     await self._send_all(ws, reader)
                     await asyncio.wait({reader}, timeout=1.0)  # the last poses
+                    if self.body_file is not None and not reader.done():
+                        await self._keep_body(ws)
                 finally:
                     for task in (reader, ticker):
                         if task is not None:
@@ -223,6 +270,26 @@ class Replayer:
         except (OSError, TimeoutError) as exc:
             raise ReplayError(f"cannot reach {self.url}: {exc}") from None
         return self.stats
+
+    async def _keep_body(self, ws: Any) -> None:
+        """Ask for the body the session knows and write it to the body file if the server measured it."""
+        while not self._body_answer.empty():  # the answer to the set_body at the start
+            self._body_answer.get_nowait()
+        await ws.send(encode(GetBody()))
+        try:
+            async with asyncio.timeout(BODY_ANSWER_S):
+                body = await self._body_answer.get()
+        except TimeoutError:
+            self.stats.body = "not kept: the server did not answer get_body"
+            return
+        if body.given:
+            return  # the session served the kept body: nothing new was measured
+        if not body.measured:
+            self.stats.body = "not kept: the server has not measured this wearer (camera and standing needed)"
+            return
+        record = {"bone_lengths_m": body.bone_lengths_m, "recording": str(self.recording.path)}
+        self.body_file.write_text(json.dumps(record, indent=1))
+        self.stats.body = f"kept in {self.body_file}"
 
     async def _send_all(self, ws: Any, reader: asyncio.Task) -> None:
         start = time.perf_counter()
@@ -268,8 +335,12 @@ class Replayer:
                     continue  # a type this version does not know: ignored (PROTOCOL.md §9)
                 if msg.type == "pose":
                     self._on_pose(msg, received)
+                elif msg.type == "body" and self._body_answer is not None:
+                    self._body_answer.put_nowait(msg)
                 elif msg.type == "error":
                     self.stats.errors[msg.code] = self.stats.errors.get(msg.code, 0) + 1
+                    if msg.ref is not None and msg.ref.type == "set_body":
+                        self.stats.body = f"refused: {msg.message}"
                     if msg.fatal:
                         raise ReplayError(f"the server refused the session: {msg.code}: {msg.message}")
         except ConnectionClosed:

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 
-from loopback import RECORDINGS, running_server
+import numpy as np
+from loopback import RECORDINGS, Client, running_server
 
 from egoposevr.cli.main import main
 from egoposevr.clients.replay import REPORT_KEYS, Recording
+from egoposevr.model.skeleton import joint_bone_lengths
 
 WALK = RECORDINGS / "walk-0000.egrec"
 
@@ -68,3 +70,29 @@ def test_a_fatal_server_error_ends_the_replay_with_its_reason(capsys):
     with running_server(token="s3cret") as server:
         assert main(["replay", str(WALK), "--url", server.url, "--quiet"]) == 1
     assert "auth_failed" in capsys.readouterr().err
+
+
+def test_a_returning_wearer_keeps_the_measured_body_and_is_given_it_next_time(tmp_path, capsys):
+    """--body FILE (PROTOCOL.md §4.2): the first run keeps the body the server measured, the second gives it
+    before its first sample, and every pose of that session has the kept bones; a damaged file fails clearly."""
+    body_file = tmp_path / "wearer.json"
+    with running_server() as server:
+        assert main(["replay", str(WALK), "--url", server.url, "--session", "first", "--body", str(body_file),
+                     "--quiet"]) == 0  # fmt: skip
+        assert f"body kept in {body_file}" in capsys.readouterr().out
+        kept = json.loads(body_file.read_text())["bone_lengths_m"]
+        assert len(kept) == 21
+        with Client(server.url, "second") as viewer:
+            viewer.hello("render", "second")
+            viewer.collect()
+            assert main(["replay", str(WALK), "--url", server.url, "--session", "second", "--body",
+                         str(body_file), "--quiet"]) == 0  # fmt: skip
+            assert capsys.readouterr().out.rstrip().endswith("body given")
+            viewer.wait_for(lambda: len(viewer.poses()) > 300, timeout=30)
+            bodies = [m for _, m in viewer.received if m.type == "body"]
+            assert bodies[0].given and np.allclose(bodies[0].bone_lengths_m, kept, atol=1e-6)
+            served = [joint_bone_lengths(np.reshape(p.joints, (22, 3))) for p in viewer.poses()]
+            assert np.abs(np.array(served) - kept).max() < 2e-3  # from the first pose on
+    body_file.write_text('{"bone_lengths_m": [0.1, 0.2]}')
+    assert main(["replay", str(WALK), "--body", str(body_file), "--quiet"]) == 2
+    assert "not a kept body" in capsys.readouterr().err
