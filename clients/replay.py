@@ -230,9 +230,8 @@ class Replayer:
         self.model = model or (recorded.model if recorded else None)
         self.token = token
         self.body_file = body_file
-        self._kept_body = (
-            None if body_file is None else read_body_file(body_file)
-        )  # checked before connecting
+        # Read now, so that a damaged file fails before connecting.
+        self._kept_body = None if body_file is None else read_body_file(body_file)
         self._body_answer: asyncio.Queue[Any] | None = None
         self.stats = ReplayStats()
         self.stopping = False  # set by stop(): the replay ends after the current message, cleanly
@@ -249,9 +248,8 @@ class Replayer:
                 await ws.send(encode(Hello(role="input", session=self.session, model=self.model,
                                            token=self.token, client="egoposevr replay")))  # fmt: skip
                 self._body_answer = asyncio.Queue()
-                if (
-                    self._kept_body is not None
-                ):  # before the first sample, so that every one is served with it
+                # Before the first sample, so that every one is served with it.
+                if self._kept_body is not None:
                     await ws.send(encode(SetBody(bone_lengths_m=self._kept_body)))
                     self.stats.body = "given"
                 reader = asyncio.create_task(self._receive(ws))
