@@ -106,19 +106,41 @@ inline void float32(msgpack::sbuffer& out, float value) {
     out.write(bytes, sizeof bytes);
 }
 
-template <size_t N>
-void floats(msgpack::sbuffer& out, msgpack::packer<msgpack::sbuffer>& pk, const std::array<float, N>& values) {
-    pk.pack_array(N);
-    for (float v : values) float32(out, v);
-}
+// One message being written: the header (type, v), then each field's key and value in the table's order.
+class Writer {
+   public:
+    Writer(size_t fields, const char* type) : packer_(&buffer_) {
+        packer_.pack_map(fields + 2);
+        field("type", std::string(type)).field("v", 1);
+    }
 
-inline void header(msgpack::packer<msgpack::sbuffer>& pk, size_t fields, const char* type) {
-    pk.pack_map(fields + 2);
-    key(pk, "type");
-    pk.pack(std::string(type));
-    key(pk, "v");
-    pk.pack(1);
-}
+    template <typename T>
+    Writer& field(const char* name, const T& value) {
+        key(packer_, name);
+        packer_.pack(value);
+        return *this;
+    }
+
+    Writer& float_field(const char* name, float value) {
+        key(packer_, name);
+        float32(buffer_, value);
+        return *this;
+    }
+
+    template <size_t N>
+    Writer& floats_field(const char* name, const std::array<float, N>& values) {
+        key(packer_, name);
+        packer_.pack_array(N);
+        for (float v : values) float32(buffer_, v);
+        return *this;
+    }
+
+    msgpack::sbuffer take() { return std::move(buffer_); }
+
+   private:
+    msgpack::sbuffer buffer_;
+    msgpack::packer<msgpack::sbuffer> packer_;
+};
 
 inline const msgpack::object* find(const msgpack::object_map& map, const char* name) {
     for (uint32_t i = 0; i < map.size; ++i) {
@@ -147,84 +169,36 @@ std::array<float, N> read_floats(const msgpack::object_map& map, const char* nam
 }  // namespace detail
 
 inline msgpack::sbuffer encode(const Hello& m) {
-    msgpack::sbuffer buffer;
-    msgpack::packer<msgpack::sbuffer> pk(&buffer);
-    detail::header(pk, 2 + m.model.has_value() + m.token.has_value() + m.client.has_value(), "hello");
-    detail::key(pk, "role");
-    pk.pack(m.role);
-    detail::key(pk, "session");
-    pk.pack(m.session);
-    for (auto [name, value] : {std::pair{"model", &m.model}, {"token", &m.token}, {"client", &m.client}}) {
-        if (!value->has_value()) continue;
-        detail::key(pk, name);
-        pk.pack(**value);
-    }
-    return buffer;
+    detail::Writer w(2 + m.model.has_value() + m.token.has_value() + m.client.has_value(), "hello");
+    w.field("role", m.role).field("session", m.session);
+    for (auto [name, value] : {std::pair{"model", &m.model}, {"token", &m.token}, {"client", &m.client}})
+        if (value->has_value()) w.field(name, **value);
+    return w.take();
 }
 
 inline msgpack::sbuffer encode(const Hmd& m) {
-    msgpack::sbuffer buffer;
-    msgpack::packer<msgpack::sbuffer> pk(&buffer);
-    detail::header(pk, 6, "hmd");
-    detail::key(pk, "seq");
-    pk.pack(m.seq);
-    detail::key(pk, "t_us");
-    pk.pack(m.t_us);
-    detail::key(pk, "head");
-    detail::floats(buffer, pk, m.head);
-    detail::key(pk, "left");
-    detail::floats(buffer, pk, m.left);
-    detail::key(pk, "right");
-    detail::floats(buffer, pk, m.right);
-    detail::key(pk, "valid");
-    pk.pack_array(3);
-    for (bool v : m.valid) pk.pack(v);
-    return buffer;
+    detail::Writer w(6, "hmd");
+    w.field("seq", m.seq).field("t_us", m.t_us);
+    w.floats_field("head", m.head).floats_field("left", m.left).floats_field("right", m.right);
+    return w.field("valid", m.valid).take();
 }
 
-inline msgpack::sbuffer encode(const SelectModel& m) {
-    msgpack::sbuffer buffer;
-    msgpack::packer<msgpack::sbuffer> pk(&buffer);
-    detail::header(pk, 1, "select_model");
-    detail::key(pk, "model");
-    pk.pack(m.model);
-    return buffer;
-}
+inline msgpack::sbuffer encode(const SelectModel& m) { return detail::Writer(1, "select_model").field("model", m.model).take(); }
 
 inline msgpack::sbuffer encode(const Calibrate& m) {
-    msgpack::sbuffer buffer;
-    msgpack::packer<msgpack::sbuffer> pk(&buffer);
-    detail::header(pk, 3, "calibrate");
-    detail::key(pk, "pose");
-    pk.pack(m.pose);
-    detail::key(pk, "seconds");
-    detail::float32(buffer, m.seconds);
-    detail::key(pk, "clear");
-    pk.pack(m.clear);
-    return buffer;
+    detail::Writer w(3, "calibrate");
+    return w.field("pose", m.pose).float_field("seconds", m.seconds).field("clear", m.clear).take();
 }
 
-inline msgpack::sbuffer encode(const GetBody&) {
-    msgpack::sbuffer buffer;
-    msgpack::packer<msgpack::sbuffer> pk(&buffer);
-    detail::header(pk, 0, "get_body");
-    return buffer;
-}
+inline msgpack::sbuffer encode(const GetBody&) { return detail::Writer(0, "get_body").take(); }
 
 // Throws std::invalid_argument for both lengths and clear, or neither (the server would refuse it).
 inline msgpack::sbuffer encode(const SetBody& m) {
     if (m.bone_lengths_m.has_value() == m.clear)
         throw std::invalid_argument("set_body: give bone_lengths_m or clear, not both and not neither");
-    msgpack::sbuffer buffer;
-    msgpack::packer<msgpack::sbuffer> pk(&buffer);
-    detail::header(pk, m.clear ? 1 : 2, "set_body");
-    if (m.bone_lengths_m) {
-        detail::key(pk, "bone_lengths_m");
-        detail::floats(buffer, pk, *m.bone_lengths_m);
-    }
-    detail::key(pk, "clear");
-    pk.pack(m.clear);
-    return buffer;
+    detail::Writer w(m.clear ? 1 : 2, "set_body");
+    if (m.bone_lengths_m) w.floats_field("bone_lengths_m", *m.bone_lengths_m);
+    return w.field("clear", m.clear).take();
 }
 
 // The `type` of a server message; throws ProtocolError for bytes that are not one msgpack map with a type.
