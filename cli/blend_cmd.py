@@ -9,6 +9,8 @@ See model/training/blend.py.
 
 Example (half the bundled pair's start, half its fine-tune):
   egoposevr blend --runs runs/start-m0 runs/tuned-m0 --weights 0.5 0.5 --out runs/half-m0
+A bundled member as a runs folder (the ONNX net loaded as it is, no step taken):
+  egoposevr train --data D --model hmd-rgbd --out runs/start-m0 --encoders model/weights --init-from model/weights --init-member 0 --fusion-steps 0
 """
 
 from __future__ import annotations

@@ -41,7 +41,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="cpu", choices=("cpu", "gpu", "tiny"), help="default cpu")
     parser.add_argument("--seed", type=int, default=None, help="overrides the preset's seed")
     parser.add_argument("--visual-steps", type=int, default=None, metavar="N")
-    parser.add_argument("--fusion-steps", type=int, default=None, metavar="N")
+    parser.add_argument(
+        "--fusion-steps",
+        type=int,
+        default=None,
+        metavar="N",
+        help="fusion training steps (default: the preset's); 0 with --init-from writes the loaded net as it is, "
+        "a runs folder for `egoposevr blend`",
+    )
     parser.add_argument("--limit", type=int, default=None, metavar="N", help="use at most N train sequences")
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="torch threads")
     _number(
