@@ -288,12 +288,8 @@ def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
 
     assert gap(ckpt["state_dict"]) < 1e-3 < gap(fresh)  # one small step away from the file's weights
     # no step: the file's net as it is, a runs folder for `blend` (MODEL_CARD.md, rule 67)
-    assert (
-        main(
-            [*train, "--out", str(tmp_path / "zero"), "--init-from", str(tiny_weights), "--fusion-steps", "0"]
-        )
-        == 0
-    )
+    zero = [*train, "--out", str(tmp_path / "zero"), "--init-from", str(tiny_weights), "--fusion-steps", "0"]
+    assert main(zero) == 0
     assert gap(load_checkpoint(tmp_path / "zero" / "fusion-hmd-rgbd.pt")["state_dict"]) == 0.0
     out = tmp_path / "ft-weights"
     export = ["export", "--runs", str(tmp_path / "ft"), "--out", str(out), "--model", "hmd-rgbd"]
