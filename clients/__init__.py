@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import urllib.parse
+from typing import Any
+
+from ..protocol import SetBody
 
 WS_PATH = "/ws"
 
@@ -35,3 +38,17 @@ def url_argument(text: str) -> str:
         return server_url(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def body_lengths(values: Any) -> list[float]:
+    """A kept body's 21 bone lengths (m) as ``set_body`` carries them, checked by the protocol's own message
+    (PROTOCOL.md §4.2). ValueError for anything else: another count, or a length that is no number, not finite or
+    outside the wire's 0.01-1 m."""
+    try:
+        if isinstance(values, str | bytes) or any(isinstance(v, bool | str | bytes) for v in values):
+            raise TypeError("not numbers")
+        return SetBody(bone_lengths_m=[float(v) for v in values]).bone_lengths_m
+    except (TypeError, ValueError):  # pydantic's ValidationError is a ValueError
+        raise ValueError(
+            f"a body is 21 positive finite bone lengths in metres (0.01-1 m each), got {values!r}"
+        ) from None

@@ -75,7 +75,7 @@ from ..protocol import (
     decode_from_server,
     encode,
 )
-from . import session_url
+from . import body_lengths, session_url
 
 log = logging.getLogger("egoposevr.input")
 # Fatal refusals that retrying cannot fix: a wrong token, a session taken, or a hello the server refuses for
@@ -121,7 +121,7 @@ class HeadsetClient:
         self._body_changed = asyncio.Event()
         self._body_refusal: Error | None = None  # the server's refusal of the last body given, until read
         # The wearer's body given after every welcome (set_body, PROTOCOL.md §4.2), or None: the server estimates it.
-        self.given_body: list[float] | None = None if body is None else _bone_lengths(body)
+        self.given_body: list[float] | None = None if body is None else body_lengths(body)
         self.errors: deque[Error] = deque(maxlen=100)  # the newest error replies
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
@@ -320,8 +320,8 @@ class HeadsetClient:
         """Serve a known wearer's body (21 bone lengths, m, as ``body`` gave them) from the next sample on, and
         give it again after every reconnect; with None, estimate it again (PROTOCOL.md §4.2). Returns the server's
         ``body``. Raises :class:`BodyRefused` for a body the server refuses (not a body's proportions; the
-        session's body stays as it was) and ValueError for one that is not 21 positive finite lengths."""
-        lengths = None if bone_lengths_m is None else _bone_lengths(bone_lengths_m)
+        session's body stays as it was) and ValueError for one the wire does not take (clients.body_lengths)."""
+        lengths = None if bone_lengths_m is None else body_lengths(bone_lengths_m)
         self.given_body = lengths
         msg = SetBody(clear=True) if lengths is None else SetBody(bone_lengths_m=lengths)
         return await self._body_request(msg, timeout_s)
@@ -373,14 +373,3 @@ def encode_frame(rgb: np.ndarray, depth_mm: np.ndarray, jpeg_quality: int = 90) 
 
 def _floats(values: Any) -> list[float]:
     return [float(v) for v in values]
-
-
-def _bone_lengths(values: Any) -> list[float]:
-    """A body's 21 bone lengths (m) as floats; ValueError for any other count, or a length not positive and finite
-    (the server would refuse it as malformed, PROTOCOL.md §4.2)."""
-    lengths = np.asarray(values, dtype=float).reshape(-1)
-    if lengths.shape != (21,) or not np.all(np.isfinite(lengths) & (lengths > 0)):
-        raise ValueError(
-            f"a body is 21 positive finite bone lengths in metres, got {np.asarray(values).tolist()}"
-        )
-    return lengths.tolist()

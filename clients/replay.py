@@ -38,7 +38,7 @@ from ..protocol import (
     encode,
 )
 from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, Cut, read_header, read_records
-from . import session_url
+from . import body_lengths, session_url
 
 LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
 KEEP_SAMPLES = 200_000  # per measured quantity: about 37 minutes of poses at 90 Hz
@@ -198,11 +198,12 @@ def read_body_file(path: Path) -> list[float] | None:
         return None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ReplayError(f"{path}: not a kept body ({exc})") from None
-    lengths = kept.get("bone_lengths_m") if isinstance(kept, dict) else None
-    ok = isinstance(lengths, list) and len(lengths) == 21
-    if not ok or not all(isinstance(x, int | float) and 0 < x < 10 for x in lengths):
-        raise ReplayError(f'{path}: not a kept body (expected {{"bone_lengths_m": 21 lengths in metres}})')
-    return [float(x) for x in lengths]
+    try:
+        return body_lengths(kept["bone_lengths_m"] if isinstance(kept, dict) else None)
+    except (KeyError, ValueError):
+        raise ReplayError(
+            f'{path}: not a kept body (expected {{"bone_lengths_m": 21 lengths in metres}})'
+        ) from None
 
 
 class Replayer:
