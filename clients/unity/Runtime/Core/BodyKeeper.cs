@@ -14,6 +14,7 @@
 // call it from one thread (Unity's main thread).
 using System;
 using System.Globalization;
+using System.Linq;
 
 namespace EgoPose.Protocol
 {
@@ -53,13 +54,13 @@ namespace EgoPose.Protocol
             var body = message as Body;
             if (body != null) sessionGiven = body.Given;
             if (body != null && body.Measured && !body.Given && Valid(body.BoneLengthsM)
-                && (Kept == null || !SameLengths(Kept, body.BoneLengthsM)))
+                && (Kept == null || !Kept.SequenceEqual(body.BoneLengthsM)))
             {
                 Kept = (float[])body.BoneLengthsM.Clone();
                 return true;
             }
             var error = message as Error;
-            if (error != null && Kept != null && error.RefType == "set_body" && error.Code == "out_of_range")
+            if (error != null && Kept != null && error.RefusesBody)
             {
                 Kept = null;
                 return true;
@@ -97,15 +98,6 @@ namespace EgoPose.Protocol
                 if (!float.TryParse(items[i], NumberStyles.Float, CultureInfo.InvariantCulture, out lengths[i])) return null;
             }
             return Valid(lengths) ? lengths : null;
-        }
-
-        static bool SameLengths(float[] a, float[] b)
-        {
-            for (int i = 0; i < a.Length; i++)
-            {
-                if (a[i] != b[i]) return false;
-            }
-            return true;
         }
 
         static bool Valid(float[] lengths)

@@ -374,8 +374,7 @@ namespace EgoPose.Protocol
             var models = message as Models;
             if (models != null) Volatile.Write(ref activeModel, models.Active);
             var error = message as Error;
-            if (error != null && error.RefType == "set_body" && error.Code == "out_of_range")
-                Volatile.Write(ref givenBody, null); // would be refused again at every reconnect
+            if (error != null && error.RefusesBody) Volatile.Write(ref givenBody, null); // not at every reconnect
             if (error != null && error.Fatal)
             {
                 LastError = error.Code + ": " + error.Text;

@@ -320,6 +320,9 @@ namespace EgoPose.Protocol
 
         public override string Type { get { return "error"; } }
 
+        /// <summary>The server refused a body a client gave (§4.2): giving it again would be refused again.</summary>
+        public bool RefusesBody { get { return RefType == "set_body" && Code == "out_of_range"; } }
+
         protected override void WriteFields(MsgMap map)
         {
             map.Add("code", Code).Add("message", Text).Add("fatal", Fatal);
