@@ -233,7 +233,7 @@ class Replayer:
         self.body_file = body_file
         # Read now, so that a damaged file fails before connecting.
         self._kept_body = None if body_file is None else read_body_file(body_file)
-        self._body_answer: asyncio.Queue[Any] | None = None
+        self._body_answer: asyncio.Queue[Any] = asyncio.Queue()  # body messages, for the end's get_body
         self.stats = ReplayStats()
         self.stopping = False  # set by stop(): the replay ends after the current message, cleanly
         self._sent_at: dict[int, float] = {}  # hmd seq -> perf_counter at send
@@ -248,7 +248,6 @@ class Replayer:
                                max_size=None, open_timeout=10) as ws:  # fmt: skip
                 await ws.send(encode(Hello(role="input", session=self.session, model=self.model,
                                            token=self.token, client="egoposevr replay")))  # fmt: skip
-                self._body_answer = asyncio.Queue()
                 # Before the first sample, so that every one is served with it.
                 if self._kept_body is not None:
                     await ws.send(encode(SetBody(bone_lengths_m=self._kept_body)))
@@ -334,7 +333,7 @@ class Replayer:
                     continue  # a type this version does not know: ignored (PROTOCOL.md §9)
                 if msg.type == "pose":
                     self._on_pose(msg, received)
-                elif msg.type == "body" and self._body_answer is not None:
+                elif msg.type == "body":
                     self._body_answer.put_nowait(msg)
                 elif msg.type == "error":
                     self.stats.errors[msg.code] = self.stats.errors.get(msg.code, 0) + 1
