@@ -52,7 +52,7 @@ function connect(session) {
   history.replaceState(null, "", url);
   ws = new WebSocket(wsUrl(session));
   ws.binaryType = "arraybuffer";
-  ws.onopen = () => ws.send(encode({ type: "hello", v: 1, role: "render", session, client: "egoposevr viewer" }));
+  ws.onopen = () => send({ type: "hello", role: "render", session, client: "egoposevr viewer" });
   ws.onmessage = (event) => onMessage(decode(new Uint8Array(event.data)));
   ws.onclose = () => { state.connected = false; setTimeout(() => connect(state.session), 1000); };
 }
@@ -116,10 +116,17 @@ function wearer() {
   return name || null;
 }
 
-function sendToSession(msg) {
-  if (!ws || ws.readyState !== 1) { state.bodyNote = "not connected"; return false; }
+// A message to the server now; false when the connection is not open (the page reconnects by itself).
+function send(msg) {
+  if (!ws || ws.readyState !== 1) return false;
   ws.send(encode({ type: msg.type, v: 1, ...msg }));
   return true;
+}
+
+function sendToSession(msg) {
+  const sent = send(msg);
+  if (!sent) state.bodyNote = "not connected";
+  return sent;
 }
 
 function keptBody(name) {
@@ -160,8 +167,8 @@ $("estimateBody").onclick = () => {
 
 $("session").onchange = (e) => connect(e.target.value);
 $("calibrate").onclick = () =>
-  ws && ws.readyState === 1 && ws.send(encode({ type: "calibrate", v: 1, pose: "tpose", seconds: 2.0 }));
-$("model").onchange = (e) => ws && ws.readyState === 1 && ws.send(encode({ type: "select_model", v: 1, model: e.target.value }));
+  send({ type: "calibrate", pose: "tpose", seconds: 2.0 });
+$("model").onchange = (e) => send({ type: "select_model", model: e.target.value });
 
 // ------------------------------------------------------------------------------------------ colours
 function colourOf(j) { return LEFT.has(j) ? 0xff8c3c : RIGHT.has(j) ? 0x3ca0ff : 0xe6e6e6; }
