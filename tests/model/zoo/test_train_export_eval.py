@@ -1217,6 +1217,24 @@ def _eval_runs(args: list[str], runs: tuple[tuple[str, list[str]], ...], tmp_pat
     return served
 
 
+SWITCH_KEYS = ("mpjpe_u_cm", "mpjpe_l_cm", "foot_skate_cm_s")
+
+
+def _switch_and_flag(tiny_data: Path, tiny_weights: Path, tmp_path: Path, option: str) -> dict[str, dict]:
+    """`hmd-rgbd` served beside `hmd-rgbd@OPTION` ("switch") and alone with `--OPTION` ("flag"): {run: eval's
+    models}. The switch's label serves what the flag does."""
+    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
+    runs = (
+        ("switch", ["--models", f"hmd-rgbd,hmd-rgbd@{option}"]),
+        ("flag", ["--models", "hmd-rgbd", f"--{option}"]),
+    )
+    served = _eval_runs(args, runs, tmp_path)
+    assert all(
+        served["switch"][f"hmd-rgbd@{option}"][k] == served["flag"]["hmd-rgbd"][k] for k in SWITCH_KEYS
+    )
+    return served
+
+
 def test_eval_serves_one_model_with_and_without_a_runtime_stage_side_by_side(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
@@ -1290,18 +1308,10 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
         return joints, rots
 
     monkeypatch.setattr(evaluate_module, "replay_sequence", recording_replay)
-    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
-    served = _eval_runs(
-        args,
-        (
-            ("switch", ["--models", "hmd-rgbd,hmd-rgbd@truth-body"]),
-            ("flag", ["--models", "hmd-rgbd", "--truth-body"]),
-        ),
-        tmp_path,
+    served = _switch_and_flag(tiny_data, tiny_weights, tmp_path, "truth-body")
+    assert any(
+        served["switch"]["hmd-rgbd@truth-body"][k] != served["switch"]["hmd-rgbd"][k] for k in SWITCH_KEYS
     )
-    keys = ("mpjpe_u_cm", "mpjpe_l_cm", "foot_skate_cm_s")
-    assert all(served["switch"]["hmd-rgbd@truth-body"][k] == served["flag"]["hmd-rgbd"][k] for k in keys)
-    assert any(served["switch"]["hmd-rgbd@truth-body"][k] != served["switch"]["hmd-rgbd"][k] for k in keys)
     assert max(e.max() for e in served_bones["truth"]) < 1e-4  # metres, every bone of every sample
     assert max(e.max() for e in served_bones["estimate"]) > 5e-3
 
@@ -1323,17 +1333,7 @@ def test_eval_serves_a_returning_wearer_the_body_their_first_pass_ended_with(
         return joints, rots
 
     monkeypatch.setattr(evaluate_module, "replay_sequence", recording_replay)
-    args = ["eval", "--data", str(tiny_data), "--models-dir", str(tiny_weights), "--no-progress"]
-    served = _eval_runs(
-        args,
-        (
-            ("switch", ["--models", "hmd-rgbd,hmd-rgbd@returning"]),
-            ("flag", ["--models", "hmd-rgbd", "--returning"]),
-        ),
-        tmp_path,
-    )
-    keys = ("mpjpe_u_cm", "mpjpe_l_cm", "foot_skate_cm_s")
-    assert all(served["switch"]["hmd-rgbd@returning"][k] == served["flag"]["hmd-rgbd"][k] for k in keys)
+    _switch_and_flag(tiny_data, tiny_weights, tmp_path, "returning")
     pairs = [(before, now) for before, now in itertools.pairwise(passes) if now[0]]  # the given passes
     assert len(pairs) == 2 * len(load_split(tiny_data, "val"))  # each sequence once per run, switch and flag
     for (was_given, _, learnt), (_, lengths, _) in pairs:
