@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from ..model.training.blend import blend_runs
 
     try:
-        written = blend_runs(args.runs, args.weights, args.out)
+        written = blend_runs(args.runs, args.weights, args.out, args.command_line)
     except (FileNotFoundError, ValueError) as error:  # CheckpointError is a ValueError
         print(f"egoposevr blend: {error}", file=sys.stderr)
         return 2

@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         names = resolve(args.model)
-        errors = export_zoo(names, args.runs, args.out, args.encoders, args.lean_gate)
+        errors = export_zoo(names, args.runs, args.out, args.encoders, args.lean_gate, args.command_line)
     except (ValueError, FileNotFoundError) as error:
         print(f"egoposevr export: {error}", file=sys.stderr)
         return 2

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     ridge = DEFAULT_RIDGE if args.ridge is None else args.ridge
     try:
         written = fit_body_regressors(
-            args.weights, args.data, args.split, args.check_split or None, ridge, progress
+            args.weights, args.data, args.split, args.check_split or None, ridge, progress, args.command_line
         )
     except (DatasetError, ModelError, ValueError) as error:
         print(f"egoposevr fit-body: {error}", file=sys.stderr)

@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from importlib.metadata import PackageNotFoundError, version
 
+from ..model.provenance import package_version
 from . import (
     bench_cmd,
     blend_cmd,
@@ -50,13 +50,6 @@ SUBCOMMANDS = (
 )
 
 
-def package_version() -> str:
-    try:
-        return version("egoposevr")
-    except PackageNotFoundError:  # running from a source tree that was never installed
-        return "0+unknown"
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="egoposevr", description="EgoPoseVR: real-time full-body pose server for VR headsets."
@@ -78,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # the command line as typed, for what records how a file was made (model/provenance.py)
+    args.command_line = ["egoposevr", *(sys.argv[1:] if argv is None else argv)]
     return args.run(args)
 
 

@@ -1,19 +1,29 @@
 """List the models a server would serve: name, inputs and description, plus files that fail to load.
 
+With --training, each model's file and encoder also say how they were made: their digests, and for each net
+its data (and the data's digest), steps, seed, start and the command, code and machine that ran it, as the
+files record them (model/provenance.py; files made before those were recorded say so).
+
 Examples:
   egoposevr models
   egoposevr models --models-dir ./models
+  egoposevr models --training egoposevr
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="extra ONNX models")
     parser.add_argument("--no-bundled", action="store_true", help="leave out the bundled models")
+    parser.add_argument(
+        "--training", nargs="*", default=None, metavar="NAME",
+        help="also say how each named model (every model without names) and its encoder were made",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -21,8 +31,36 @@ def run(args: argparse.Namespace) -> int:
 
     registry = ModelRegistry(args.models_dir, bundled=not args.no_bundled)
     registry.rescan()
+    unknown = sorted(set(args.training or ()) - set(registry.models))
     for name, model in registry.models.items():
+        if args.training is not None and args.training and name not in args.training:
+            continue
         print(f"{name:18s} {'+'.join(model.info.inputs):14s} {model.info.description}")
+        if args.training is not None:
+            _print_training(model.info)
     for path, reason in registry.failures.items():
         print(f"FAILED {path}: {reason}")
-    return 0 if registry.models and not registry.failures else 1
+    for name in unknown:
+        print(f"UNKNOWN {name}: no such model (egoposevr models lists them)")
+    return 0 if registry.models and not registry.failures and not unknown else 1
+
+
+def _print_training(info: Any) -> None:
+    """A model's file and its encoder's, each with its digest and its training record described."""
+    from ..model.provenance import describe, describe_fit, file_digest
+    from ..model.runtime.body import regressor_path
+
+    if getattr(info, "path", None) is None:
+        print("  no file: the model is code, trained on nothing")
+        return
+    files = [(info.path, info.metadata.training)]
+    if info.visual_path is not None and info.encoder is not None:
+        files.append((info.visual_path, info.encoder.training))
+    for path, record in files:
+        print(f"  {path.name}, sha256 {file_digest(path)[:16]}:")
+        for line in describe(record, "  "):
+            print(f"    {line}")
+    if info.body_regressor is not None:
+        print(f"  {regressor_path(info.visual_path).name}, the encoder's body regressor:")
+        for line in describe_fit(info.body_regressor.record):
+            print(f"    {line}")

@@ -314,6 +314,7 @@ def run(args: argparse.Namespace) -> int:
             initial_visual,
             args.encoders_out_of_fold,
             head_offsets_m,
+            args.command_line,
         )
     except (DatasetError, ModelError, DeviceError, TeacherError, CheckpointError) as error:
         print(f"egoposevr train: {error}", file=sys.stderr)

@@ -19,8 +19,30 @@ TORCH_ALLOWED = [
 ]
 # Which parts of model/ each layer may import (absolute names under egoposevr.model).
 MODEL_LAYERS = {
-    "runtime": {"runtime", "config", "skeleton", "rotations", "hmd", "inputs", "rig", "zoo", "weights"},
-    "shared": {"runtime", "config", "skeleton", "rotations", "hmd", "inputs", "rig", "zoo", "weights"},
+    "runtime": {
+        "runtime",
+        "config",
+        "skeleton",
+        "rotations",
+        "hmd",
+        "inputs",
+        "rig",
+        "zoo",
+        "weights",
+        "provenance",
+    },
+    "shared": {
+        "runtime",
+        "config",
+        "skeleton",
+        "rotations",
+        "hmd",
+        "inputs",
+        "rig",
+        "zoo",
+        "weights",
+        "provenance",
+    },
 }
 PROTOCOL_FORBIDDEN = {
     "asyncio",

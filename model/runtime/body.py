@@ -36,7 +36,6 @@ Shape legend: ``J`` = 22 joints (bone j joins joint j to its parent; bone 0 is u
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from collections import deque
@@ -46,6 +45,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from ..provenance import file_digest
 from ..rig import STILLNESS_OFFSET_M
 from ..skeleton import (
     FOOT_JOINT_HEIGHT_M,
@@ -284,10 +284,6 @@ def _discriminant(x: np.ndarray, label: np.ndarray, w: np.ndarray, k: int) -> np
     return np.concatenate([slopes, offsets[:, None]], axis=1)
 
 
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def regressor_path(encoder_path: Path) -> Path:
     """Where the regressor of an encoder lives: visual-rgbd.onnx -> visual-rgbd.body.json."""
     return encoder_path.with_name(encoder_path.stem + REGRESSOR_SUFFIX)
@@ -300,7 +296,7 @@ def load_regressor_for(encoder_path: Path) -> BodyRegressor | None:
     if not path.exists():
         return None
     regressor = BodyRegressor.load(path)
-    if regressor.encoder_sha256 != file_sha256(encoder_path):
+    if regressor.encoder_sha256 != file_digest(encoder_path):
         raise ValueError(
             f"{path.name} was fitted on another {encoder_path.name}; run egoposevr fit-body again"
         )

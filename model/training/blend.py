@@ -17,13 +17,14 @@ training record, which ``export`` writes into the model file's) and is finished 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from .export import training_record
-from .train import CheckpointError, build_net, load_checkpoint, save_checkpoint
+from .train import CheckpointError, build_net, invocation_record, load_checkpoint, save_checkpoint
 
 # Fields of the first checkpoint a blend keeps as they are (what the net is and what it learnt from).
 _KEPT_FIELDS = ("kind", "name", "config", "visual", "data", "rig_offsets_m", "init", "train_config")
@@ -41,10 +42,12 @@ def blend_weights(weights: list[float], count: int) -> list[float]:
     return [float(w) / total for w in weights]
 
 
-def blend_checkpoints(paths: list[Path], weights: list[float]) -> dict[str, Any]:
-    """The checkpoint of the net whose learnt weights are ``weights``' mean of ``paths``' nets. ValueError
-    (CheckpointError for an unreadable file) when the nets are not of one kind, config and encoder, or their
-    buffers differ."""
+def blend_checkpoints(
+    paths: list[Path], weights: list[float], command: Sequence[str] | None = None
+) -> dict[str, Any]:
+    """The checkpoint of the net whose learnt weights are ``weights``' mean of ``paths``' nets; its record
+    names each net's file and digest and this invocation (``command``). ValueError (CheckpointError for an
+    unreadable file) when the nets are not of one kind, config and encoder, or their buffers differ."""
     if len(paths) < 2:
         raise ValueError("a blend needs two checkpoints or more")
     shares = blend_weights(weights, len(paths))
@@ -77,20 +80,26 @@ def blend_checkpoints(paths: list[Path], weights: list[float]) -> dict[str, Any]
         "blend": {
             "from": [str(p) for p in paths],
             "weights": shares,
-            "nets": [training_record(ckpt) for ckpt in ckpts],
+            "nets": [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)],
+            "run": invocation_record(command),
         },
     }
 
 
-def blend_runs(runs_dirs: list[Path], weights: list[float], out_dir: Path) -> list[Path]:
+def blend_runs(
+    runs_dirs: list[Path], weights: list[float], out_dir: Path, command: Sequence[str] | None = None
+) -> list[Path]:
     """Each fusion checkpoint that every runs folder holds, blended with its namesakes, written to
-    ``out_dir`` under the same name; returns the files written. FileNotFoundError when they share none."""
+    ``out_dir`` under the same name; returns the files written. FileNotFoundError when they share none.
+    ``command``: the command line the blends record."""
     held = [{p.name for p in Path(d).glob("fusion-*.pt")} for d in runs_dirs]
     names = sorted(set.intersection(*held))
     if not names:
         folders = ", ".join(str(d) for d in runs_dirs)
         raise FileNotFoundError(f"{folders}: no fusion checkpoint (fusion-<model>.pt) is in every one")
-    blends = {name: blend_checkpoints([Path(d) / name for d in runs_dirs], weights) for name in names}
+    blends = {
+        name: blend_checkpoints([Path(d) / name for d in runs_dirs], weights, command) for name in names
+    }
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for name, payload in blends.items():

@@ -20,10 +20,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import onnxruntime as ort
 
+from .. import provenance
 from ..inputs import VisibilityFilter, decode_rgbd
 from ..rig import joints_from_devices
-from ..runtime.body import REGRESSOR_SUFFIX, BodyCalibrator, BodyRegressor, file_sha256, regressor_path
+from ..runtime.body import REGRESSOR_SUFFIX, BodyCalibrator, BodyRegressor, regressor_path
 from ..runtime.frames import encode_frame
 from ..runtime.loading import LoadedModel
 from ..skeleton import NUM_JOINTS, rest_offsets
@@ -106,9 +108,11 @@ def fit_encoder(
     check_split: str | None = "val",
     ridge: float = DEFAULT_RIDGE,
     progress: Progress | None = None,
+    command: Sequence[str] | None = None,
 ) -> BodyRegressor:
     """The regressor of ``model``'s visual encoder, fitted on ``split`` of every dataset (and checked on
-    ``check_split`` of those that have it). Raises ValueError when no dataset has the check split."""
+    ``check_split`` of those that have it); its record names the data's digest and this invocation
+    (``command``: model/provenance.py). Raises ValueError when no dataset has the check split."""
     check_dirs = check_datasets(data_dirs, check_split)
     _, snapshots, truth = _observe_split(model, data_dirs, split, progress)
     # Every sequence weighs 1 in all, however many snapshots it made, so that the ridge penalty means
@@ -118,13 +122,14 @@ def fit_encoder(
         np.array([r[0] for r in rows]),
         [r[1] for r in rows],
         np.array([r[2] for r in rows]),
-        file_sha256(model.info.visual_path),
+        provenance.file_digest(model.info.visual_path),
         float(model.info.rig_offsets_m[0, 1]),
         ridge,
         np.array([r[3] for r in rows]),
     )
     record: dict[str, Any] = {
-        **fitted.record, "data": [str(d) for d in data_dirs], "split": split, "sequences": len(snapshots)
+        **fitted.record, "data": [str(d) for d in data_dirs], "split": split, "sequences": len(snapshots),
+        "data_sha256": provenance.data_digest(data_dirs, split), "run": _fit_record(command),
     }  # fmt: skip
     if check_split:
         bodies, snapshots, truth = _observe_split(model, check_dirs, check_split, progress)
@@ -132,6 +137,13 @@ def fit_encoder(
         record["check_data"] = [str(d) for d in check_dirs]
         record["summed_bone_error_cm"] = _check_errors(fitted, bodies, snapshots, truth)
     return dataclasses.replace(fitted, record=record)
+
+
+def _fit_record(command: Sequence[str] | None) -> dict[str, Any]:
+    """This fit's invocation: the command, the code and the machine (onnxruntime at its default threads)."""
+    libraries = {"onnxruntime": ort.__version__, "numpy": np.__version__}
+    host = provenance.machine("cpu", 0, libraries)
+    return provenance.run_record(command, provenance.code_version(), host)
 
 
 def _check_errors(
@@ -161,6 +173,7 @@ def fit_body_regressors(
     check_split: str | None = "val",
     ridge: float = DEFAULT_RIDGE,
     progress: Progress | None = None,
+    command: Sequence[str] | None = None,
 ) -> dict[Path, BodyRegressor]:
     """A regressor for every depth-seeing visual encoder the folder's models use, fitted on the datasets'
     ``split`` together and written beside it -> {path: regressor}. Earlier regressors in the folder are
@@ -175,7 +188,7 @@ def fit_body_regressors(
         encoder = model.info.visual_path
         if not model.measures_body or regressor_path(encoder) in written:
             continue
-        regressor = fit_encoder(model, data_dirs, split, check_split, ridge, progress)
+        regressor = fit_encoder(model, data_dirs, split, check_split, ridge, progress, command)
         regressor.save(regressor_path(encoder))
         written[regressor_path(encoder)] = regressor
     return written

@@ -14,7 +14,7 @@ import contextlib
 import dataclasses
 import shutil
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ import onnxruntime as ort
 import torch
 from google.protobuf.message import DecodeError
 
+from .. import provenance
 from ..config import (
     FORMAT_VERSION,
     CameraInfo,
@@ -44,7 +45,7 @@ from ..skeleton import JOINT_NAMES
 from ..zoo import ZOO
 from .nets.fusion import ContactOutputs, FusionNet, MirrorAveraged, SeedEnsemble
 from .nets.visual import KeypointNet
-from .train import InitialVisual, InitialWeights, build_net, load_checkpoint
+from .train import InitialVisual, InitialWeights, build_net, invocation_record, load_checkpoint
 
 PARITY_TOL = 1e-4
 OPSET = 23  # the first with an Attention operator (onnxruntime >= 1.23 runs it)
@@ -159,20 +160,29 @@ def _batched_against_single(single: onnx.ModelProto, batched: onnx.ModelProto, b
     return float(np.abs(many.run(None, feed)[0] - np.concatenate(rows)).max())
 
 
-def training_record(ckpt: dict[str, Any]) -> dict[str, Any]:
-    """What a model file says of how one net was made: its data, steps, seed, time and last losses, and where
-    it applies, its teachers, its start (``init``) or the nets it blends (``blend``, each with its own record)."""
-    return {
+_RECORDED_FIELDS = ("teachers", "init", "encoders", "keypoints_out_of_fold", "blend", "runs")
+
+
+def training_record(ckpt: dict[str, Any], path: Path | None = None) -> dict[str, Any]:
+    """What a model file says of how one net was made: its data (with its digest), steps, seed, time and last
+    losses, and where they apply, its teachers, its start (``init``), the encoders its keypoints came from,
+    the nets it blends (``blend``, each with its own record) and the invocations that ran it (``runs``: the
+    provenance module); with ``path``, the checkpoint file and its digest."""
+    record = {
         "data": ckpt.get("data"),
         "steps": ckpt["step"],
         "seed": ckpt["train_config"]["seed"],
         "train_seconds": round(ckpt["train_seconds"], 1),
         "final_losses": ckpt["history"][-1] if ckpt["history"] else {},
-    } | {key: ckpt[key] for key in ("teachers", "init", "keypoints_out_of_fold", "blend") if key in ckpt}
+    } | {key: ckpt[key] for key in _RECORDED_FIELDS if key in ckpt}
+    if path is not None:
+        record["checkpoint"] = {"from": str(path), "sha256": provenance.file_digest(path)}
+    return record
 
 
-def export_visual(ckpt_path: Path, out_path: Path) -> float:
-    """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error."""
+def export_visual(ckpt_path: Path, out_path: Path, command: Sequence[str] | None = None) -> float:
+    """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error. ``command``: the command line its
+    record names."""
     ckpt = load_checkpoint(ckpt_path)
     module = _VisualOutputs(build_net(ckpt, ckpt_path)).eval()
     cfg = module.net.cfg
@@ -181,7 +191,8 @@ def export_visual(ckpt_path: Path, out_path: Path) -> float:
     _export(module, (example,), out_path, (["image"], ["uv", "depth_m", "zeta"]), {"image": {0: batch}})
     _set_metadata(out_path, EncoderMetadata(
         format=FORMAT_VERSION, kind="visual", name=ckpt["name"], config=cfg,
-        camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES, training=training_record(ckpt),
+        camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES,
+        training=training_record(ckpt, ckpt_path) | {"export": invocation_record(command)},
         units="image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
               "depth_m metres along the optical axis; zeta probability in view",
     ))  # fmt: skip
@@ -246,10 +257,17 @@ def copy_encoder(source: Path, out_path: Path) -> None:
         regressor_path(out_path).unlink(missing_ok=True)  # a stale one would not match these bytes
 
 
-def export_model(name: str, runs_dirs: list[Path], out_path: Path, lean_gate: bool = False) -> float:
+def export_model(
+    name: str,
+    runs_dirs: list[Path],
+    out_path: Path,
+    lean_gate: bool = False,
+    command: Sequence[str] | None = None,
+) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
     :class:`SeedEnsemble`); returns the parity error. ``lean_gate``: a model with KPO asks the runtime for
-    the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there)."""
+    the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there).
+    ``command``: the command line its record names."""
     entry = ZOO[name]
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
@@ -257,10 +275,9 @@ def export_model(name: str, runs_dirs: list[Path], out_path: Path, lean_gate: bo
     cfg = nets[0].cfg
     offsets = _rig_offsets(ckpts, paths)
     module = _served_module(nets)
-    if len(nets) > 1:
-        training: dict[str, Any] = {"ensemble": [training_record(ckpt) for ckpt in ckpts]}
-    else:
-        training = training_record(ckpts[0])
+    records = [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
+    training = {"ensemble": records} if len(records) > 1 else records[0]
+    training["export"] = invocation_record(command)
     _export_fusion(module, cfg, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
@@ -516,12 +533,14 @@ def export_zoo(
     out_dir: Path,
     encoders_dir: Path | None = None,
     lean_gate: bool = False,
+    command: Sequence[str] | None = None,
 ) -> dict[str, float | None]:
     """Every named model and the visual encoders they use -> out_dir; {file name: parity error}. With
     ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
     regressors are that folder's, copied as they are (None: nothing exported, nothing to check). Several
     runs folders make each model the :class:`SeedEnsemble` of their nets; they must then have been trained
-    on one set of encoders, given as ``encoders_dir``. ``lean_gate``: as :func:`export_model`."""
+    on one set of encoders, given as ``encoders_dir``. ``lean_gate`` and ``command``: as
+    :func:`export_model`."""
     if len(runs_dirs) > 1 and encoders_dir is None:
         raise ValueError(
             "an ensemble of several runs needs --encoders: the encoders its nets were trained on"
@@ -535,7 +554,7 @@ def export_zoo(
             copy_encoder(encoders_dir / name, out_dir / name)
             errors[name] = None
         else:
-            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name)
+            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, command)
     for name in names:
-        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_dir / f"{name}.onnx", lean_gate)
+        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_dir / f"{name}.onnx", lean_gate, command)
     return errors

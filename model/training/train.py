@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from .. import provenance
 from ..config import FusionConfig, VisualConfig, parse, to_fields
 from ..hmd import hmd_features, hmd_input_dim, tracking_features
 from ..inputs import (
@@ -273,6 +274,17 @@ def _finished(path: Path, tc: TrainConfig, seqs: list[dict[str, Any]]) -> bool:
     return ckpt["step"] >= ckpt["total_steps"]
 
 
+def _check_same_data(ckpt: dict[str, Any], path: Path, data: dict[str, Any]) -> None:
+    """A run resumes on the bytes it started on: CheckpointError when its recorded data digest is not this
+    data's ``data`` record's (a checkpoint from before 2026-12-06 records none and is not checked)."""
+    then = (ckpt.get("data") or {}).get("sha256") if isinstance(ckpt.get("data"), dict) else None
+    if then is not None and then != data.get("sha256"):
+        raise CheckpointError(
+            f"{path} was trained on other data (sha256 {then[:16]}, this data {data.get('sha256', '')[:16]}): "
+            "a resumed run would learn from both; train into another --out"
+        )
+
+
 def _check_same_hold_out(
     ckpt: dict[str, Any], path: Path, tc: TrainConfig, seqs: list[dict[str, Any]]
 ) -> None:
@@ -299,6 +311,18 @@ def _people_digest(seqs: list[dict[str, Any]]) -> str:
     return hashlib.sha256("\n".join(subjects(seqs)).encode()).hexdigest()
 
 
+def invocation_record(command: Sequence[str] | None, device: str = "cpu") -> dict[str, Any]:
+    """This invocation's provenance (train, blend, export): the command, the code, and the machine with the
+    device and torch's thread count (a net's bits depend on them)."""
+    host = provenance.machine(device, torch.get_num_threads(), {"torch": torch.__version__})
+    return provenance.run_record(command, provenance.code_version(), host)
+
+
+def _unrecorded_runs(step: int) -> list[dict[str, Any]]:
+    """What a checkpoint from before runs were recorded (2026-12-06) says of the steps it had run."""
+    return [{"from_step": 0, "to_step": step, "recorded": False}] if step else []
+
+
 def _schedule(tc: TrainConfig, total: int) -> Callable[[int], float]:
     def factor(step: int) -> float:
         if step < tc.warmup_steps:
@@ -319,15 +343,19 @@ def _run_steps(
     meta: dict[str, Any],
     resume: bool,
     progress: bool,
+    command: Sequence[str] | None = None,
 ) -> dict[str, Any]:
-    """The shared optimisation loop: AdamW + warmup/cosine, checkpoints every 500 steps and at the end."""
+    """The shared optimisation loop: AdamW + warmup/cosine, checkpoints every 500 steps and at the end. The
+    checkpoint's ``runs`` lists each invocation that advanced it (``command``, the code, the machine: the
+    provenance module) with the steps it ran."""
     # fused: one kernel over every parameter instead of a loop over 182 tensors (CPU: 7.4 -> 1.4 ms a step of
     # the cpu preset's fusion net, about a tenth of the step; the same update up to rounding).
     opt = torch.optim.AdamW(net.parameters(), lr=tc.lr, weight_decay=tc.weight_decay, fused=True)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _schedule(tc, total))
-    step, history, elapsed = 0, [], 0.0
+    step, history, elapsed, runs = 0, [], 0.0, []
     if resume and ckpt_path.exists():
         ckpt = load_checkpoint(ckpt_path)
+        _check_same_data(ckpt, ckpt_path, meta["data"])
         if (
             "rig_offsets_m" in ckpt
             and "rig_offsets_m" in meta
@@ -349,6 +377,7 @@ def _run_steps(
                 group["lr"] = tc.lr * sched.lr_lambdas[0](sched.last_epoch)  # as the schedule has it now
             sched.base_lrs = [tc.lr] * len(opt.param_groups)
             step, history, elapsed = ckpt["step"], ckpt["history"], ckpt["train_seconds"]
+            runs = ckpt.get("runs") or _unrecorded_runs(step)
         except (RuntimeError, ValueError, KeyError) as error:
             raise CheckpointError(
                 f"{ckpt_path} cannot be resumed: its weights do not fit the net these flags train, or it lacks "
@@ -360,10 +389,12 @@ def _run_steps(
     bar = tqdm(total=total, initial=step, desc=ckpt_path.stem, disable=not progress, dynamic_ncols=True)
     running: dict[str, float] = {}
     started = time.perf_counter()
+    this_run = invocation_record(command, tc.device) | {"from_step": step}
 
     def save() -> dict[str, Any]:
         payload = {
             **meta,
+            "runs": [*runs, this_run | {"to_step": step, "seconds": round(time.perf_counter() - started, 1)}],
             "state_dict": net.state_dict(),
             "optimizer": opt.state_dict(),
             "scheduler": sched.state_dict(),
@@ -504,6 +535,7 @@ def train_visual(
     progress: bool = True,
     seqs: list[dict[str, Any]] | None = None,
     initial: InitialVisual | None = None,
+    command: Sequence[str] | None = None,
 ) -> Path:
     """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``; with ``initial``, a fine-tune of that
     encoder (its batch norms' statistics frozen, the learning rate FINE_TUNE_LR_SCALE of the preset's)."""
@@ -522,9 +554,10 @@ def train_visual(
     if initial is not None:
         net.load_state_dict(initial.state_dict)
         net.freeze_statistics()
-        meta["init"] = {"from": initial.source}
+        meta["init"] = {"from": initial.source, "sha256": provenance.file_digest(initial.source)}
         tc = dataclasses.replace(tc, lr=tc.lr * FINE_TUNE_LR_SCALE)
-    _run_steps(net, visual_loss_fn(net, frames, tc), path, tc.visual_steps, tc, meta, resume, progress)
+    loss_fn = visual_loss_fn(net, frames, tc)
+    _run_steps(net, loss_fn, path, tc.visual_steps, tc, meta, resume, progress, command)
     return path
 
 
@@ -945,6 +978,7 @@ def train_fusion(
     initial: InitialWeights | None = None,
     out_of_fold: Sequence[Path] = (),
     head_offsets_m: np.ndarray | None = None,
+    command: Sequence[str] | None = None,
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
     checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``, or with
@@ -962,8 +996,9 @@ def train_fusion(
         return path
     entry = ZOO[name]
     visual: KeypointNet | ExportedEncoder | OutOfFoldEncoders | None = None
+    encoder_files: list[Path] = []
     if entry.visual:
-        visual = _stage_one(entry.visual, out_dir, encoders_dir, tc, out_of_fold, seqs)
+        visual, encoder_files = _stage_one(entry.visual, out_dir, encoders_dir, tc, out_of_fold, seqs)
     torch.manual_seed(tc.seed)
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
@@ -981,15 +1016,21 @@ def train_fusion(
             "rig_offsets_m": offsets_m.tolist()}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
+    if encoder_files:  # the bytes its keypoints came from
+        meta["encoders"] = [{"from": str(f), "sha256": provenance.file_digest(f)} for f in encoder_files]
     if initial is not None:
-        meta["init"] = {"from": initial.source, "member": initial.member}
+        meta["init"] = {
+            "from": initial.source,
+            "member": initial.member,
+            "sha256": provenance.file_digest(initial.source),
+        }
         if keeper is not None:
             meta["init"]["keep_upper_weight"] = tc.keep_upper_weight
             meta["init"]["keep_joints"] = tc.keep_joints
     if out_of_fold and entry.visual:
         meta["keypoints_out_of_fold"] = [str(d) for d in out_of_fold]
     loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None, keeper)
-    _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress)
+    _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress, command)
     return path
 
 
@@ -1125,12 +1166,17 @@ def _stage_one(
     tc: TrainConfig,
     out_of_fold: Sequence[Path] = (),
     seqs: list[dict[str, Any]] | None = None,
-) -> KeypointNet | ExportedEncoder | OutOfFoldEncoders:
+) -> tuple[KeypointNet | ExportedEncoder | OutOfFoldEncoders, list[Path]]:
+    """Stage 2's encoder of ``kind`` (out-of-fold encoders, an exported one, or this run's checkpoint) and
+    the files it was read from."""
     if out_of_fold:
-        return OutOfFoldEncoders([d / f"visual-{kind}.onnx" for d in out_of_fold], seqs or [], tc.threads)
+        files = [d / f"visual-{kind}.onnx" for d in out_of_fold]
+        return OutOfFoldEncoders(files, seqs or [], tc.threads), files
     if encoders_dir is not None:
-        return ExportedEncoder(encoders_dir / f"visual-{kind}.onnx", tc.threads)
-    return load_net(out_dir / f"visual-{kind}.pt").to(tc.device)
+        file = encoders_dir / f"visual-{kind}.onnx"
+        return ExportedEncoder(file, tc.threads), [file]
+    file = out_dir / f"visual-{kind}.pt"
+    return load_net(file).to(tc.device), [file]
 
 
 def augmented(seqs: list[dict[str, Any]], tc: TrainConfig) -> list[dict[str, Any]]:
@@ -1197,12 +1243,13 @@ def training_sequences(data_dirs: tuple[Path, ...], tc: TrainConfig) -> list[dic
 def _data_field(
     data_dirs: tuple[Path, ...], tc: TrainConfig, seqs: list[dict[str, Any]], **counts: int
 ) -> dict[str, Any]:
-    """A checkpoint's ``data`` record: the folders, the fold left out and the people left in (when a fold is
-    left out), the sequences and other counts."""
+    """A checkpoint's ``data`` record: the folders, the digest of their training shards' bytes, the fold left
+    out and the people left in (when a fold is left out), the sequences and other counts."""
     held = (
         {"held_out_fold": tc.hold_out, "trained_subjects_sha256": _people_digest(seqs)} if tc.hold_out else {}
     )
-    return {"dir": _dirs_field(data_dirs), **held, "sequences": len(seqs), **counts}
+    digest = provenance.data_digest(data_dirs)
+    return {"dir": _dirs_field(data_dirs), "sha256": digest, **held, "sequences": len(seqs), **counts}
 
 
 def _dirs_field(data_dirs: tuple[Path, ...]) -> str | list[str]:
@@ -1239,6 +1286,7 @@ def train_zoo(
     initial_visual: dict[str, InitialVisual] | None = None,
     out_of_fold: Sequence[Path] = (),
     head_offsets_m: np.ndarray | None = None,
+    command: Sequence[str] | None = None,
 ) -> dict[str, Path]:
     """Everything the named models need, in dependency order: visual encoders, then fusion nets. With
     ``encoders_dir`` the fusion nets read that folder's exported encoders and none is trained; with
@@ -1247,7 +1295,7 @@ def train_zoo(
     ("rgb", "rgbd") to the exported encoder it is fine-tuned from; with ``out_of_fold`` (folders of encoders
     that each left a fold of people out) the fusion nets read each sequence's keypoints from the one that
     never saw its person, and none is trained; ``head_offsets_m`` (3, 3) the offsets the fusion nets train
-    at instead of :func:`training_offsets`' choice."""
+    at instead of :func:`training_offsets`' choice; ``command`` the command line each checkpoint records."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -1269,7 +1317,7 @@ def train_zoo(
     if encoders_dir is None and not out_of_fold:
         paths = {
             f"visual-{k}": train_visual(
-                k, data_dirs, out_dir, tc, resume, progress, seqs, (initial_visual or {}).get(k)
+                k, data_dirs, out_dir, tc, resume, progress, seqs, (initial_visual or {}).get(k), command
             )
             for k in visuals
         }
@@ -1277,6 +1325,6 @@ def train_zoo(
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
             f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f],
-            (initial or {}).get(f), out_of_fold, head_offsets_m,
+            (initial or {}).get(f), out_of_fold, head_offsets_m, command,
         )  # fmt: skip
     return paths

@@ -2,12 +2,14 @@
 
 import itertools
 import json
+import shlex
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from egoposevr.cli.main import main
+from egoposevr.model import provenance
 from egoposevr.model.rig import joints_from_devices
 from egoposevr.model.rotations import geodesic_angle
 from egoposevr.model.runtime import hands
@@ -52,6 +54,55 @@ def test_resume_continues_a_finished_run_without_retraining(tiny_data, tiny_runs
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tiny_runs)]
     assert main([*args, "--visual-steps", "4", "--fusion-steps", "4", "--resume", "--no-progress"]) == 0
     assert (tiny_runs / "fusion-hmd.pt").stat().st_mtime_ns == before
+
+
+def test_training_twice_gives_the_same_bits_and_each_file_says_how_it_was_made(tiny_data, tmp_path, capsys):
+    """Training is deterministic for a seed, data, code and thread count, so a file's record says what makes
+    it again: each checkpoint names its command, code, machine, the data's digest and the encoder it read; a
+    resumed run adds its own run and is refused on other bytes; `models --training` reads it all back from the
+    exported files."""
+    import torch
+
+    args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    args += ["--visual-steps", "3", "--fusion-steps", "3", "--threads", "1", "--seed", "4"]
+    for out in ("a", "b"):
+        assert main([*args, "--out", str(tmp_path / out)]) == 0
+    for name in ("visual-rgbd.pt", "fusion-hmd-rgbd.pt"):
+        a, b = (load_checkpoint(tmp_path / out / name) for out in "ab")
+        assert all(torch.equal(tensor, b["state_dict"][key]) for key, tensor in a["state_dict"].items())
+        assert a["data"]["sha256"] == provenance.data_digest([tiny_data])
+        (run,) = a["runs"]
+        assert run["command"] == shlex.join(["egoposevr", *args, "--out", str(tmp_path / "a")])
+        assert (run["from_step"], run["to_step"], run["machine"]["threads"]) == (0, 3, 1)
+    encoder = tmp_path / "a" / "visual-rgbd.pt"
+    path = tmp_path / "a" / "fusion-hmd-rgbd.pt"
+    ckpt = load_checkpoint(path)
+    assert ckpt["encoders"] == [{"from": str(encoder), "sha256": provenance.file_digest(encoder)}]
+
+    ckpt["step"], ckpt["runs"][0]["to_step"] = 1, 1  # stopped after a step, then resumed
+    torch.save(ckpt, path)
+    assert main([*args, "--out", str(tmp_path / "a"), "--resume"]) == 0
+    first, then = load_checkpoint(path)["runs"]
+    assert (first["to_step"], then["from_step"], then["to_step"]) == (1, 1, 3)
+    assert then["command"].endswith("--resume")
+    ckpt = load_checkpoint(path)
+    ckpt["step"], ckpt["data"]["sha256"] = 1, "0" * 64  # as if it had learnt from other bytes
+    torch.save(ckpt, path)
+    assert main([*args, "--out", str(tmp_path / "a"), "--resume"]) == 2
+    assert "trained on other data" in capsys.readouterr().err
+
+    weights = tmp_path / "w"
+    assert main(["export", "--runs", str(tmp_path / "b"), "--out", str(weights), "--model", "hmd-rgbd"]) == 0
+    capsys.readouterr()
+    assert main(["models", "--no-bundled", "--models-dir", str(weights), "--training", "hmd-rgbd"]) == 0
+    said = capsys.readouterr().out
+    for file in ("hmd-rgbd.onnx", "visual-rgbd.onnx"):
+        assert f"{file}, sha256 {provenance.file_digest(weights / file)[:16]}:" in said
+    assert said.count(shlex.join(["egoposevr", *args, "--out", str(tmp_path / "b")])) == 2  # both nets
+    assert f"sha256 {provenance.data_digest([tiny_data])[:16]}" in said and "exported on" in said
+    assert f"checkpoint {tmp_path / 'b' / 'fusion-hmd-rgbd.pt'}" in said
+    assert main(["models", "--no-bundled", "--models-dir", str(weights), "--training", "nope"]) == 1
+    assert "UNKNOWN nope" in capsys.readouterr().out
 
 
 def test_the_temporal_term_trains_on_pairs_of_consecutive_windows(tiny_data, tmp_path):
@@ -280,7 +331,8 @@ def test_a_fusion_net_fine_tunes_from_the_weights_an_exported_model_holds(
     _, _, (bundled,) = load_served_nets(tiny_weights / "hmd-rgbd.onnx")
     start = bundled.state_dict()
     ckpt = load_checkpoint(tmp_path / "ft" / "fusion-hmd-rgbd.pt")
-    assert ckpt["init"] == {"from": str(tiny_weights / "hmd-rgbd.onnx"), "member": 0}
+    file = tiny_weights / "hmd-rgbd.onnx"
+    assert ckpt["init"] == {"from": str(file), "member": 0, "sha256": provenance.file_digest(file)}
     fresh = load_checkpoint(tmp_path / "fresh" / "fusion-hmd-rgbd.pt")["state_dict"]
 
     def gap(state: dict[str, torch.Tensor]) -> float:
@@ -338,6 +390,8 @@ def test_a_net_and_its_fine_tune_blend_weight_by_weight_and_export_like_any_run(
     assert record["weights"] == [0.25, 0.75] and record["nets"][1]["init"]["from"] == str(
         tiny_weights / "hmd-rgbd.onnx"
     )
+    assert record["run"]["command"].startswith("egoposevr blend --runs")  # and each net's bytes
+    assert record["nets"][1]["checkpoint"]["sha256"] == provenance.file_digest(tuned / name)
 
     capsys.readouterr()
     other = tmp_path / "other"
@@ -383,7 +437,7 @@ def test_an_encoder_fine_tunes_from_the_weights_an_exported_encoder_holds(
     train += ["--visual-steps", "1", "--fusion-steps", "1", "--seed", "5"]
     assert main([*train, "--out", str(tmp_path / "ft"), "--init-visual", str(encoder)]) == 0
     ckpt = load_checkpoint(tmp_path / "ft" / "visual-rgbd.pt")
-    assert ckpt["init"] == {"from": str(encoder)}
+    assert ckpt["init"] == {"from": str(encoder), "sha256": provenance.file_digest(encoder)}
     gap = max(
         float((ckpt["state_dict"][k].float() - v.float()).abs().max()) for k, v in start.state_dict.items()
     )
@@ -393,7 +447,7 @@ def test_an_encoder_fine_tunes_from_the_weights_an_exported_encoder_holds(
     )
     out = tmp_path / "ft-weights"
     assert main(["export", "--runs", str(tmp_path / "ft"), "--out", str(out), "--model", "hmd-rgbd"]) == 0
-    assert load_encoder(out / "visual-rgbd.onnx")[1].training["init"] == {"from": str(encoder)}
+    assert load_encoder(out / "visual-rgbd.onnx")[1].training["init"] == ckpt["init"]
 
     capsys.readouterr()
     assert main([*train, "--out", str(tmp_path / "x"), "--init-visual", str(tiny_weights / "hmd.onnx")]) == 2
@@ -466,7 +520,7 @@ def test_a_fine_tune_starts_from_a_model_file_named_otherwise_than_its_net(
     train += ["--encoders", str(tiny_weights), "--init-from", str(lite)]
     assert main([*train, "--model", "egoposevr", "--out", str(tmp_path / "ft")]) == 0
     ckpt = load_checkpoint(tmp_path / "ft" / "fusion-hmd-rgbd.pt")
-    assert ckpt["init"] == {"from": str(lite), "member": 0}
+    assert ckpt["init"] == {"from": str(lite), "member": 0, "sha256": provenance.file_digest(lite)}
     _, _, (start,) = load_served_nets(lite)
     gap = max(
         float((ckpt["state_dict"][k].float() - v.float()).abs().max()) for k, v in start.state_dict().items()
@@ -1484,6 +1538,10 @@ def test_fit_body_writes_a_regressor_its_models_load_and_a_new_encoder_retires_i
     assert "visual-rgbd.body.json" in capsys.readouterr().out
     regressor = LoadedModel.load(out / "egoposevr.onnx").info.body_regressor
     assert regressor is not None and regressor.record["split"] == "train"
+    assert regressor.record["data_sha256"] == provenance.data_digest([tiny_data])  # and how it was fitted:
+    assert regressor.record["run"]["command"].startswith("egoposevr fit-body --data")
+    assert main(["models", "--no-bundled", "--models-dir", str(out), "--training", "egoposevr"]) == 0
+    assert "visual-rgbd.body.json, the encoder's body regressor:" in capsys.readouterr().out
     # A regressor describes one encoder's keypoints: beside another encoder it is refused, clearly...
     sidecar = json.loads((out / "visual-rgbd.body.json").read_text())
     stale = {**sidecar, "encoder_sha256": "0" * 64}

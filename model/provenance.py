@@ -1,0 +1,222 @@
+"""Where a trained net came from beyond its flags: the command that made it, the code and the machine that ran
+it, and digests of the bytes it read (the data's shards, the model file it started from, the encoder it read).
+
+A checkpoint's ``runs`` list holds one :func:`run_record` per ``egoposevr train`` invocation that advanced it
+(a resumed run adds one), and ``export`` copies it into the model file's ``training`` record, beside the
+data's ``sha256`` and the start's and the encoder's. Training is deterministic for a given seed, data, code and
+thread count (the tests train twice and compare the bits), so these say what is needed to make a file again,
+and :func:`describe` prints them for people (``egoposevr models --training``). Files made before these were
+recorded (MODEL_CARD.md names them) say so instead.
+
+No torch and no numpy here: the serving side prints records too.
+"""
+
+from __future__ import annotations
+
+import datetime
+import functools
+import hashlib
+import os
+import platform
+import shlex
+import subprocess
+from collections.abc import Iterable, Sequence
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any, Final
+
+_SOURCE_DIR: Final = Path(__file__).resolve().parent  # the package's model/; a git work tree when editable
+_GIT_TIMEOUT_S: Final = 5.0
+_CHUNK_BYTES: Final = 1 << 20
+
+
+def file_digest(path: str | Path) -> str:
+    """sha256 (hex) of one file's bytes."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def data_digest(data_dirs: Sequence[Path], split: str = "train") -> str:
+    """sha256 (hex) over the named split's shards of each dataset folder, in the order given: each shard's
+    folder position, name and bytes. A set re-rendered by the same command gives the same digest (shards are
+    written with fixed timestamps: model/synth/archive.py)."""
+    return _data_digest(tuple(_shard_stamps(Path(d), split) for d in data_dirs))
+
+
+def _shard_stamps(data_dir: Path, split: str) -> tuple[tuple[str, int, int], ...]:
+    """(path, size, mtime_ns) of a folder's split shards, sorted: the cache key of their digest."""
+    shards = sorted((data_dir / split).glob("shard-*.npz"))
+    return tuple((str(p.resolve()), (s := p.stat()).st_size, s.st_mtime_ns) for p in shards)
+
+
+@functools.lru_cache(maxsize=8)
+def _data_digest(folders: tuple[tuple[tuple[str, int, int], ...], ...]) -> str:
+    """The digest of :func:`data_digest`, once per set of unchanged files (a zoo's nets read the same data)."""
+    digest = hashlib.sha256()
+    for position, shards in enumerate(folders):
+        for path, _, _ in shards:
+            digest.update(f"{position}/{Path(path).name}\n".encode())
+            with open(path, "rb") as f:
+                while chunk := f.read(_CHUNK_BYTES):
+                    digest.update(chunk)
+    return digest.hexdigest()
+
+
+def package_version() -> str:
+    """The installed package's version; ``0+unknown`` from a source tree that was never installed."""
+    try:
+        return version("egoposevr")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def code_version() -> dict[str, Any]:
+    """The code that runs: the package's version and, when it runs from a git work tree (an editable
+    install), the commit and whether tracked files differ from it; ``None`` for either where git cannot
+    tell."""
+    commit = _git("rev-parse", "HEAD")
+    changed = _git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {
+        "version": package_version(),
+        "commit": commit,
+        "dirty": None if changed is None else bool(changed),
+    }
+
+
+def _git(*args: str) -> str | None:
+    """git's trimmed output run in the package's folder; None where that is not a work tree or git fails."""
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(_SOURCE_DIR), *args],
+            capture_output=True, text=True, timeout=_GIT_TIMEOUT_S, check=False,
+        )  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def machine(device: str, threads: int, libraries: dict[str, str] | None = None) -> dict[str, Any]:
+    """The machine a run trains on: platform, CPU model and count, Python, the training device and thread
+    count (results depend on it: reductions split otherwise), and the libraries' versions given."""
+    return {
+        "platform": platform.platform(),
+        "cpu": _cpu_model(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "device": device,
+        "threads": threads,
+        **(libraries or {}),
+    }
+
+
+def _cpu_model() -> str:
+    """The CPU's model name (Linux's /proc/cpuinfo; else what platform says)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def run_record(command: Sequence[str] | None, code: dict[str, Any], host: dict[str, Any]) -> dict[str, Any]:
+    """One invocation's record: its command line (None when not run from the command line) and the folder it
+    ran in (the command's relative paths are from there), when it began (UTC), the code and the machine."""
+    return {
+        "command": shlex.join(command) if command is not None else None,
+        "cwd": os.getcwd(),
+        "started_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "code": code,
+        "machine": host,
+    }
+
+
+def describe(record: dict[str, Any], indent: str = "  ") -> list[str]:
+    """A model file's ``training`` record as lines for people: an ensemble's and a blend's nets nested under
+    them, each net's steps, seed, data, start, encoder and runs."""
+    return list(_describe(record, indent, 0))
+
+
+def describe_fit(record: dict[str, Any]) -> list[str]:
+    """A body regressor's record (``egoposevr fit-body``) as lines for people: its data and its run."""
+    dirs = " ".join(record.get("data") or [])
+    lines = [
+        f"fitted on {dirs} ({record.get('sequences')} sequences of {record.get('split')}), "
+        f"sha256 {_short(record.get('data_sha256'))}"
+    ]
+    return lines + list(_runs("ran", [record["run"]] if "run" in record else [], ""))
+
+
+def _describe(record: dict[str, Any], indent: str, depth: int) -> Iterable[str]:
+    pad = indent * depth
+    if "ensemble" in record:
+        nets = record["ensemble"]
+        yield f"{pad}the mean of {len(nets)} nets:"
+        for k, net in enumerate(nets, 1):
+            yield f"{pad}{indent}net {k}:"
+            yield from _describe(net, indent, depth + 2)
+        if "export" in record:
+            yield from _runs("exported", [record["export"]], pad)
+        return
+    if "blend" in record:
+        blend = record["blend"]
+        weights = ", ".join(f"{w:.2f}" for w in blend.get("weights", []))
+        yield f"{pad}a weight-space blend ({weights}) of:"
+        nets = blend.get("nets") or [None] * len(blend.get("from", []))
+        for source, net in zip(blend.get("from", []), nets, strict=False):
+            yield f"{pad}{indent}{source}:"
+            if net is None:  # the first blends kept only their files' names
+                yield f"{pad}{indent * 2}its record was not kept"
+                continue
+            yield from _describe(net, indent, depth + 2)
+        yield from _runs("blended", [blend["run"]] if "run" in blend else [], pad)
+    else:
+        yield from _net_lines(record, pad)
+    if checkpoint := record.get("checkpoint"):
+        yield f"{pad}checkpoint {checkpoint.get('from')}, sha256 {_short(checkpoint.get('sha256'))}"
+    if "export" in record:
+        yield from _runs("exported", [record["export"]], pad)
+
+
+def _net_lines(record: dict[str, Any], pad: str) -> Iterable[str]:
+    """One trained net: what it read and how it ran."""
+    yield f"{pad}{record.get('steps')} steps, seed {record.get('seed')}"
+    data = record.get("data") or {}
+    dirs = data.get("dir")
+    dirs = " ".join(dirs) if isinstance(dirs, list) else dirs
+    yield f"{pad}data {dirs} ({data.get('sequences')} sequences), sha256 {_short(data.get('sha256'))}"
+    if held := data.get("held_out_fold"):
+        yield f"{pad}people of fold {held} left out"
+    if init := record.get("init"):
+        member = f" member {init['member']}" if "member" in init else ""
+        yield f"{pad}started from {init.get('from')}{member}, sha256 {_short(init.get('sha256'))}"
+    for encoder in record.get("encoders", []):
+        yield f"{pad}keypoints from {encoder.get('from')}, sha256 {_short(encoder.get('sha256'))}"
+    yield from _runs("ran", record.get("runs", []), pad)
+
+
+def _runs(verb: str, runs: list[dict[str, Any]], pad: str) -> Iterable[str]:
+    """A record's invocations, or that none were recorded."""
+    if not runs:
+        yield f"{pad}{verb}: not recorded (made before runs were recorded)"
+    for run in runs:
+        code, host = run.get("code") or {}, run.get("machine") or {}
+        steps = f" steps {run['from_step']}-{run.get('to_step')}" if "from_step" in run else ""
+        if run.get("recorded") is False:
+            yield f"{pad}{verb}{steps}: not recorded (run before runs were recorded)"
+            continue
+        commit = code.get("commit") or "unknown commit"
+        dirty = " (with local changes)" if code.get("dirty") else ""
+        command = run.get("command") or "(not from the command line)"
+        yield f"{pad}{verb}{steps} on {run.get('started_utc')} in {run.get('cwd')}: {command}"
+        yield f"{pad}  code {code.get('version')} {commit}{dirty}"
+        yield (
+            f"{pad}  machine {host.get('cpu')} ({host.get('cpus')} CPUs), device {host.get('device')}, "
+            f"{host.get('threads')} threads, {host.get('platform')}"
+        )
+
+
+def _short(digest: str | None) -> str:
+    """A digest as people compare it (the first 16 hex digits), or that it was not recorded."""
+    return digest[:16] if digest else "not recorded"
