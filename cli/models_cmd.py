@@ -1,13 +1,15 @@
 """List the models a server would serve: name, inputs and description, plus files that fail to load.
 
 With --training, each model's file and encoder also say how they were made: their digests, and for each net
-its data (and the data's digest), steps, seed, start and the command, code and machine that ran it, as the
-files record them (model/provenance.py; files made before those were recorded say so).
+its data (and the data's digest), steps, seed, start and the command, code and machine that ran it, and how
+each file it started from was made, as the files record them (model/provenance.py; files made before those
+were recorded say so). With --recipe, the commands that made each named model's file, in the order they ran.
 
 Examples:
   egoposevr models
   egoposevr models --models-dir ./models
   egoposevr models --training egoposevr
+  egoposevr models --recipe egoposevr
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--training", nargs="*", default=None, metavar="NAME",
         help="also say how each named model (every model without names) and its encoder were made",
     )  # fmt: skip
+    parser.add_argument(
+        "--recipe", nargs="+", default=None, metavar="NAME",
+        help="print the commands that made each named model's file, in the order they ran",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
 
     registry = ModelRegistry(args.models_dir, bundled=not args.no_bundled)
     registry.rescan()
-    unknown = sorted(set(args.training or ()) - set(registry.models))
+    unknown = sorted((set(args.training or ()) | set(args.recipe or ())) - set(registry.models))
+    if args.recipe is not None:
+        return _print_recipes(registry.models, args.recipe, unknown)
     for name, model in registry.models.items():
         if args.training is not None and args.training and name not in args.training:
             continue
@@ -43,6 +51,21 @@ def run(args: argparse.Namespace) -> int:
     for name in unknown:
         print(f"UNKNOWN {name}: no such model (egoposevr models lists them)")
     return 0 if registry.models and not registry.failures and not unknown else 1
+
+
+def _print_recipes(models: dict[str, Any], names: list[str], unknown: list[str]) -> int:
+    """Each named model's recipe (provenance.recipe), as shell lines under a comment naming the file."""
+    from ..model.provenance import file_digest, recipe
+
+    for name in names:
+        info = models[name].info if name in models else None
+        if info is None or getattr(info, "path", None) is None:
+            print(f"# {name}: {'no such model' if info is None else 'no file: the model is code'}")
+            continue
+        print(f"# {info.path.name}, sha256 {file_digest(info.path)[:16]}")
+        for line in recipe(info.metadata.training):
+            print(line)
+    return 1 if unknown else 0
 
 
 def _print_training(info: Any) -> None:

@@ -132,10 +132,105 @@ def run_record(command: Sequence[str] | None, code: dict[str, Any], host: dict[s
     }
 
 
+def ancestry(digest: str, record: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """A file's record as an entry of the ``ancestors`` map of what was made from it: {its digest: its record}
+    plus the files it was made from, flat (each file once, however many nets started from it)."""
+    own = {key: value for key, value in record.items() if key != "ancestors"}
+    return {digest: own, **record.get("ancestors", {})}
+
+
+def hoist_ancestors(record: dict[str, Any]) -> dict[str, Any]:
+    """A record tree (an ensemble's or a blend's nets nested) with every net's ``ancestors`` gathered into one
+    map at its root, so that a file made from one start many times records that start once."""
+    gathered: dict[str, dict[str, Any]] = {}
+
+    def gather(node: dict[str, Any]) -> dict[str, Any]:
+        gathered.update(node.get("ancestors", {}))
+        node = {key: value for key, value in node.items() if key != "ancestors"}
+        if "ensemble" in node:
+            node["ensemble"] = [gather(net) for net in node["ensemble"]]
+        if "nets" in node.get("blend", {}):
+            node["blend"] = {**node["blend"], "nets": [gather(net) for net in node["blend"]["nets"]]}
+        return node
+
+    root = gather(record)
+    return root | ({"ancestors": gathered} if gathered else {})
+
+
 def describe(record: dict[str, Any], indent: str = "  ") -> list[str]:
     """A model file's ``training`` record as lines for people: an ensemble's and a blend's nets nested under
-    them, each net's steps, seed, data, start, encoder and runs."""
-    return list(_describe(record, indent, 0))
+    them, each net's steps, seed, data, start, encoder and runs, and the record of each file it started from
+    or read keypoints from (its ``ancestors``) under the line that names it, once."""
+    return list(_describe(record, indent, 0, _Ancestors(record.get("ancestors", {}))))
+
+
+class _Ancestors:
+    """The ancestors map of the root record, and which of them have been printed."""
+
+    def __init__(self, records: dict[str, dict[str, Any]]) -> None:
+        self.records, self.shown = records, set()
+
+    def take(self, digest: str | None) -> dict[str, Any] | None:
+        """An ancestor's record the first time it is asked for; None after, or if it is not recorded."""
+        if digest is None or digest in self.shown or digest not in self.records:
+            return None
+        self.shown.add(digest)
+        return self.records[digest]
+
+
+def recipe(record: dict[str, Any]) -> list[str]:
+    """The commands that made a file, in the order they ran: each file it started from or read keypoints from
+    first (its ``ancestors``), then each net's training, each blend and the export; one line each, with the
+    folder it ran in, the commit and the thread count as a comment, and a comment where a step was not
+    recorded. A command that made several files (the encoder and the net of one ``train``) is listed once."""
+    ancestors = record.get("ancestors", {})
+    lines: list[str] = []
+    listed: set[tuple[Any, ...]] = set()
+    made: set[str] = set()
+
+    def runs(entries: list[dict[str, Any]], what: str) -> None:
+        if not entries:
+            lines.append(f"# {what}: not recorded")
+        for run in entries:
+            key = (run.get("command"), run.get("cwd"), run.get("started_utc"))
+            if run.get("recorded") is False or run.get("command") is None:
+                lines.append(f"# {what}: not recorded")
+            elif key not in listed:
+                listed.add(key)
+                lines.append(_recipe_line(run))
+
+    def from_file(digest: str | None) -> None:
+        if digest in ancestors and digest not in made:
+            made.add(digest)
+            node(ancestors[digest])
+
+    def node(r: dict[str, Any]) -> None:
+        for net in r.get("ensemble", []):
+            node(net)
+        if "blend" in r:
+            for net in r["blend"].get("nets", []):
+                node(net)
+            runs([r["blend"]["run"]] if "run" in r["blend"] else [], "a blend")
+        elif "ensemble" not in r:
+            from_file((r.get("init") or {}).get("sha256"))
+            for encoder in r.get("encoders", []):
+                from_file(encoder.get("sha256"))
+            runs(r.get("runs", []), f"{r.get('steps')} steps, seed {r.get('seed')}")
+        if "export" in r:
+            runs([r["export"]], "the export")
+
+    node(record)
+    return lines
+
+
+def _recipe_line(run: dict[str, Any]) -> str:
+    """One recorded invocation as a shell line: into its folder, its command, and what else decides its bits."""
+    code, host = run.get("code") or {}, run.get("machine") or {}
+    commit = (code.get("commit") or "unknown commit")[:12] + (
+        " with local changes" if code.get("dirty") else ""
+    )
+    where = f"cd {shlex.quote(run['cwd'])} && " if run.get("cwd") else ""
+    return f"{where}{run['command']}  # code {commit}; {host.get('threads')} threads on {host.get('device')}"
 
 
 def describe_fit(record: dict[str, Any]) -> list[str]:
@@ -148,14 +243,14 @@ def describe_fit(record: dict[str, Any]) -> list[str]:
     return lines + list(_runs("ran", [record["run"]] if "run" in record else [], ""))
 
 
-def _describe(record: dict[str, Any], indent: str, depth: int) -> Iterable[str]:
+def _describe(record: dict[str, Any], indent: str, depth: int, ancestors: _Ancestors) -> Iterable[str]:
     pad = indent * depth
     if "ensemble" in record:
         nets = record["ensemble"]
         yield f"{pad}the mean of {len(nets)} nets:"
         for k, net in enumerate(nets, 1):
             yield f"{pad}{indent}net {k}:"
-            yield from _describe(net, indent, depth + 2)
+            yield from _describe(net, indent, depth + 2, ancestors)
         if "export" in record:
             yield from _runs("exported", [record["export"]], pad)
         return
@@ -169,18 +264,20 @@ def _describe(record: dict[str, Any], indent: str, depth: int) -> Iterable[str]:
             if net is None:  # the first blends kept only their files' names
                 yield f"{pad}{indent * 2}its record was not kept"
                 continue
-            yield from _describe(net, indent, depth + 2)
+            yield from _describe(net, indent, depth + 2, ancestors)
         yield from _runs("blended", [blend["run"]] if "run" in blend else [], pad)
     else:
-        yield from _net_lines(record, pad)
+        yield from _net_lines(record, indent, depth, ancestors)
     if checkpoint := record.get("checkpoint"):
         yield f"{pad}checkpoint {checkpoint.get('from')}, sha256 {_short(checkpoint.get('sha256'))}"
     if "export" in record:
         yield from _runs("exported", [record["export"]], pad)
 
 
-def _net_lines(record: dict[str, Any], pad: str) -> Iterable[str]:
-    """One trained net: what it read and how it ran."""
+def _net_lines(record: dict[str, Any], indent: str, depth: int, ancestors: _Ancestors) -> Iterable[str]:
+    """One trained net: what it read (with the record of a file it started from or read, nested) and how it
+    ran."""
+    pad = indent * depth
     yield f"{pad}{record.get('steps')} steps, seed {record.get('seed')}"
     data = record.get("data") or {}
     dirs = data.get("dir")
@@ -191,8 +288,12 @@ def _net_lines(record: dict[str, Any], pad: str) -> Iterable[str]:
     if init := record.get("init"):
         member = f" member {init['member']}" if "member" in init else ""
         yield f"{pad}started from {init.get('from')}{member}, sha256 {_short(init.get('sha256'))}"
+        if (made := ancestors.take(init.get("sha256"))) is not None:
+            yield from _describe(made, indent, depth + 1, ancestors)
     for encoder in record.get("encoders", []):
         yield f"{pad}keypoints from {encoder.get('from')}, sha256 {_short(encoder.get('sha256'))}"
+        if (made := ancestors.take(encoder.get("sha256"))) is not None:
+            yield from _describe(made, indent, depth + 1, ancestors)
     yield from _runs("ran", record.get("runs", []), pad)
 
 

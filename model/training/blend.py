@@ -23,6 +23,7 @@ from typing import Any
 
 import torch
 
+from .. import provenance
 from .export import training_record
 from .train import CheckpointError, build_net, invocation_record, load_checkpoint, save_checkpoint
 
@@ -70,20 +71,22 @@ def blend_checkpoints(
             continue
         state[key] = sum(share * v.double() for share, v in zip(shares, values, strict=True)).to(tensor.dtype)
     payload = {field: first[field] for field in _KEPT_FIELDS if field in first}
-    return payload | {
-        "state_dict": state,
-        "step": first["total_steps"],
-        "total_steps": first["total_steps"],
-        "history": [],
-        "train_seconds": 0.0,
-        # the top level's data, seed and start are the first net's; each blended net's own are here
-        "blend": {
-            "from": [str(p) for p in paths],
-            "weights": shares,
-            "nets": [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)],
-            "run": invocation_record(command),
-        },
-    }
+    return payload | provenance.hoist_ancestors(
+        {
+            "state_dict": state,
+            "step": first["total_steps"],
+            "total_steps": first["total_steps"],
+            "history": [],
+            "train_seconds": 0.0,
+            # the top level's data, seed and start are the first net's; each blended net's own are here
+            "blend": {
+                "from": [str(p) for p in paths],
+                "weights": shares,
+                "nets": [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)],
+                "run": invocation_record(command),
+            },
+        }
+    )
 
 
 def blend_runs(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import re
 import shutil
 import warnings
 from collections.abc import Iterator, Sequence
@@ -160,14 +161,15 @@ def _batched_against_single(single: onnx.ModelProto, batched: onnx.ModelProto, b
     return float(np.abs(many.run(None, feed)[0] - np.concatenate(rows)).max())
 
 
-_RECORDED_FIELDS = ("teachers", "init", "encoders", "keypoints_out_of_fold", "blend", "runs")
+_RECORDED_FIELDS = ("teachers", "init", "encoders", "keypoints_out_of_fold", "blend", "runs", "ancestors")
 
 
 def training_record(ckpt: dict[str, Any], path: Path | None = None) -> dict[str, Any]:
     """What a model file says of how one net was made: its data (with its digest), steps, seed, time and last
     losses, and where they apply, its teachers, its start (``init``), the encoders its keypoints came from,
-    the nets it blends (``blend``, each with its own record) and the invocations that ran it (``runs``: the
-    provenance module); with ``path``, the checkpoint file and its digest."""
+    the nets it blends (``blend``, each with its own record), the invocations that ran it (``runs``: the
+    provenance module) and the records of the files it started from or read (``ancestors``); with ``path``,
+    the checkpoint file and its digest."""
     record = {
         "data": ckpt.get("data"),
         "steps": ckpt["step"],
@@ -192,7 +194,9 @@ def export_visual(ckpt_path: Path, out_path: Path, command: Sequence[str] | None
     _set_metadata(out_path, EncoderMetadata(
         format=FORMAT_VERSION, kind="visual", name=ckpt["name"], config=cfg,
         camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES,
-        training=training_record(ckpt, ckpt_path) | {"export": invocation_record(command)},
+        training=provenance.hoist_ancestors(
+            training_record(ckpt, ckpt_path) | {"export": invocation_record(command)}
+        ),
         units="image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
               "depth_m metres along the optical axis; zeta probability in view",
     ))  # fmt: skip
@@ -243,7 +247,7 @@ def initial_visual_state(path: Path, cfg: VisualConfig) -> InitialVisual:
         if found is None or tuple(found.shape) != tuple(want.shape):
             raise ValueError(f"{path}: no weight for {key} {tuple(want.shape)} in the graph")
         state[key] = torch.from_numpy(np.array(found, copy=True))
-    return InitialVisual(str(path), state)
+    return InitialVisual(str(path), state, metadata.training)
 
 
 def copy_encoder(source: Path, out_path: Path) -> None:
@@ -277,7 +281,7 @@ def export_model(
     module = _served_module(nets)
     records = [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
     training = {"ensemble": records} if len(records) > 1 else records[0]
-    training["export"] = invocation_record(command)
+    training = provenance.hoist_ancestors(training | {"export": invocation_record(command)})
     _export_fusion(module, cfg, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
@@ -451,6 +455,10 @@ def load_served_nets(path: Path) -> tuple[onnx.ModelProto, ModelMetadata, list[F
     nets = [FusionNet(metadata.config).eval() for _ in range(members)]
     module = _served_module(nets, bool(metadata.training.get("mirror_averaged")))
     module.load_state_dict(_state_dict_from_graph(original, module, path))
+    # what was read back must serve what the file serves (a shared buffer read as the wrong one would not)
+    worst = max(_parity(module, path, _fusion_inputs(metadata.config, batch)) for batch in (1, 2))
+    if worst > PARITY_TOL:
+        raise ValueError(f"{path}: its nets read back serve {worst:.2e} away from the file")
     return original, metadata, nets
 
 
@@ -466,7 +474,9 @@ def initial_fusion_state(source: Path, fusion_name: str, member: int, cfg: Fusio
         raise ValueError(f"{path} serves {len(nets)} net(s): no member {member}")
     if metadata.config != cfg:
         raise ValueError(f"{path}: its net is configured otherwise than this run's flags make it")
-    return InitialWeights(str(path), member, nets[member].state_dict(), metadata.rig_offsets_m)
+    return InitialWeights(
+        str(path), member, nets[member].state_dict(), metadata.rig_offsets_m, metadata.training
+    )
 
 
 def reexport_model(path: Path) -> float:
@@ -508,13 +518,25 @@ def _state_dict_from_graph(
         matmul = next((matmul_of[x] for x in node.input if x in matmul_of), None)
         if bias is not None and matmul is not None and matmul.input[1] in arrays:
             transposed[bias.removesuffix(".bias") + ".weight"] = arrays[matmul.input[1]].T
+    buffers = {name for name, _ in module.named_buffers()}
     state = {}
     for key, want in module.state_dict().items():
         found = arrays[key] if key in arrays else transposed.get(key)
+        if found is None and key in buffers:  # the exporter keeps one copy of members' equal buffers
+            found = next((arrays[k] for k in _other_members(key) if k in arrays), None)
         if found is None or tuple(found.shape) != tuple(want.shape):
             raise ValueError(f"{path}: no weight for {key} {tuple(want.shape)} in the graph")
         state[key] = torch.from_numpy(np.array(found, copy=True))  # writable, C order
     return state
+
+
+def _other_members(key: str, most: int = 16) -> list[str]:
+    """The same state-dict key in the other members of a SeedEnsemble (``….members.K.…``); none otherwise."""
+    found = re.search(r"(?:^|\.)members\.(\d+)\.", key)
+    if found is None:
+        return []
+    start, end = found.span(1)
+    return [f"{key[:start]}{k}{key[end:]}" for k in range(most) if str(k) != found.group(1)]
 
 
 def _graphs_differ(a: onnx.ModelProto, b: onnx.ModelProto, feeds: list[dict[str, np.ndarray]]) -> float:

@@ -343,11 +343,11 @@ def _run_steps(
     meta: dict[str, Any],
     resume: bool,
     progress: bool,
-    command: Sequence[str] | None = None,
+    invocation: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The shared optimisation loop: AdamW + warmup/cosine, checkpoints every 500 steps and at the end. The
-    checkpoint's ``runs`` lists each invocation that advanced it (``command``, the code, the machine: the
-    provenance module) with the steps it ran."""
+    checkpoint's ``runs`` lists each invocation that advanced it (:func:`invocation_record`: ``invocation``, or
+    this call's without a command) with the steps it ran."""
     # fused: one kernel over every parameter instead of a loop over 182 tensors (CPU: 7.4 -> 1.4 ms a step of
     # the cpu preset's fusion net, about a tenth of the step; the same update up to rounding).
     opt = torch.optim.AdamW(net.parameters(), lr=tc.lr, weight_decay=tc.weight_decay, fused=True)
@@ -389,7 +389,7 @@ def _run_steps(
     bar = tqdm(total=total, initial=step, desc=ckpt_path.stem, disable=not progress, dynamic_ncols=True)
     running: dict[str, float] = {}
     started = time.perf_counter()
-    this_run = invocation_record(command, tc.device) | {"from_step": step}
+    this_run = (invocation or invocation_record(None, tc.device)) | {"from_step": step}
 
     def save() -> dict[str, Any]:
         payload = {
@@ -535,7 +535,7 @@ def train_visual(
     progress: bool = True,
     seqs: list[dict[str, Any]] | None = None,
     initial: InitialVisual | None = None,
-    command: Sequence[str] | None = None,
+    invocation: dict[str, Any] | None = None,
 ) -> Path:
     """Stage 1 for one modality -> ``out_dir/visual-<kind>.pt``; with ``initial``, a fine-tune of that
     encoder (its batch norms' statistics frozen, the learning rate FINE_TUNE_LR_SCALE of the preset's)."""
@@ -554,10 +554,12 @@ def train_visual(
     if initial is not None:
         net.load_state_dict(initial.state_dict)
         net.freeze_statistics()
-        meta["init"] = {"from": initial.source, "sha256": provenance.file_digest(initial.source)}
+        digest = provenance.file_digest(initial.source)
+        meta["init"] = {"from": initial.source, "sha256": digest}
+        meta["ancestors"] = provenance.ancestry(digest, initial.training)
         tc = dataclasses.replace(tc, lr=tc.lr * FINE_TUNE_LR_SCALE)
     loss_fn = visual_loss_fn(net, frames, tc)
-    _run_steps(net, loss_fn, path, tc.visual_steps, tc, meta, resume, progress, command)
+    _run_steps(net, loss_fn, path, tc.visual_steps, tc, meta, resume, progress, invocation)
     return path
 
 
@@ -978,7 +980,7 @@ def train_fusion(
     initial: InitialWeights | None = None,
     out_of_fold: Sequence[Path] = (),
     head_offsets_m: np.ndarray | None = None,
-    command: Sequence[str] | None = None,
+    invocation: dict[str, Any] | None = None,
 ) -> Path:
     """Stage 2 for one zoo entry -> ``out_dir/fusion-<name>.pt``. Its visual encoder is ``out_dir``'s
     checkpoint, or with ``encoders_dir`` that folder's exported ``visual-<kind>.onnx``, or with
@@ -1016,21 +1018,25 @@ def train_fusion(
             "rig_offsets_m": offsets_m.tolist()}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
-    if encoder_files:  # the bytes its keypoints came from
+    ancestors: dict[str, dict[str, Any]] = {}
+    if encoder_files:  # the bytes its keypoints came from, and how an exported encoder was made
         meta["encoders"] = [{"from": str(f), "sha256": provenance.file_digest(f)} for f in encoder_files]
+        for file, entry in zip(encoder_files, meta["encoders"], strict=True):
+            if file.suffix == ".onnx":
+                ancestors |= provenance.ancestry(entry["sha256"], load_encoder(file)[1].training)
     if initial is not None:
-        meta["init"] = {
-            "from": initial.source,
-            "member": initial.member,
-            "sha256": provenance.file_digest(initial.source),
-        }
+        digest = provenance.file_digest(initial.source)
+        meta["init"] = {"from": initial.source, "member": initial.member, "sha256": digest}
+        ancestors |= provenance.ancestry(digest, initial.training)
+    if ancestors:
+        meta["ancestors"] = ancestors
         if keeper is not None:
             meta["init"]["keep_upper_weight"] = tc.keep_upper_weight
             meta["init"]["keep_joints"] = tc.keep_joints
     if out_of_fold and entry.visual:
         meta["keypoints_out_of_fold"] = [str(d) for d in out_of_fold]
     loss_fn = fusion_loss_fn(net, prepared, tc, teacher.nets if teacher is not None else None, keeper)
-    _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress, command)
+    _run_steps(net, loss_fn, path, tc.fusion_steps, tc, meta, resume, progress, invocation)
     return path
 
 
@@ -1063,6 +1069,7 @@ class InitialVisual:
 
     source: str  # the encoder file
     state_dict: dict[str, torch.Tensor]
+    training: dict[str, Any] = dataclasses.field(default_factory=dict)  # the file's own training record
 
 
 # A fine-tuned encoder's learning rate against the preset's: it starts from a trained net, whose features a
@@ -1079,6 +1086,7 @@ class InitialWeights:
     member: int  # which of its nets
     state_dict: dict[str, torch.Tensor]
     rig_offsets_m: tuple[tuple[float, ...], ...]  # (3, 3) the offsets the file's nets were trained with
+    training: dict[str, Any] = dataclasses.field(default_factory=dict)  # the file's own training record
 
 
 class TeacherError(ValueError):
@@ -1295,7 +1303,8 @@ def train_zoo(
     ("rgb", "rgbd") to the exported encoder it is fine-tuned from; with ``out_of_fold`` (folders of encoders
     that each left a fold of people out) the fusion nets read each sequence's keypoints from the one that
     never saw its person, and none is trained; ``head_offsets_m`` (3, 3) the offsets the fusion nets train
-    at instead of :func:`training_offsets`' choice; ``command`` the command line each checkpoint records."""
+    at instead of :func:`training_offsets`' choice; ``command`` the command line each checkpoint records (one
+    invocation record for every net this call trains)."""
     check_device(tc.device)
     out_dir.mkdir(parents=True, exist_ok=True)
     if tc.threads:
@@ -1313,11 +1322,12 @@ def train_zoo(
             "out-of-fold encoders read one dataset's whole train split (no --hold-out, one --data)"
         )
     seqs = training_sequences(data_dirs, tc)
+    invocation = invocation_record(command, tc.device)
     paths = {}
     if encoders_dir is None and not out_of_fold:
         paths = {
             f"visual-{k}": train_visual(
-                k, data_dirs, out_dir, tc, resume, progress, seqs, (initial_visual or {}).get(k), command
+                k, data_dirs, out_dir, tc, resume, progress, seqs, (initial_visual or {}).get(k), invocation
             )
             for k in visuals
         }
@@ -1325,6 +1335,6 @@ def train_zoo(
     for f in fusions:
         paths[f"fusion-{f}"] = train_fusion(
             f, data_dirs, out_dir, tc, resume, progress, seqs, cache, encoders_dir, taught[f],
-            (initial or {}).get(f), out_of_fold, head_offsets_m, command,
+            (initial or {}).get(f), out_of_fold, head_offsets_m, invocation,
         )  # fmt: skip
     return paths

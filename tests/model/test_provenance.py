@@ -89,3 +89,53 @@ def test_records_read_as_nested_lines_and_say_what_was_not_recorded():
     assert "ran steps 0-4: not recorded (run before runs were recorded)" in "\n".join(
         provenance.describe(resumed)
     )
+
+
+def _run(command, started="T"):
+    machine = {"threads": 1, "device": "cpu"}
+    return {
+        "command": command,
+        "cwd": "/w",
+        "started_utc": started,
+        "code": {"commit": "c" * 40},
+        "machine": machine,
+    }
+
+
+def test_ancestors_gather_at_the_root_once_and_are_described_once():
+    start = {"steps": 2, "seed": 0, "data": {"dir": "d"}, "runs": [_run("egoposevr train A")]}
+    child = {
+        "steps": 4, "seed": 1, "init": {"from": "s.onnx", "sha256": "5" * 64},
+        "ancestors": provenance.ancestry("5" * 64, start | {"ancestors": {"9" * 64: {"steps": 7}}}),
+    }  # fmt: skip
+    root = provenance.hoist_ancestors({"ensemble": [child, child]})
+    assert set(root["ancestors"]) == {"5" * 64, "9" * 64} and "ancestors" not in root["ensemble"][0]
+    text = "\n".join(provenance.describe(root))
+    assert text.count("egoposevr train A") == 1  # the start's record, under the first net that names it
+    assert text.count("started from s.onnx") == 2
+
+
+def test_a_recipe_runs_ancestors_first_each_command_once_and_says_what_was_not_recorded():
+    start = {
+        "steps": 2,
+        "seed": 0,
+        "runs": [_run("egoposevr train A", "1")],
+        "export": _run("egoposevr export A"),
+    }
+    tuned = {"steps": 4, "seed": 1, "init": {"sha256": "5" * 64}, "runs": [_run("egoposevr train B", "2")]}
+    old = {"steps": 9, "seed": 3}
+    root = {
+        "blend": {"nets": [tuned, tuned | {"seed": 2}, old], "run": _run("egoposevr blend")},
+        "export": _run("egoposevr export C"),
+        "ancestors": {"5" * 64: start},
+    }
+    lines = provenance.recipe(root)
+    assert [line.split("  # ")[0] for line in lines] == [
+        "cd /w && egoposevr train A",
+        "cd /w && egoposevr export A",
+        "cd /w && egoposevr train B",  # the second net of the same invocation is not listed again
+        "# 9 steps, seed 3: not recorded",
+        "cd /w && egoposevr blend",
+        "cd /w && egoposevr export C",
+    ]
+    assert lines[0].endswith(f"# code {'c' * 12}; 1 threads on cpu")

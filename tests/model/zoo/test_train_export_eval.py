@@ -105,6 +105,71 @@ def test_training_twice_gives_the_same_bits_and_each_file_says_how_it_was_made(t
     assert "UNKNOWN nope" in capsys.readouterr().out
 
 
+def test_a_models_recipe_remakes_its_weights_elsewhere(tiny_data, tmp_path, monkeypatch, capsys):
+    """`models --recipe` lists the commands that made a file through its ancestors (an exported start, its
+    encoder, a fine-tune, a blend, the export), each once and in order; run again in another folder they make
+    the same weights."""
+    import os
+
+    import torch
+
+    from egoposevr.model.training.export import load_served_nets
+
+    first, second = tmp_path / "first", tmp_path / "second"
+    for folder in (first, second):
+        folder.mkdir()
+        os.symlink(tiny_data, folder / "data")
+    train = [
+        "train",
+        "--data",
+        "data",
+        "--model",
+        "hmd-rgbd",
+        "--preset",
+        "tiny",
+        "--no-progress",
+        "--threads",
+        "1",
+    ]
+    made = [
+        [*train, "--out", "r1", "--visual-steps", "2", "--fusion-steps", "2", "--seed", "1"],
+        ["export", "--runs", "r1", "--out", "w1", "--model", "hmd-rgbd"],
+        [
+            *train,
+            "--out",
+            "r2",
+            "--init-from",
+            "w1",
+            "--encoders",
+            "w1",
+            "--fusion-steps",
+            "2",
+            "--seed",
+            "2",
+        ],
+        ["blend", "--runs", "r1", "r2", "--weights", "1", "3", "--out", "rb"],
+        ["export", "--runs", "rb", "r2", "--out", "w", "--model", "egoposevr", "--encoders", "w1"],
+    ]
+    monkeypatch.chdir(first)
+    for args in made:
+        assert main(args) == 0
+    capsys.readouterr()
+    assert main(["models", "--no-bundled", "--models-dir", "w", "--recipe", "egoposevr"]) == 0
+    header, *steps = capsys.readouterr().out.splitlines()
+    assert header == f"# egoposevr.onnx, sha256 {provenance.file_digest(first / 'w' / 'egoposevr.onnx')[:16]}"
+    commands = [line.split(" && ", 1)[1].rsplit("  # ", 1)[0] for line in steps]
+    assert commands == [shlex.join(["egoposevr", *args]) for args in made]
+    assert all(line.startswith(f"cd {first} && ") and "1 threads on cpu" in line for line in steps)
+
+    monkeypatch.chdir(second)
+    for command in commands:
+        assert main(shlex.split(command)[1:]) == 0
+    nets = [load_served_nets(folder / "w" / "egoposevr.onnx")[2] for folder in (first, second)]
+    for again, before in zip(*nets, strict=True):
+        for key, tensor in before.state_dict().items():
+            assert torch.equal(tensor, again.state_dict()[key]), key
+
+
 def test_the_temporal_term_trains_on_pairs_of_consecutive_windows(tiny_data, tmp_path):
     import dataclasses
 
