@@ -314,11 +314,41 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         report = {"split": args.split} | (_fold_field(fold, loaded[0]) if fold else {}) | {"models": results}
         report |= {"keypoints": keypoints} if keypoints else {}
+        report["provenance"] = _provenance(args, chosen)
         if args.intervals:
             report["intervals"] = {"resamples": args.intervals, "seed": args.seed, "level": 0.95,
                                    "people": people}  # fmt: skip
         args.json.write_text(json.dumps(_without_nan(report), indent=2, allow_nan=False) + "\n")
     return 0
+
+
+def _provenance(args: argparse.Namespace, chosen: dict[str, Path | None]) -> dict[str, Any]:
+    """What a report's numbers were read from and by what (model/provenance.py): this invocation, the split's
+    shard digest, and each served file's and its encoder's digest (the procedural baseline has none)."""
+    import onnxruntime
+
+    from ..model import provenance
+    from ..model.runtime.loading import LoadedModel
+
+    models: dict[str, Any] = {}
+    for label, path in chosen.items():
+        if path is None:
+            models[label] = None
+            continue
+        encoder = LoadedModel.load(path).info.visual_path
+        models[label] = {"file": str(path), "sha256": provenance.file_digest(path)}
+        if encoder is not None:
+            models[label]["encoder"] = {"file": str(encoder), "sha256": provenance.file_digest(encoder)}
+    host = provenance.machine("cpu", 0, {"onnxruntime": onnxruntime.__version__})
+    return {
+        "run": provenance.run_record(args.command_line, provenance.code_version(), host),
+        "data": {
+            "dir": str(args.data),
+            "split": args.split,
+            "sha256": provenance.data_digest([args.data], args.split),
+        },
+        "models": models,
+    }
 
 
 def _chosen_models(

@@ -1268,6 +1268,12 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
         for m in results.values()
         for k in ("mpjpe_u_cm", "foot_skate_cm_s", "jerk", "jerk_devices")
     )
+    read_from = json.loads(out.read_text())["provenance"]  # what the numbers were read from, and by what
+    assert read_from["data"]["sha256"] == provenance.data_digest([tiny_data], "val")
+    served = read_from["models"]["egoposevr"]
+    assert served["sha256"] == provenance.file_digest(tiny_weights / "egoposevr.onnx")
+    assert served["encoder"]["sha256"] == provenance.file_digest(tiny_weights / "visual-rgbd.onnx")
+    assert read_from["run"]["command"].startswith("egoposevr eval --data")
 
 
 def test_eval_says_where_the_error_comes_from_sequence_by_sequence(tiny_data, tiny_weights, tmp_path, capsys):
