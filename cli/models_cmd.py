@@ -40,50 +40,62 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted((set(args.training or ()) | set(args.recipe or ())) - set(registry.models))
     if args.recipe is not None:
         return _print_recipes(registry.models, args.recipe, unknown)
+    unreadable: list[str] = []
     for name, model in registry.models.items():
         if args.training is not None and args.training and name not in args.training:
             continue
         print(f"{name:18s} {'+'.join(model.info.inputs):14s} {model.info.description}")
-        if args.training is not None:
-            _print_training(model.info)
+        if args.training is not None and not _print_training(model.info):
+            unreadable.append(name)
     for path, reason in registry.failures.items():
         print(f"FAILED {path}: {reason}")
     for name in unknown:
         print(f"UNKNOWN {name}: no such model (egoposevr models lists them)")
-    return 0 if registry.models and not registry.failures and not unknown else 1
+    return 0 if registry.models and not registry.failures and not unknown and not unreadable else 1
 
 
 def _print_recipes(models: dict[str, Any], names: list[str], unknown: list[str]) -> int:
     """Each named model's recipe (provenance.recipe), as shell lines under a comment naming the file."""
-    from ..model.provenance import file_digest, recipe
+    from ..model.provenance import RecordError, file_digest, recipe
 
+    unreadable = False
     for name in names:
         info = models[name].info if name in models else None
         if info is None or getattr(info, "path", None) is None:
             print(f"# {name}: {'no such model' if info is None else 'no file: the model is code'}")
             continue
         print(f"# {info.path.name}, sha256 {file_digest(info.path)[:16]}")
-        for line in recipe(info.metadata.training):
-            print(line)
-    return 1 if unknown else 0
+        try:
+            print("\n".join(recipe(info.metadata.training)))
+        except RecordError as error:
+            print(f"# {error}")
+            unreadable = True
+    return 1 if unknown or unreadable else 0
 
 
-def _print_training(info: Any) -> None:
-    """A model's file and its encoder's, each with its digest and its training record described."""
-    from ..model.provenance import describe, describe_fit, file_digest
+def _print_training(info: Any) -> bool:
+    """A model's file and its encoder's, each with its digest and its training record described; False when a
+    record cannot be read (said in its place)."""
+    from ..model.provenance import RecordError, describe, describe_fit, file_digest
     from ..model.runtime.body import regressor_path
 
     if getattr(info, "path", None) is None:
         print("  no file: the model is code, trained on nothing")
-        return
+        return True
     files = [(info.path, info.metadata.training)]
     if info.visual_path is not None and info.encoder is not None:
         files.append((info.visual_path, info.encoder.training))
-    for path, record in files:
-        print(f"  {path.name}, sha256 {file_digest(path)[:16]}:")
-        for line in describe(record, "  "):
-            print(f"    {line}")
     if info.body_regressor is not None:
-        print(f"  {regressor_path(info.visual_path).name}, the encoder's body regressor:")
-        for line in describe_fit(info.body_regressor.record):
+        files.append((regressor_path(info.visual_path), info.body_regressor.record))
+    readable = True
+    for path, record in files:
+        fitted = path.suffix == ".json"
+        what = "the encoder's body regressor" if fitted else f"sha256 {file_digest(path)[:16]}"
+        print(f"  {path.name}, {what}:")
+        try:
+            lines = describe_fit(record) if fitted else describe(record, "  ")
+        except RecordError as error:
+            lines, readable = [str(error)], False
+        for line in lines:
             print(f"    {line}")
+    return readable

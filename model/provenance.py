@@ -20,10 +20,15 @@ import os
 import platform
 import shlex
 import subprocess
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, Final
+
+
+class RecordError(ValueError):
+    """A training record that is not of the shape this version writes (a damaged or foreign file)."""
+
 
 _SOURCE_DIR: Final = Path(__file__).resolve().parent  # the package's model/; a git work tree when editable
 _GIT_TIMEOUT_S: Final = 5.0
@@ -160,8 +165,19 @@ def hoist_ancestors(record: dict[str, Any]) -> dict[str, Any]:
 def describe(record: dict[str, Any], indent: str = "  ") -> list[str]:
     """A model file's ``training`` record as lines for people: an ensemble's and a blend's nets nested under
     them, each net's steps, seed, data, start, encoder and runs, and the record of each file it started from
-    or read keypoints from (its ``ancestors``) under the line that names it, once."""
-    return list(_describe(record, indent, 0, _Ancestors(record.get("ancestors", {}))))
+    or read keypoints from (its ``ancestors``) under the line that names it, once. RecordError for a record
+    of another shape."""
+    return _readable(lambda: list(_describe(record, indent, 0, _Ancestors(record.get("ancestors", {})))))
+
+
+def _readable(read: Callable[[], list[str]]) -> list[str]:
+    """What ``read`` makes of a record, or RecordError where the record is not of the shape it reads."""
+    try:
+        return read()
+    except (AttributeError, TypeError, KeyError, ValueError) as error:
+        raise RecordError(
+            f"the training record is not one this version reads ({type(error).__name__}: {error})"
+        ) from error
 
 
 class _Ancestors:
@@ -182,7 +198,12 @@ def recipe(record: dict[str, Any]) -> list[str]:
     """The commands that made a file, in the order they ran: each file it started from or read keypoints from
     first (its ``ancestors``), then each net's training, each blend and the export; one line each, with the
     folder it ran in, the commit and the thread count as a comment, and a comment where a step was not
-    recorded. A command that made several files (the encoder and the net of one ``train``) is listed once."""
+    recorded. A command that made several files (the encoder and the net of one ``train``) is listed once.
+    RecordError for a record of another shape."""
+    return _readable(lambda: _recipe(record))
+
+
+def _recipe(record: dict[str, Any]) -> list[str]:
     ancestors = record.get("ancestors", {})
     lines: list[str] = []
     listed: set[tuple[Any, ...]] = set()
@@ -234,7 +255,12 @@ def _recipe_line(run: dict[str, Any]) -> str:
 
 
 def describe_fit(record: dict[str, Any]) -> list[str]:
-    """A body regressor's record (``egoposevr fit-body``) as lines for people: its data and its run."""
+    """A body regressor's record (``egoposevr fit-body``) as lines for people: its data and its run.
+    RecordError for a record of another shape."""
+    return _readable(lambda: _fit_lines(record))
+
+
+def _fit_lines(record: dict[str, Any]) -> list[str]:
     dirs = " ".join(record.get("data") or [])
     lines = [
         f"fitted on {dirs} ({record.get('sequences')} sequences of {record.get('split')}), "

@@ -139,3 +139,14 @@ def test_a_recipe_runs_ancestors_first_each_command_once_and_says_what_was_not_r
         "cd /w && egoposevr export C",
     ]
     assert lines[0].endswith(f"# code {'c' * 12}; 1 threads on cpu")
+
+
+@pytest.mark.parametrize("record", [{"ensemble": 5}, {"blend": "x"}, {"runs": [3]}, {"data": [1], "run": 2}])
+def test_a_record_of_another_shape_is_a_clear_error(record):
+    with pytest.raises(provenance.RecordError, match="not one this version reads"):
+        provenance.describe(record)
+    for read in (provenance.recipe, provenance.describe_fit):  # what they read of it is readable, or said so
+        try:
+            read(record)
+        except provenance.RecordError as error:
+            assert "not one this version reads" in str(error)

@@ -103,6 +103,14 @@ def test_training_twice_gives_the_same_bits_and_each_file_says_how_it_was_made(t
     assert f"checkpoint {tmp_path / 'b' / 'fusion-hmd-rgbd.pt'}" in said
     assert main(["models", "--no-bundled", "--models-dir", str(weights), "--training", "nope"]) == 1
     assert "UNKNOWN nope" in capsys.readouterr().out
+    import onnx  # a file whose record another tool damaged: said in its place, the listing goes on
+
+    graph = onnx.load(str(weights / "hmd-rgbd.onnx"))
+    next(p for p in graph.metadata_props if p.key == "egoposevr.training").value = '{"ensemble": 5}'
+    onnx.save(graph, str(weights / "hmd-rgbd.onnx"))
+    for flag in ("--training", "--recipe"):
+        assert main(["models", "--no-bundled", "--models-dir", str(weights), flag, "hmd-rgbd"]) == 1
+        assert "the training record is not one this version reads" in capsys.readouterr().out
 
 
 def test_a_models_recipe_remakes_its_weights_elsewhere(tiny_data, tmp_path, monkeypatch, capsys):
