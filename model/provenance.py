@@ -1,12 +1,15 @@
-"""Where a trained net came from beyond its flags: the command that made it, the code and the machine that ran
-it, and digests of the bytes it read (the data's shards, the model file it started from, the encoder it read).
+"""Where a trained file came from beyond its flags: the command that made it, the code and the machine that ran
+it, digests of the bytes it read (the data's shards, the file it started from, the encoder it read), and those
+files' own records.
 
 A checkpoint's ``runs`` list holds one :func:`run_record` per ``egoposevr train`` invocation that advanced it
-(a resumed run adds one), and ``export`` copies it into the model file's ``training`` record, beside the
-data's ``sha256`` and the start's and the encoder's. Training is deterministic for a given seed, data, code and
-thread count (the tests train twice and compare the bits), so these say what is needed to make a file again,
-and :func:`describe` prints them for people (``egoposevr models --training``). Files made before these were
-recorded (MODEL_CARD.md names them) say so instead.
+(a resumed run adds one); ``blend``, ``export`` and ``fit-body`` add their own. A file started from or read by
+a net travels with it as an entry of ``ancestors`` (:func:`ancestry`, gathered at the record's root by
+:func:`hoist_ancestors`), so a file keeps its lineage after those files are replaced. Training is deterministic
+for a given seed, data, code and thread count (the tests train twice and compare the bits), so these say what
+is needed to make a file again: :func:`describe` prints a record for people (``egoposevr models --training``)
+and :func:`recipe` the commands (``--recipe``). Files made before these were recorded (MODEL_CARD.md names
+them) say so instead; a record of another shape is a :class:`RecordError`.
 
 No torch and no numpy here: the serving side prints records too.
 """
@@ -102,7 +105,8 @@ def _git(*args: str) -> str | None:
 
 def machine(device: str, threads: int, libraries: dict[str, str] | None = None) -> dict[str, Any]:
     """The machine a run trains on: platform, CPU model and count, Python, the training device and thread
-    count (results depend on it: reductions split otherwise), and the libraries' versions given."""
+    count (results depend on it: reductions split otherwise; 0 for a library's default), and the libraries'
+    versions (or a GPU's name) given."""
     return {
         "platform": platform.platform(),
         "cpu": _cpu_model(),
@@ -338,8 +342,9 @@ def _runs(verb: str, runs: list[dict[str, Any]], pad: str) -> Iterable[str]:
         command = run.get("command") or "(not from the command line)"
         yield f"{pad}{verb}{steps} on {run.get('started_utc')} in {run.get('cwd')}: {command}"
         yield f"{pad}  code {code.get('version')} {commit}{dirty}"
+        gpu = f" ({host['gpu']})" if host.get("gpu") else ""
         yield (
-            f"{pad}  machine {host.get('cpu')} ({host.get('cpus')} CPUs), device {host.get('device')}, "
+            f"{pad}  machine {host.get('cpu')} ({host.get('cpus')} CPUs), device {host.get('device')}{gpu}, "
             f"{host.get('threads')} threads, {host.get('platform')}"
         )
 

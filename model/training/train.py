@@ -314,7 +314,10 @@ def _people_digest(seqs: list[dict[str, Any]]) -> str:
 def invocation_record(command: Sequence[str] | None, device: str = "cpu") -> dict[str, Any]:
     """This invocation's provenance (train, blend, export): the command, the code, and the machine with the
     device and torch's thread count (a net's bits depend on them)."""
-    host = provenance.machine(device, torch.get_num_threads(), {"torch": torch.__version__})
+    libraries = {"torch": torch.__version__}
+    if device.startswith("cuda") and torch.cuda.is_available():
+        libraries["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    host = provenance.machine(device, torch.get_num_threads(), libraries)
     return provenance.run_record(command, provenance.code_version(), host)
 
 
