@@ -320,6 +320,8 @@ def _net_lines(record: dict[str, Any], indent: str, depth: int, ancestors: _Ance
         yield f"{pad}started from {init.get('from')}{member}, sha256 {_short(init.get('sha256'))}"
         if (made := ancestors.take(init.get("sha256"))) is not None:
             yield from _describe(made, indent, depth + 1, ancestors)
+    for teacher in record.get("teacher_files", []):
+        yield f"{pad}taught by {teacher.get('from')}, sha256 {_short(teacher.get('sha256'))}"
     for encoder in record.get("encoders", []):
         yield f"{pad}keypoints from {encoder.get('from')}, sha256 {_short(encoder.get('sha256'))}"
         if (made := ancestors.take(encoder.get("sha256"))) is not None:

@@ -161,7 +161,16 @@ def _batched_against_single(single: onnx.ModelProto, batched: onnx.ModelProto, b
     return float(np.abs(many.run(None, feed)[0] - np.concatenate(rows)).max())
 
 
-_RECORDED_FIELDS = ("teachers", "init", "encoders", "keypoints_out_of_fold", "blend", "runs", "ancestors")
+_RECORDED_FIELDS = (
+    "teachers",
+    "teacher_files",
+    "init",
+    "encoders",
+    "keypoints_out_of_fold",
+    "blend",
+    "runs",
+    "ancestors",
+)
 
 
 def training_record(ckpt: dict[str, Any], path: Path | None = None) -> dict[str, Any]:

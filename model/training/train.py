@@ -1021,12 +1021,14 @@ def train_fusion(
             "rig_offsets_m": offsets_m.tolist()}  # fmt: skip
     if teacher is not None:
         meta["teachers"] = list(teacher.runs_dirs)
+        files = [Path(d) / f"fusion-{name}.pt" for d in teacher.runs_dirs]  # what load_teacher read
+        meta["teacher_files"] = [{"from": str(f), "sha256": provenance.file_digest(f)} for f in files]
     ancestors: dict[str, dict[str, Any]] = {}
     if encoder_files:  # the bytes its keypoints came from, and how an exported encoder was made
         meta["encoders"] = [{"from": str(f), "sha256": provenance.file_digest(f)} for f in encoder_files]
-        for file, entry in zip(encoder_files, meta["encoders"], strict=True):
+        for file, read in zip(encoder_files, meta["encoders"], strict=True):
             if file.suffix == ".onnx":
-                ancestors |= provenance.ancestry(entry["sha256"], load_encoder(file)[1].training)
+                ancestors |= provenance.ancestry(read["sha256"], load_encoder(file)[1].training)
     if initial is not None:
         digest = provenance.file_digest(initial.source)
         meta["init"] = {"from": initial.source, "member": initial.member, "sha256": digest}

@@ -730,6 +730,9 @@ def test_a_distilled_net_learns_its_teachers_mean_output(tiny_data, tmp_path, ca
 
     ckpt = load_checkpoint(tmp_path / "s1" / "fusion-hmd.pt")
     assert ckpt["teachers"] == [str(t) for t in teachers] and "rot_teacher" in ckpt["history"][-1]
+    assert [t["sha256"] for t in ckpt["teacher_files"]] == [
+        provenance.file_digest(t / "fusion-hmd.pt") for t in teachers
+    ]
     tc = dataclasses.replace(PRESETS["tiny"], seed=3)
     cfg = fusion_config("hmd", tc)
     teacher = load_teacher("hmd", teachers, cfg, "cpu")
