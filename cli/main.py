@@ -9,7 +9,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from ..model.provenance import package_version
+from ..model.provenance import package_version, remember_code
 from . import (
     bench_cmd,
     blend_cmd,
@@ -29,6 +29,8 @@ from . import (
     train_cmd,
 )
 
+# Subcommands whose files or reports record the code that made them (model/provenance.py).
+RECORDING = frozenset({"train", "export", "blend", "fit-body", "eval"})
 # (name, module): each module has `add_arguments(parser)`, `run(args) -> int` and a docstring for --help.
 SUBCOMMANDS = (
     ("demo", demo_cmd),
@@ -71,8 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    # the command line as typed, for what records how a file was made (model/provenance.py)
+    # the command line as typed, and the code as imported, for what records how a file was made
+    # (model/provenance.py)
     args.command_line = ["egoposevr", *(sys.argv[1:] if argv is None else argv)]
+    if args.command in RECORDING:
+        remember_code()
     return args.run(args)
 
 

@@ -78,10 +78,23 @@ def package_version() -> str:
         return "0+unknown"
 
 
+_code_at_start: dict[str, Any] | None = None  # remember_code's answer, for a process's whole run
+
+
+def remember_code() -> None:
+    """Read the code's version now, at a process's start, for :func:`code_version` to give all along: a run
+    loads its data for minutes, and a commit made meanwhile is not the code it imported."""
+    global _code_at_start
+    _code_at_start = None
+    _code_at_start = code_version()
+
+
 def code_version() -> dict[str, Any]:
     """The code that runs: the package's version and, when it runs from a git work tree (an editable
     install), the commit and whether tracked files differ from it; ``None`` for either where git cannot
-    tell."""
+    tell. What :func:`remember_code` read, where a process called it."""
+    if _code_at_start is not None:
+        return dict(_code_at_start)
     commit = _git("rev-parse", "HEAD")
     changed = _git("status", "--porcelain", "--untracked-files=no") if commit else None
     return {

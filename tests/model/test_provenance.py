@@ -44,9 +44,13 @@ def test_the_code_is_the_work_trees_commit_and_whether_it_was_changed(tmp_path, 
     git("add", "f.py")
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "one")
     monkeypatch.setattr(provenance, "_SOURCE_DIR", tmp_path)
+    monkeypatch.setattr(provenance, "_code_at_start", None)
     head = git("rev-parse", "HEAD").stdout.strip()
     assert provenance.code_version() | {"version": None} == {"version": None, "commit": head, "dirty": False}
+    provenance.remember_code()  # a process's start: what it imported, whatever is committed later
     (tmp_path / "f.py").write_text("x = 2\n")
+    assert provenance.code_version()["dirty"] is False
+    monkeypatch.setattr(provenance, "_code_at_start", None)
     assert provenance.code_version()["dirty"] is True
     monkeypatch.setattr(provenance, "_SOURCE_DIR", tmp_path / "not-a-repo")
     assert provenance.code_version()["commit"] is None and provenance.code_version()["dirty"] is None
