@@ -311,10 +311,12 @@ def run(args: argparse.Namespace) -> int:
     if keypoints is not None:
         print("\nVisual encoders: 3D keypoint error on joints in view and not occluded:\n")
         print(keypoint_table(keypoints))
+    read_from = _provenance(args, chosen)
+    print(f"\n{_read_from_line(read_from)}")
     if args.json:
         report = {"split": args.split} | (_fold_field(fold, loaded[0]) if fold else {}) | {"models": results}
         report |= {"keypoints": keypoints} if keypoints else {}
-        report["provenance"] = _provenance(args, chosen)
+        report["provenance"] = read_from
         if args.intervals:
             report["intervals"] = {"resamples": args.intervals, "seed": args.seed, "level": 0.95,
                                    "people": people}  # fmt: skip
@@ -349,6 +351,24 @@ def _provenance(args: argparse.Namespace, chosen: dict[str, Path | None]) -> dic
         },
         "models": models,
     }
+
+
+def _read_from_line(read_from: dict[str, Any]) -> str:
+    """The report's provenance in one line under its tables: the data's and each file's digest, the code."""
+    data, code = read_from["data"], read_from["run"]["code"]
+    files = [
+        f"{label} {entry['sha256'][:12]}"
+        + (f" (encoder {entry['encoder']['sha256'][:12]})" if "encoder" in entry else "")
+        for label, entry in read_from["models"].items()
+        if entry is not None
+    ]
+    commit = (code.get("commit") or "unknown commit")[:12] + (
+        " with local changes" if code.get("dirty") else ""
+    )
+    return (
+        f"Read from {data['dir']} {data['split']} (shards sha256 {data['sha256'][:12]}); "
+        f"{', '.join(files) or 'no model file'}; code {commit}."
+    )
 
 
 def _chosen_models(

@@ -1285,6 +1285,8 @@ def test_eval_prints_the_table_and_writes_the_json(tiny_data, tiny_weights, tmp_
     assert served["sha256"] == provenance.file_digest(tiny_weights / "egoposevr.onnx")
     assert served["encoder"]["sha256"] == provenance.file_digest(tiny_weights / "visual-rgbd.onnx")
     assert read_from["run"]["command"].startswith("egoposevr eval --data")
+    digest = provenance.data_digest([tiny_data], "val")[:12]
+    assert f"Read from {tiny_data} val (shards sha256 {digest}); hmd " in table  # under the tables too
 
 
 def test_eval_says_where_the_error_comes_from_sequence_by_sequence(tiny_data, tiny_weights, tmp_path, capsys):
