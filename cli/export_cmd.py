@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
         return _rewrite_in_place(
             args.mirror_average,
-            lambda path: export_mirror_averaged(path, path),
+            lambda path: export_mirror_averaged(path, path, args.command_line),
             "mirror-averaged; against torch (batches of 1 and 8)",
         )
     if args.runs is None or args.out is None:

@@ -256,6 +256,8 @@ def _recipe(record: dict[str, Any]) -> list[str]:
             runs(r.get("runs", []), f"{r.get('steps')} steps, seed {r.get('seed')}")
         if "export" in r:
             runs([r["export"]], "the export")
+        if r.get("mirror_averaged"):  # rewritten in place to serve each answer's mean with the mirrored one's
+            runs([r["mirror_run"]] if "mirror_run" in r else [], "the mirror averaging")
 
     node(record)
     return lines
@@ -294,10 +296,7 @@ def _describe(record: dict[str, Any], indent: str, depth: int, ancestors: _Ances
         for k, net in enumerate(nets, 1):
             yield f"{pad}{indent}net {k}:"
             yield from _describe(net, indent, depth + 2, ancestors)
-        if "export" in record:
-            yield from _runs("exported", [record["export"]], pad)
-        return
-    if "blend" in record:
+    elif "blend" in record:
         blend = record["blend"]
         weights = ", ".join(f"{w:.2f}" for w in blend.get("weights", []))
         yield f"{pad}a weight-space blend ({weights}) of:"
@@ -315,6 +314,8 @@ def _describe(record: dict[str, Any], indent: str, depth: int, ancestors: _Ances
         yield f"{pad}checkpoint {checkpoint.get('from')}, sha256 {_short(checkpoint.get('sha256'))}"
     if "export" in record:
         yield from _runs("exported", [record["export"]], pad)
+    if record.get("mirror_averaged"):
+        yield from _runs("mirror-averaged", [record["mirror_run"]] if "mirror_run" in record else [], pad)
 
 
 def _net_lines(record: dict[str, Any], indent: str, depth: int, ancestors: _Ancestors) -> Iterable[str]:

@@ -329,9 +329,10 @@ def _served_module(nets: list[FusionNet], mirror_averaged: bool = False) -> torc
     return MirrorAveraged(module, nets[0].cfg).eval() if mirror_averaged else module
 
 
-def export_mirror_averaged(path: Path, out_path: Path) -> float:
+def export_mirror_averaged(path: Path, out_path: Path, command: Sequence[str] | None = None) -> float:
     """A model file -> the same nets served :class:`MirrorAveraged` at ``out_path`` (which may be ``path``),
-    its metadata kept but for ``training["mirror_averaged"] = True``; returns the parity error against
+    its metadata kept but for ``training["mirror_averaged"] = True`` and this invocation (``command``) as
+    ``training["mirror_run"]``, a step of its recipe; returns the parity error against
     torch (batches 1 and 8). Raises ValueError for a file that is not an EgoPoseVR model, is
     mirror-averaged already, or whose graph misses parity (``out_path`` is then left as it was)."""
     _, metadata, nets = load_served_nets(path)
@@ -340,7 +341,7 @@ def export_mirror_averaged(path: Path, out_path: Path) -> float:
     module = _served_module(nets, mirror_averaged=True)
     with _replaced_if_checked(out_path, "mirror") as written:  # out_path may be path
         _export_fusion(module, metadata.config, written)
-        training = {**metadata.training, "mirror_averaged": True}
+        training = {**metadata.training, "mirror_averaged": True, "mirror_run": invocation_record(command)}
         _set_metadata(written, dataclasses.replace(metadata, training=training))
         worst = max(_parity(module, written, _fusion_inputs(metadata.config, batch)) for batch in (1, 8))
         if worst > PARITY_TOL:

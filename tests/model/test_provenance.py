@@ -154,3 +154,16 @@ def test_a_record_of_another_shape_is_a_clear_error(record):
             read(record)
         except provenance.RecordError as error:
             assert "not one this version reads" in str(error)
+
+
+def test_a_mirror_averaged_file_says_so_and_its_recipe_ends_with_the_rewrite():
+    net = {"steps": 1, "seed": 0, "runs": [_run("egoposevr train A")]}
+    record = {"ensemble": [net, net], "export": _run("egoposevr export A"), "mirror_averaged": True}
+    rewritten = record | {"mirror_run": _run("egoposevr export --mirror-average w/egoposevr.onnx")}
+    assert [line.split("  # ")[0] for line in provenance.recipe(rewritten)][-1] == (
+        "cd /w && egoposevr export --mirror-average w/egoposevr.onnx"
+    )
+    assert provenance.recipe(record)[-1] == "# the mirror averaging: not recorded"
+    assert "mirror-averaged on T in /w: egoposevr export --mirror-average" in "\n".join(
+        provenance.describe(rewritten)
+    )

@@ -1858,7 +1858,10 @@ def test_a_model_file_mirror_averaged_keeps_its_weights_and_answers_the_mirrored
     assert "mirror-averaged" in capsys.readouterr().out
     _, plain, _ = load_served_nets(tiny_weights / "egoposevr.onnx")
     _, mirrored, _ = load_served_nets(path)
-    assert mirrored == dataclasses.replace(plain, training={**plain.training, "mirror_averaged": True})
+    run = mirrored.training["mirror_run"]  # a step of the file's recipe
+    assert run["command"] == shlex.join(["egoposevr", "export", "--mirror-average", str(path)])
+    training = {**plain.training, "mirror_averaged": True, "mirror_run": run}
+    assert mirrored == dataclasses.replace(plain, training=training)
     assert LoadedModel.load(path).info.kpo  # served as the model it was
     assert reexport_model(path) <= 1e-5  # the nets read back from the graph are the ones it serves
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
