@@ -17,33 +17,21 @@ TORCH_ALLOWED = [
     "model/training/blend.py",
     "model/synth/anny_bodies.py",  # builds body banks with the anny body model; rendering reads the bank
 ]
-# Which parts of model/ each layer may import (absolute names under egoposevr.model).
-MODEL_LAYERS = {
-    "runtime": {
-        "runtime",
-        "config",
-        "skeleton",
-        "rotations",
-        "hmd",
-        "inputs",
-        "rig",
-        "zoo",
-        "weights",
-        "provenance",
-    },
-    "shared": {
-        "runtime",
-        "config",
-        "skeleton",
-        "rotations",
-        "hmd",
-        "inputs",
-        "rig",
-        "zoo",
-        "weights",
-        "provenance",
-    },
+# Which parts of model/ the runtime and the shared modules beside it may import (absolute names under
+# egoposevr.model): each other, never training/ or synth/.
+_SERVING_LAYER = {
+    "runtime",
+    "config",
+    "skeleton",
+    "rotations",
+    "hmd",
+    "inputs",
+    "rig",
+    "zoo",
+    "weights",
+    "provenance",
 }
+MODEL_LAYERS = {"runtime": _SERVING_LAYER, "shared": _SERVING_LAYER}
 PROTOCOL_FORBIDDEN = {
     "asyncio",
     "socket",
