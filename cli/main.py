@@ -30,7 +30,7 @@ from . import (
 )
 
 # Subcommands whose files or reports record the code that made them (model/provenance.py).
-RECORDING = frozenset({"train", "export", "blend", "fit-body", "eval"})
+RECORDING = frozenset({"synth", "train", "export", "blend", "fit-body", "eval"})
 # (name, module): each module has `add_arguments(parser)`, `run(args) -> int` and a docstring for --help.
 SUBCOMMANDS = (
     ("demo", demo_cmd),

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -161,6 +162,7 @@ def _select(args: argparse.Namespace) -> tuple[list, dict]:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from ..model import provenance
     from ..model.synth.bodies import BodyBank, BodyBankError
     from ..model.synth.headset import CameraModel
     from ..model.synth.pipeline import (
@@ -259,7 +261,8 @@ def run(args: argparse.Namespace) -> int:
         licences = sorted({s["licence"] for s in sources})
         entry = {
             "seed": args.seed,
-            "command": "egoposevr synth " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["synth"] else "",
+            "command": shlex.join(args.command_line),
+            "code": provenance.code_version(),
             "hmd_rate_hz": hmd_rate,
             "camera_rate_hz": args.camera_rate,
             "seconds": args.seconds,
@@ -275,6 +278,7 @@ def run(args: argparse.Namespace) -> int:
             "bodies": _bank_record(args.bodies, bank) if bank is not None else None,
             "rig_pool": args.rig_pool,
         }
+        entry["shards_sha256"] = provenance.folder_digest(args.out, args.split)  # what a net's record names
         manifest = update_manifest(args.out, args.split, entry)
         if writer.shards:
             shard = load_shard(writer.split_dir / writer.shards[0])

@@ -45,10 +45,19 @@ def file_digest(path: str | Path) -> str:
 
 
 def data_digest(data_dirs: Sequence[Path], split: str = "train") -> str:
-    """sha256 (hex) over the named split's shards of each dataset folder, in the order given: each shard's
-    folder position, name and bytes. A set re-rendered by the same command gives the same digest (shards are
-    written with fixed timestamps: model/synth/archive.py)."""
-    return _data_digest(tuple(_shard_stamps(Path(d), split) for d in data_dirs))
+    """sha256 (hex) of the named split's shards of the dataset folders, in the order given: one folder's
+    :func:`folder_digest`, several folders' the digest of theirs in order."""
+    digests = [folder_digest(d, split) for d in data_dirs]
+    if len(digests) == 1:
+        return digests[0]
+    return hashlib.sha256("".join(f"{k}:{d}\n" for k, d in enumerate(digests)).encode()).hexdigest()
+
+
+def folder_digest(data_dir: Path, split: str = "train") -> str:
+    """sha256 (hex) over one dataset folder's split shards: each shard's name and bytes, in name order. A set
+    re-rendered by the same command gives the same digest (shards are written with fixed timestamps:
+    model/synth/archive.py), wherever its folder lies; ``egoposevr synth`` writes it in the manifest."""
+    return _folder_digest(_shard_stamps(Path(data_dir), split))
 
 
 def _shard_stamps(data_dir: Path, split: str) -> tuple[tuple[str, int, int], ...]:
@@ -57,16 +66,15 @@ def _shard_stamps(data_dir: Path, split: str) -> tuple[tuple[str, int, int], ...
     return tuple((str(p.resolve()), (s := p.stat()).st_size, s.st_mtime_ns) for p in shards)
 
 
-@functools.lru_cache(maxsize=8)
-def _data_digest(folders: tuple[tuple[tuple[str, int, int], ...], ...]) -> str:
-    """The digest of :func:`data_digest`, once per set of unchanged files (a zoo's nets read the same data)."""
+@functools.lru_cache(maxsize=32)
+def _folder_digest(shards: tuple[tuple[str, int, int], ...]) -> str:
+    """The digest of :func:`folder_digest`, once per set of unchanged files (a zoo's nets read the same data)."""
     digest = hashlib.sha256()
-    for position, shards in enumerate(folders):
-        for path, _, _ in shards:
-            digest.update(f"{position}/{Path(path).name}\n".encode())
-            with open(path, "rb") as f:
-                while chunk := f.read(_CHUNK_BYTES):
-                    digest.update(chunk)
+    for path, _, _ in shards:
+        digest.update(f"{Path(path).name}\n".encode())
+        with open(path, "rb") as f:
+            while chunk := f.read(_CHUNK_BYTES):
+                digest.update(chunk)
     return digest.hexdigest()
 
 
@@ -327,6 +335,8 @@ def _net_lines(record: dict[str, Any], indent: str, depth: int, ancestors: _Ance
     dirs = data.get("dir")
     dirs = " ".join(dirs) if isinstance(dirs, list) else dirs
     yield f"{pad}data {dirs} ({data.get('sequences')} sequences), sha256 {_short(data.get('sha256'))}"
+    if len(each := data.get("folders_sha256") or []) > 1:  # to match each folder's manifest
+        yield f"{pad}  each folder's shards: {', '.join(_short(d) for d in each)}"
     if held := data.get("held_out_fold"):
         yield f"{pad}people of fold {held} left out"
     if init := record.get("init"):

@@ -1261,8 +1261,11 @@ def _data_field(
     held = (
         {"held_out_fold": tc.hold_out, "trained_subjects_sha256": _people_digest(seqs)} if tc.hold_out else {}
     )
-    digest = provenance.data_digest(data_dirs)
-    return {"dir": _dirs_field(data_dirs), "sha256": digest, **held, "sequences": len(seqs), **counts}
+    digests = {
+        "sha256": provenance.data_digest(data_dirs),
+        "folders_sha256": [provenance.folder_digest(d) for d in data_dirs],
+    }
+    return {"dir": _dirs_field(data_dirs), **digests, **held, "sequences": len(seqs), **counts}
 
 
 def _dirs_field(data_dirs: tuple[Path, ...]) -> str | list[str]:

@@ -1,11 +1,13 @@
 """``egoposevr synth`` end to end on tiny inputs: dataset with manifest and preview, sessions, bad input."""
 
 import json
+import shlex
 
 import numpy as np
 import pytest
 
 from egoposevr.cli.main import main
+from egoposevr.model import provenance
 from egoposevr.model.synth.pipeline import iter_shard_sequences, load_shard
 
 TINY = ["--seconds", "2", "--resolution", "64x48", "--no-progress"]
@@ -25,6 +27,9 @@ def test_synth_writes_a_deterministic_dataset_with_manifest_and_preview(tmp_path
     assert (tmp_path / "a" / "preview-train.png").stat().st_size > 1000
     a = (tmp_path / "a" / "train" / "shard-00000.npz").read_bytes()
     assert a == (tmp_path / "b" / "train" / "shard-00000.npz").read_bytes()  # same seed, same bytes
+    b = json.loads((tmp_path / "b" / "manifest.json").read_text())["splits"]["train"]
+    assert train["shards_sha256"] == b["shards_sha256"] == provenance.folder_digest(tmp_path / "a")  # so:
+    assert train["command"] == shlex.join(["egoposevr", *args, "--out", str(tmp_path / "a")])
     seqs = list(iter_shard_sequences(load_shard(tmp_path / "a" / "train" / "shard-00000.npz")))
     assert [s["source"] for s in seqs] == ["procedural:squat", "procedural:jump"]
     assert len(seqs[0]["rgb_jpeg"]) == 60 and seqs[0]["hmd_t_us"].shape == (120,)

@@ -29,6 +29,7 @@ def test_the_data_digest_follows_the_shards_bytes_names_and_order(tmp_path):
     assert provenance.data_digest([a, b]) != provenance.data_digest([b, a])
     (a / "train" / "shard-00001.npz").write_bytes(b"changed")  # a change since the last digest is seen
     assert provenance.data_digest([a]) != provenance.data_digest([same])
+    assert provenance.data_digest([b]) == provenance.folder_digest(b)  # one folder: its own digest
     (a / "val").mkdir()
     (a / "val" / "shard-00000.npz").write_bytes(b"val")  # another split is not what training reads
     assert provenance.data_digest([a]) == provenance.data_digest([a], "train")
@@ -72,7 +73,8 @@ def test_records_read_as_nested_lines_and_say_what_was_not_recorded():
         "from_step": 0, "to_step": 8,
     }  # fmt: skip
     net = {
-        "steps": 8, "seed": 3, "data": {"dir": ["d1", "d2"], "sequences": 5, "sha256": "ab" * 32},
+        "steps": 8, "seed": 3,
+        "data": {"dir": ["d1", "d2"], "sequences": 5, "sha256": "ab" * 32, "folders_sha256": ["01" * 32, "23" * 32]},
         "init": {"from": "start.onnx", "member": 1, "sha256": "cd" * 32}, "runs": [run],
         "encoders": [{"from": "e.onnx", "sha256": "ef" * 32}],
     }  # fmt: skip
@@ -82,6 +84,7 @@ def test_records_read_as_nested_lines_and_say_what_was_not_recorded():
     text = "\n".join(lines)
     assert lines[0] == "the mean of 2 nets:" and lines[2] == "    a weight-space blend (0.50, 0.50) of:"
     assert "data d1 d2 (5 sequences), sha256 abababababababab" in text
+    assert "each folder's shards: 0101010101010101, 2323232323232323" in text  # as their manifests say
     assert "started from start.onnx member 1, sha256 cdcdcdcdcdcdcdcd" in text
     assert "keypoints from e.onnx, sha256 efefefefefefefef" in text
     assert "ran steps 0-8 on T in /w: egoposevr train --seed 3" in text

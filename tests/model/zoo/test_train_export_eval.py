@@ -71,6 +71,9 @@ def test_training_twice_gives_the_same_bits_and_each_file_says_how_it_was_made(t
         a, b = (load_checkpoint(tmp_path / out / name) for out in "ab")
         assert all(torch.equal(tensor, b["state_dict"][key]) for key, tensor in a["state_dict"].items())
         assert a["data"]["sha256"] == provenance.data_digest([tiny_data])
+        assert a["data"]["folders_sha256"] == [
+            json.loads((tiny_data / "manifest.json").read_text())["splits"]["train"]["shards_sha256"]
+        ]
         (run,) = a["runs"]
         assert run["command"] == shlex.join(["egoposevr", *args, "--out", str(tmp_path / "a")])
         assert (run["from_step"], run["to_step"], run["machine"]["threads"]) == (0, 3, 1)
