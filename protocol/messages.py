@@ -31,6 +31,7 @@ TimeUs = Annotated[int, Strict(), Field(ge=0, lt=2**63)]
 Coord = Annotated[float, Strict(), AllowInfNan(False), Field(ge=-1e4, le=1e4)]  # metres or unit-less
 Name = Annotated[str, Strict(), Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:\-]+$")]
 Text = Annotated[str, Strict(), Field(max_length=1024)]
+Digest = Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$")]  # sha256, lowercase hex
 Blob = Annotated[bytes, Strict(), Field(min_length=1)]
 
 
@@ -291,6 +292,8 @@ class ModelInfo(BaseModel):
     name: Name
     inputs: Annotated[list[Literal["hmd", "rgb", "depth"]], Len(1, 3)]
     description: Text = ""
+    sha256: Digest | None = None  # the model file served; absent for a model that is code (procedural)
+    encoder_sha256: Digest | None = None  # its visual encoder's file, for models that read a camera
 
 
 class Models(Message):

@@ -18,6 +18,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from ..model.provenance import file_digest
 from ..model.runtime.loading import DEFAULT_PROVIDERS, LoadedModel, ModelError
 from ..model.runtime.procedural import NAME as PROCEDURAL
 from ..model.runtime.procedural import ProceduralModel
@@ -61,6 +62,7 @@ class ModelRegistry:
         self._failed: dict[Path, _Stamp] = {}  # not retried until the file changes
         self._shared: dict[Path, Any] = {}  # visual encoder sessions, by path
         self._encoder_stamps: dict[Path, _Stamp] = {}
+        self._digests: dict[str, tuple[str, str | None]] = {}  # name -> (model file, encoder file) sha256
 
     def names(self) -> list[str]:
         return list(self.models)
@@ -77,11 +79,16 @@ class ModelRegistry:
         return self.models.get(name)
 
     def wire_infos(self) -> list[WireModelInfo]:
-        """The ``models`` message's list."""
-        return [
-            WireModelInfo(name=n, inputs=list(m.info.inputs), description=m.info.description[:1024])
-            for n, m in self.models.items()
-        ]
+        """The ``models`` message's list, with the digests of the files each model serves (PROTOCOL.md
+        §model-digests): which weights answered a session, for a user's report."""
+        infos = []
+        for name, model in self.models.items():
+            model_sha256, encoder_sha256 = self._digests.get(name, (None, None))
+            infos.append(WireModelInfo(
+                name=name, inputs=list(model.info.inputs), description=model.info.description[:1024],
+                sha256=model_sha256, encoder_sha256=encoder_sha256,
+            ))  # fmt: skip
+        return infos
 
     def _candidates(self) -> dict[str, Path]:
         found = dict(model_files(WEIGHTS_DIR)) if self.bundled else {}
@@ -97,6 +104,7 @@ class ModelRegistry:
         models = {n: m for n, m in self.models.items() if n not in self._builtin or n in candidates}
         for name in set(models) - set(candidates):
             del models[name], self._stamps[name]
+            self._digests.pop(name, None)
             events.append(f"model {name} removed")
         for name, path in candidates.items():
             try:
@@ -144,4 +152,7 @@ class ModelRegistry:
         self.failures.pop(stamp.path, None)
         reloaded = name in models
         models[name], self._stamps[name] = model, stamp
-        return f"model {name} {'reloaded' if reloaded else 'loaded'} from {stamp.path}"
+        encoder = model.info.visual_path
+        self._digests[name] = (file_digest(stamp.path), file_digest(encoder) if encoder is not None else None)
+        action = "reloaded" if reloaded else "loaded"
+        return f"model {name} {action} from {stamp.path} (sha256 {self._digests[name][0][:12]})"

@@ -59,7 +59,7 @@ function connect(session) {
 
 function onMessage(msg) {
   if (msg.type === "welcome") { state.connected = true; state.model = msg.model; }
-  else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(); }
+  else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(msg.models); }
   else if (msg.type === "pose") { onPose(msg); }
   else if (msg.type === "error") {
     state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`];
@@ -98,9 +98,15 @@ async function refreshSessions() {
   if (!state.session && state.sessions.length) connect(state.sessions[0]);
 }
 
-function fillModels() {
+// Each option's tooltip: what the model is, and which file serves it (PROTOCOL.md §model-digests), for a report.
+function fillModels(models) {
   const select = $("model");
-  select.replaceChildren(...state.models.map((n) => new Option(n, n, false, n === state.model)));
+  const titles = new Map(models.map((m) => [m.name, [m.description, m.sha256 && `sha256 ${m.sha256.slice(0, 12)}`]]));
+  select.replaceChildren(...state.models.map((n) => {
+    const option = new Option(n, n, false, n === state.model);
+    option.title = (titles.get(n) || []).filter(Boolean).join(" · ");
+    return option;
+  }));
 }
 
 // ------------------------------------------------------------------------------------------ a returning wearer's body

@@ -26,8 +26,10 @@ from websockets.sync.client import connect
 
 from egoposevr.clients.avatar import VRM_BONES
 from egoposevr.clients.replay import Recording, Replayer
+from egoposevr.model.provenance import file_digest
 from egoposevr.model.runtime.body import bone_lengths_m
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+from egoposevr.model.weights import WEIGHTS_DIR
 from egoposevr.server.app import VIEWER_DIR
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -129,6 +131,10 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             assert state["truthSeen"] and state["serverMs"] > 0 and state["fps"] > 10
             assert "walk" in state["sessions"] and "egoposevr" in state["models"]
             assert state["headset"] is True  # told by the session status messages
+            title = browser.evaluate('document.querySelector("#model option[value=egoposevr]").title')
+            assert title.endswith(
+                f"sha256 {file_digest(WEIGHTS_DIR / 'egoposevr.onnx')[:12]}"
+            )  # which weights
             first = browser.screenshot()
             time.sleep(0.8)
             second = browser.screenshot()

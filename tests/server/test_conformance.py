@@ -32,8 +32,10 @@ from loopback import (
 )
 
 from egoposevr.cli.main import main as cli_main
+from egoposevr.model.provenance import file_digest
 from egoposevr.model.skeleton import forward_kinematics
 from egoposevr.model.synth.headset import HeadsetRig, device_poses
+from egoposevr.model.weights import WEIGHTS_DIR
 from egoposevr.protocol import ErrorCode, Hello, Hmd, ListModels, Ping, SelectModel, decode, encode
 from egoposevr.protocol.examples import example_messages, openxr_examples
 from egoposevr.protocol.openxr import controller_pose
@@ -331,6 +333,20 @@ def test_a_second_hello_ping_and_list_models(server):
         client.send(ListModels())
         models = client.recv_type("models")
         assert models.active == "egoposevr" and "hmd" in [m.name for m in models.models]
+
+
+@pytest.mark.protocol("model-digests")
+def test_each_model_names_the_digests_of_the_files_it_serves(server):
+    with Client(server.url, "digests") as client:
+        client.hello("render", "digests")
+        client.send(ListModels())
+        listed = {m.name: m for m in client.recv_type("models").models}
+    assert listed["procedural"].sha256 is None and listed["procedural"].encoder_sha256 is None
+    assert (
+        listed["hmd"].sha256 == file_digest(WEIGHTS_DIR / "hmd.onnx") and listed["hmd"].encoder_sha256 is None
+    )
+    assert listed["egoposevr"].sha256 == file_digest(WEIGHTS_DIR / "egoposevr.onnx")
+    assert listed["egoposevr"].encoder_sha256 == file_digest(WEIGHTS_DIR / "visual-rgbd.onnx")
 
 
 @pytest.mark.protocol("hello-order")
