@@ -303,7 +303,11 @@ static class CoreTests
         Check(render.PosesReceived == input.PosesReceived, "the render client receives every pose the input client does");
 
         input.Send(new SelectModel { Model = "hmd" });
-        WaitForMessage<Models>(input, m => m.Active == "hmd", "models answers select_model");
+        var listed = WaitForMessage<Models>(input, m => m.Active == "hmd", "models answers select_model");
+        var fusion = listed.List.Find(info => info.Name == "egoposevr");
+        Check(fusion != null && fusion.Sha256 != null && fusion.Sha256.Length == 64 && fusion.EncoderSha256 != null,
+            "each model names the files it serves (§model-digests)");
+        Check(listed.List.Find(info => info.Name == "procedural").Sha256 == null, "a model that is code names none");
         WaitForMessage<Models>(render, m => m.Active == "hmd", "the render client hears of the switch");
         StreamHeadset(input, rgb, depth, 90, next, 30);
         long afterSwitch = next + 29;

@@ -269,6 +269,8 @@ namespace EgoPose.Protocol
         public string Name;
         public List<string> Inputs = new List<string>(); // ⊆ {"hmd", "rgb", "depth"}
         public string Description;
+        public string Sha256; // optional: the served model file's SHA-256, hex (§model-digests); null for code
+        public string EncoderSha256; // optional: its visual encoder's, for models that read a camera
     }
 
     public sealed class Models : Message
@@ -283,9 +285,12 @@ namespace EgoPose.Protocol
             var items = new List<object>();
             foreach (var info in List)
             {
-                items.Add(new MsgMap().Add("name", info.Name)
+                var item = new MsgMap().Add("name", info.Name)
                     .Add("inputs", info.Inputs.ConvertAll(name => (object)name))
-                    .Add("description", info.Description));
+                    .Add("description", info.Description);
+                Fields.AddIfSet(item, "sha256", info.Sha256);
+                Fields.AddIfSet(item, "encoder_sha256", info.EncoderSha256);
+                items.Add(item);
             }
             map.Add("active", Active).Add("models", items);
         }
@@ -302,6 +307,8 @@ namespace EgoPose.Protocol
                     Name = Fields.String(info, "name"),
                     Inputs = Fields.StringList(info, "inputs"),
                     Description = Fields.String(info, "description"),
+                    Sha256 = Fields.OptionalString(info, "sha256"),
+                    EncoderSha256 = Fields.OptionalString(info, "encoder_sha256"),
                 });
             }
             return models;
