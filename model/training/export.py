@@ -191,9 +191,14 @@ def training_record(ckpt: dict[str, Any], path: Path | None = None) -> dict[str,
     return record
 
 
-def export_visual(ckpt_path: Path, out_path: Path, command: Sequence[str] | None = None) -> float:
+def export_visual(
+    ckpt_path: Path,
+    out_path: Path,
+    command: Sequence[str] | None = None,
+    invocation: dict[str, Any] | None = None,
+) -> float:
     """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error. ``command``: the command line its
-    record names."""
+    record names (``invocation``: the record itself, one for every file of an export)."""
     ckpt = load_checkpoint(ckpt_path)
     module = _VisualOutputs(build_net(ckpt, ckpt_path)).eval()
     cfg = module.net.cfg
@@ -204,7 +209,7 @@ def export_visual(ckpt_path: Path, out_path: Path, command: Sequence[str] | None
         format=FORMAT_VERSION, kind="visual", name=ckpt["name"], config=cfg,
         camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES,
         training=provenance.hoist_ancestors(
-            training_record(ckpt, ckpt_path) | {"export": invocation_record(command)}
+            training_record(ckpt, ckpt_path) | {"export": invocation or invocation_record(command)}
         ),
         units="image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
               "depth_m metres along the optical axis; zeta probability in view",
@@ -276,11 +281,13 @@ def export_model(
     out_path: Path,
     lean_gate: bool = False,
     command: Sequence[str] | None = None,
+    invocation: dict[str, Any] | None = None,
 ) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
     :class:`SeedEnsemble`); returns the parity error. ``lean_gate``: a model with KPO asks the runtime for
     the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there).
-    ``command``: the command line its record names."""
+    ``command``: the command line its record names (``invocation``: the record itself, one for every file of an
+    export)."""
     entry = ZOO[name]
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
@@ -290,7 +297,7 @@ def export_model(
     module = _served_module(nets)
     records = [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
     training = {"ensemble": records} if len(records) > 1 else records[0]
-    training = provenance.hoist_ancestors(training | {"export": invocation_record(command)})
+    training = provenance.hoist_ancestors(training | {"export": invocation or invocation_record(command)})
     _export_fusion(module, cfg, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
@@ -579,6 +586,7 @@ def export_zoo(
         )
     runs_dir = runs_dirs[0]
     out_dir.mkdir(parents=True, exist_ok=True)
+    invocation = invocation_record(command)  # one record for every file this export writes
     errors: dict[str, float | None] = {}
     for kind in sorted({ZOO[n].visual for n in names if ZOO[n].visual}):
         name = f"visual-{kind}.onnx"
@@ -586,7 +594,8 @@ def export_zoo(
             copy_encoder(encoders_dir / name, out_dir / name)
             errors[name] = None
         else:
-            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, command)
+            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, command, invocation)
     for name in names:
-        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_dir / f"{name}.onnx", lean_gate, command)
+        out_path = out_dir / f"{name}.onnx"
+        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_path, lean_gate, command, invocation)
     return errors
