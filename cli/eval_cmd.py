@@ -355,6 +355,8 @@ def _provenance(args: argparse.Namespace, chosen: dict[str, Path | None]) -> dic
 
 def _read_from_line(read_from: dict[str, Any]) -> str:
     """The report's provenance in one line under its tables: the data's and each file's digest, the code."""
+    from ..model import provenance
+
     data, code = read_from["data"], read_from["run"]["code"]
     files = [
         f"{label} {entry['sha256'][:12]}"
@@ -362,9 +364,7 @@ def _read_from_line(read_from: dict[str, Any]) -> str:
         for label, entry in read_from["models"].items()
         if entry is not None
     ]
-    commit = (code.get("commit") or "unknown commit")[:12] + (
-        " with local changes" if code.get("dirty") else ""
-    )
+    commit = provenance.short_commit(code)
     return (
         f"Read from {data['dir']} {data['split']} (shards sha256 {data['sha256'][:12]}); "
         f"{', '.join(files) or 'no model file'}; code {commit}."

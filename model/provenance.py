@@ -271,12 +271,18 @@ def _recipe(record: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _recipe_line(run: dict[str, Any]) -> str:
-    """One recorded invocation as a shell line: into its folder, its command, and what else decides its bits."""
-    code, host = run.get("code") or {}, run.get("machine") or {}
-    commit = (code.get("commit") or "unknown commit")[:12] + (
+def short_commit(code: dict[str, Any]) -> str:
+    """A :func:`code_version` record as people read it: the commit's first 12 digits, and whether it had local
+    changes."""
+    return (code.get("commit") or "unknown commit")[:12] + (
         " with local changes" if code.get("dirty") else ""
     )
+
+
+def _recipe_line(run: dict[str, Any]) -> str:
+    """One recorded invocation as a shell line: into its folder, its command, and what else decides its bits."""
+    host = run.get("machine") or {}
+    commit = short_commit(run.get("code") or {})
     where = f"cd {shlex.quote(run['cwd'])} && " if run.get("cwd") else ""
     return f"{where}{run['command']}  # code {commit}; {host.get('threads')} threads on {host.get('device')}"
 
