@@ -127,6 +127,8 @@ def example_messages() -> dict[str, Message]:
                     name="egoposevr",
                     inputs=["hmd", "rgb", "depth"],
                     description="HMD + RGB-D fusion with KPO",
+                    sha256="0123456789abcdef" * 4,
+                    encoder_sha256="fedcba9876543210" * 4,
                 ),
                 ModelInfo(name="hmd", inputs=["hmd"], description="HMD-only baseline"),
             ],

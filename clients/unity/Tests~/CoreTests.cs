@@ -89,6 +89,11 @@ static class CoreTests
         Check(pose.Seq == 42 && pose.BodyPose[9] == 0.5f && pose.GlobalOrient[1] == 3.125f, "pose fields");
         var error = (Error)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "error.msgpack")));
         Check(error.Code == "wrong_length" && !error.Fatal && error.RefType == "hmd" && error.RefSeq == 43, "error fields");
+        var models = (Models)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "models.msgpack")));
+        Func<string, string> Repeat = part => string.Concat(Enumerable.Repeat(part, 4));
+        Check(models.Active == "egoposevr" && models.List.Count == 2
+            && models.List[0].Sha256 == Repeat("0123456789abcdef") && models.List[0].EncoderSha256 == Repeat("fedcba9876543210")
+            && models.List[1].Sha256 == null && models.List[1].EncoderSha256 == null, "models fields, digests where given");
         var body = (Body)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "body.msgpack")));
         Check(body.BoneLengthsM.SequenceEqual(ExampleBoneLengths()) && body.Given && !body.Measured, "body fields");
         SameBytes(MsgPack.Encode(new MsgMap().Add("type", "set_body").Add("v", 1L).Add("clear", true)),
