@@ -76,6 +76,22 @@ void UEgoPoseComponent::OnRawMessage(const void* Data, SIZE_T Size, SIZE_T Bytes
                 for (int32 B = 0; B < KeptBoneLengths.Num(); ++B) Lengths[B] = KeptBoneLengths[B];
                 Send(egopose::encode(egopose::SetBody{Lengths, false}));
             }
+        } else if (Type == "models") {
+            const egopose::Models Models = egopose::read_models(Handle);
+            ActiveModel = UTF8_TO_TCHAR(Models.active.c_str());
+            ModelNames.Reset();
+            for (const egopose::ModelInfo& Info : Models.models) {
+                ModelNames.Add(UTF8_TO_TCHAR(Info.name.c_str()));
+                if (Info.name != Models.active) continue;
+                const FString Sha256 = UTF8_TO_TCHAR(Info.sha256.value_or("").c_str());
+                const FString EncoderSha256 = UTF8_TO_TCHAR(Info.encoder_sha256.value_or("").c_str());
+                if (Sha256 != ActiveModelSha256 || EncoderSha256 != ActiveEncoderSha256)
+                    UE_LOG(LogTemp, Log, TEXT("EgoPose: serving %s (sha256 %s, encoder %s)"), *ActiveModel,
+                           Sha256.IsEmpty() ? TEXT("none: code") : *Sha256,
+                           EncoderSha256.IsEmpty() ? TEXT("none") : *EncoderSha256);
+                ActiveModelSha256 = Sha256;
+                ActiveEncoderSha256 = EncoderSha256;
+            }
         } else if (Type == "body") {
             const egopose::Body Body = egopose::read_body(Handle);
             if (Body.measured && !Body.given) MeasuredBoneLengths = TArray<float>(Body.bone_lengths_m.data(), egopose::kBoneCount);
@@ -92,7 +108,7 @@ void UEgoPoseComponent::OnRawMessage(const void* Data, SIZE_T Size, SIZE_T Bytes
             const egopose::Error Error = egopose::read_error(Handle);
             UE_LOG(LogTemp, Warning, TEXT("EgoPose: %hs: %hs"), Error.code.c_str(), Error.message.c_str());
             if (Error.ref_type == std::optional<std::string>("set_body")) KeptBoneLengths.Reset();  // refused: not again
-        }  // other types (models, session, calibration, pong, later ones) are ignored (PROTOCOL.md §8)
+        }  // other types (session, calibration, pong, later ones) are ignored here (PROTOCOL.md §8); the core reads them
     } catch (const std::exception& Exc) {
         UE_LOG(LogTemp, Warning, TEXT("EgoPose: unreadable server message: %hs"), Exc.what());
     }

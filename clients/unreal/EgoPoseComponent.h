@@ -35,6 +35,15 @@ class UEgoPoseComponent : public UActorComponent {
     // wearer's profile and put it in KeptBoneLengths at their next session.
     UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<float> MeasuredBoneLengths;
 
+    // The session's model and every servable one, from the server's `models` (after the welcome, after SelectModel).
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") FString ActiveModel;
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<FString> ModelNames;
+
+    // The SHA-256 of the active model's file and of its visual encoder's (empty for procedural): which weights
+    // answered this session (PROTOCOL.md §model-digests). Logged on every change; keep them with a bug report.
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") FString ActiveModelSha256;
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") FString ActiveEncoderSha256;
+
     // The newest served joints (22, SMPL order of PROTOCOL.md §3), Unreal world space, cm.
     UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<FVector> Joints;
 

@@ -1,5 +1,6 @@
-// EgoPose protocol v1 for C++ (PROTOCOL.md): the messages an Unreal (or any C++) headset client sends and the
-// pose it reads, encoded with msgpack-c (msgpack-cxx, header-only), and the frame conversions of §3.2.
+// EgoPose protocol v1 for C++ (PROTOCOL.md): every message a C++ client sends (an Unreal headset, a camera
+// app, a render client) and every message the server sends it, with msgpack-c (msgpack-cxx, header-only), and
+// the frame conversions of §3.2. A server message that breaks the schema throws ProtocolError naming the field.
 //
 // Plain C++17 and msgpack-cxx, no Unreal types: tests/clients/test_unreal_core.py compiles it with g++ and checks
 // it against the golden fixtures. EgoPoseComponent.h/.cpp is the Unreal side that uses it.
@@ -16,6 +17,8 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
+#include <vector>
 
 #define MSGPACK_NO_BOOST
 #include <msgpack.hpp>
@@ -39,6 +42,25 @@ struct Hmd {
 
 struct SelectModel {
     std::string model;
+};
+
+// One egocentric RGB-D frame (§5 rgbd): JPEG colour and 16-bit PNG depth in millimetres (0 = no reading), both
+// width x height; the bytes are sent as they are (the server checks their signatures and sizes).
+struct Rgbd {
+    int64_t seq = 0;
+    int64_t t_us = 0;  // exposure time, the hmd samples' clock
+    int64_t width = 0, height = 0;
+    std::array<float, 4> intrinsics{};  // fx, fy, cx, cy in pixels
+    std::string rgb, depth;             // JPEG bytes, PNG bytes
+    std::optional<std::array<float, 16>> cam_from_head;  // row-major 4x4 head device -> camera (m), this frame only
+};
+
+// Ask for the servable models; answered by `models`.
+struct ListModels {};
+
+// Liveness and round-trip time: `nonce` and `t_us` come back in `pong`.
+struct Ping {
+    std::optional<int64_t> nonce, t_us;
 };
 
 // Ask the server to measure the wearer (§4.1): hold `pose` ("tpose" or "stand") still for `seconds`; `clear`
@@ -88,6 +110,49 @@ struct Body {
     bool measured = false;         // the camera measured the wearer's bones and they stood (or calibrated)
 };
 
+// The answer to hello.
+struct Welcome {
+    std::string session, role, server;  // server: "egoposevr/<version>"
+    std::string model;                  // the session's active model
+    std::vector<std::string> models;    // every servable model's name
+    std::optional<std::string> provider;  // the execution provider of the active model ("none": no network)
+};
+
+// One servable model (§5 models). The digests say exactly which weights answered a session (§model-digests):
+// log them with it. A model that is code (procedural) has neither; one that reads no camera has no encoder's.
+struct ModelInfo {
+    std::string name;
+    std::vector<std::string> inputs;  // a subset of "hmd", "rgb", "depth"
+    std::string description;
+    std::optional<std::string> sha256, encoder_sha256;  // 64 lowercase hex digits
+};
+
+// The models a session may select and the one it uses now: after the welcome, after list_models, and to every
+// client of the session after any select_model.
+struct Models {
+    std::string active;
+    std::vector<ModelInfo> models;
+};
+
+// Who is in a session (render clients): event "joined", "input_joined" or "input_left".
+struct SessionStatus {
+    std::string session, event, model;
+    bool input = false;  // an input client is connected now
+    int64_t renders = 0;
+};
+
+// Where a calibration stands (§4.1): status "started", "done", "failed" or "cleared".
+struct Calibration {
+    std::string status, pose, message;
+    std::optional<float> head_height_m, arm_span_m;     // done: what was measured
+    std::optional<std::array<float, 12>> corrections;  // done: head, left, right xyzw; R_device @ c from now on
+};
+
+struct Pong {
+    std::optional<int64_t> nonce, t_us;  // echoed from the ping
+    int64_t server_t_us = 0;             // the server's monotonic clock
+};
+
 class ProtocolError : public std::runtime_error {
    public:
     using std::runtime_error::runtime_error;
@@ -135,6 +200,13 @@ class Writer {
         return *this;
     }
 
+    Writer& bin_field(const char* name, const std::string& bytes) {
+        key(packer_, name);
+        packer_.pack_bin(static_cast<uint32_t>(bytes.size()));
+        packer_.pack_bin_body(bytes.data(), static_cast<uint32_t>(bytes.size()));
+        return *this;
+    }
+
     msgpack::sbuffer take() { return std::move(buffer_); }
 
    private:
@@ -150,21 +222,100 @@ inline const msgpack::object* find(const msgpack::object_map& map, const char* n
     return nullptr;
 }
 
-inline const msgpack::object& field(const msgpack::object_map& map, const char* name) {
-    const msgpack::object* value = find(map, name);
-    if (value == nullptr || value->type == msgpack::type::NIL) throw ProtocolError(std::string("missing ") + name);
-    return *value;
-}
+// A field of a server message, read as one message is: `where` ("models.models[1]") names it in the error.
+class Fields {
+   public:
+    Fields(const msgpack::object& object, std::string where) : where_(std::move(where)) {
+        if (object.type != msgpack::type::MAP) throw ProtocolError(where_ + ": expected a map");
+        map_ = &object.via.map;
+    }
 
-template <size_t N>
-std::array<float, N> read_floats(const msgpack::object_map& map, const char* name) {
-    const msgpack::object& value = field(map, name);
-    if (value.type != msgpack::type::ARRAY || value.via.array.size != N)
-        throw ProtocolError(std::string(name) + ": expected " + std::to_string(N) + " numbers");
-    std::array<float, N> out{};
-    for (size_t i = 0; i < N; ++i) out[i] = value.via.array.ptr[i].as<float>();
-    return out;
-}
+    const msgpack::object* optional(const char* name) const {
+        const msgpack::object* value = find(*map_, name);
+        return value == nullptr || value->type == msgpack::type::NIL ? nullptr : value;
+    }
+
+    const msgpack::object& required(const char* name) const {
+        const msgpack::object* value = optional(name);
+        if (value == nullptr) throw ProtocolError(path(name) + ": missing");
+        return *value;
+    }
+
+    template <typename T>
+    T get(const char* name) const {
+        return as<T>(required(name), path(name));
+    }
+
+    template <typename T>
+    std::optional<T> get_optional(const char* name) const {
+        const msgpack::object* value = optional(name);
+        if (value == nullptr) return std::nullopt;
+        return as<T>(*value, path(name));
+    }
+
+    // A string field: msgpack str only (a bin where text belongs is refused, as the server's decoder does).
+    std::string text(const char* name) const { return text_of(required(name), path(name)); }
+
+    std::optional<std::string> optional_text(const char* name) const {
+        const msgpack::object* value = optional(name);
+        if (value == nullptr) return std::nullopt;
+        return text_of(*value, path(name));
+    }
+
+    std::vector<std::string> texts(const char* name) const {
+        const msgpack::object& value = array(name);
+        std::vector<std::string> out;
+        for (uint32_t i = 0; i < value.via.array.size; ++i)
+            out.push_back(text_of(value.via.array.ptr[i], path(name) + "[" + std::to_string(i) + "]"));
+        return out;
+    }
+
+    template <size_t N>
+    std::array<float, N> floats(const char* name) const {
+        const msgpack::object& value = array(name);
+        if (value.via.array.size != N)
+            throw ProtocolError(path(name) + ": expected " + std::to_string(N) + " numbers, got " +
+                                std::to_string(value.via.array.size));
+        std::array<float, N> out{};
+        for (size_t i = 0; i < N; ++i) out[i] = as<float>(value.via.array.ptr[i], path(name) + "[" + std::to_string(i) + "]");
+        return out;
+    }
+
+    template <size_t N>
+    std::optional<std::array<float, N>> optional_floats(const char* name) const {
+        if (optional(name) == nullptr) return std::nullopt;
+        return floats<N>(name);
+    }
+
+    const msgpack::object& array(const char* name) const {
+        const msgpack::object& value = required(name);
+        if (value.type != msgpack::type::ARRAY) throw ProtocolError(path(name) + ": expected an array");
+        return value;
+    }
+
+    std::string path(const std::string& name) const { return where_ + "." + name; }
+
+   private:
+    template <typename T>
+    static T as(const msgpack::object& value, const std::string& where) {
+        if constexpr (std::is_same_v<T, float>) {  // msgpack-c would read a bool as 0 or 1
+            if (value.type == msgpack::type::BOOLEAN) throw ProtocolError(where + ": expected a number");
+        }
+        try {
+            return value.as<T>();
+        } catch (const msgpack::type_error&) {
+            throw ProtocolError(where + ": wrong type");
+        }
+    }
+
+    static std::string text_of(const msgpack::object& value, const std::string& where) {
+        if (value.type != msgpack::type::STR) throw ProtocolError(where + ": expected a string");
+        return {value.via.str.ptr, value.via.str.size};
+    }
+
+    const msgpack::object_map* map_ = nullptr;
+    std::string where_;
+};
 
 }  // namespace detail
 
@@ -181,6 +332,14 @@ inline msgpack::sbuffer encode(const Hmd& m) {
     w.field("seq", m.seq).field("t_us", m.t_us);
     w.floats_field("head", m.head).floats_field("left", m.left).floats_field("right", m.right);
     return w.field("valid", m.valid).take();
+}
+
+inline msgpack::sbuffer encode(const Rgbd& m) {
+    detail::Writer w(7 + m.cam_from_head.has_value(), "rgbd");
+    w.field("seq", m.seq).field("t_us", m.t_us).field("width", m.width).field("height", m.height);
+    w.floats_field("intrinsics", m.intrinsics).bin_field("rgb", m.rgb).bin_field("depth", m.depth);
+    if (m.cam_from_head) w.floats_field("cam_from_head", *m.cam_from_head);
+    return w.take();
 }
 
 inline msgpack::sbuffer encode(const SelectModel& m) { return detail::Writer(1, "select_model").field("model", m.model).take(); }
@@ -201,13 +360,22 @@ inline msgpack::sbuffer encode(const SetBody& m) {
     return w.field("clear", m.clear).take();
 }
 
+inline msgpack::sbuffer encode(const ListModels&) { return detail::Writer(0, "list_models").take(); }
+
+inline msgpack::sbuffer encode(const Ping& m) {
+    detail::Writer w(m.nonce.has_value() + m.t_us.has_value(), "ping");
+    if (m.nonce) w.field("nonce", *m.nonce);
+    if (m.t_us) w.field("t_us", *m.t_us);
+    return w.take();
+}
+
 // The `type` of a server message; throws ProtocolError for bytes that are not one msgpack map with a type.
 inline std::string message_type(const msgpack::object_handle& handle) {
     const msgpack::object& root = handle.get();
     if (root.type != msgpack::type::MAP) throw ProtocolError("not a msgpack map");
-    const msgpack::object& type = detail::field(root.via.map, "type");
-    if (type.type != msgpack::type::STR) throw ProtocolError("type is not a string");
-    return type.as<std::string>();
+    const msgpack::object* type = detail::find(root.via.map, "type");
+    if (type == nullptr || type->type != msgpack::type::STR) throw ProtocolError("type is missing or not a string");
+    return type->as<std::string>();
 }
 
 inline msgpack::object_handle unpack(const char* data, size_t size) {
@@ -221,39 +389,74 @@ inline msgpack::object_handle unpack(const char* data, size_t size) {
     }
 }
 
-// A `pose` message's fields (the caller checked message_type == "pose").
+// Each read_* takes a message whose message_type the caller checked and throws ProtocolError, naming the field,
+// for one that breaks §5's table. Fields the table does not list are ignored (§8: later servers may add some).
+
 inline Pose read_pose(const msgpack::object_handle& handle) {
-    const msgpack::object_map& map = handle.get().via.map;
+    const detail::Fields f(handle.get(), "pose");
     Pose pose;
-    pose.seq = detail::field(map, "seq").as<int64_t>();
-    pose.t_us = detail::field(map, "t_us").as<int64_t>();
-    pose.model = detail::field(map, "model").as<std::string>();
-    pose.global_orient = detail::read_floats<3>(map, "global_orient");
-    pose.body_pose = detail::read_floats<63>(map, "body_pose");
-    pose.transl = detail::read_floats<3>(map, "transl");
-    pose.joints = detail::read_floats<66>(map, "joints");
-    pose.timing_us = detail::field(map, "timing_us").as<std::map<std::string, int64_t>>();
-    if (auto camera = detail::find(map, "camera"); camera && camera->type != msgpack::type::NIL)
-        pose.camera = camera->as<bool>();
-    if (auto skipped = detail::find(map, "skipped"); skipped && skipped->type != msgpack::type::NIL)
-        pose.skipped = skipped->as<int64_t>();
+    pose.seq = f.get<int64_t>("seq");
+    pose.t_us = f.get<int64_t>("t_us");
+    pose.model = f.text("model");
+    pose.global_orient = f.floats<3>("global_orient");
+    pose.body_pose = f.floats<63>("body_pose");
+    pose.transl = f.floats<3>("transl");
+    pose.joints = f.floats<66>("joints");
+    pose.timing_us = f.get<std::map<std::string, int64_t>>("timing_us");
+    pose.camera = f.get_optional<bool>("camera");
+    pose.skipped = f.get_optional<int64_t>("skipped");
     return pose;
 }
 
 inline Error read_error(const msgpack::object_handle& handle) {
-    const msgpack::object_map& map = handle.get().via.map;
-    Error error{detail::field(map, "code").as<std::string>(), detail::field(map, "message").as<std::string>(),
-                detail::field(map, "fatal").as<bool>(), std::nullopt};
-    if (auto ref = detail::find(map, "ref"); ref && ref->type == msgpack::type::MAP)
-        error.ref_type = detail::field(ref->via.map, "type").as<std::string>();
+    const detail::Fields f(handle.get(), "error");
+    Error error{f.text("code"), f.text("message"), f.get<bool>("fatal"), std::nullopt};
+    if (const msgpack::object* ref = f.optional("ref"); ref != nullptr && ref->type == msgpack::type::MAP)
+        error.ref_type = detail::Fields(*ref, "error.ref").optional_text("type");
     return error;
 }
 
-// A `body` message's fields (the caller checked message_type == "body").
 inline Body read_body(const msgpack::object_handle& handle) {
-    const msgpack::object_map& map = handle.get().via.map;
-    return {detail::read_floats<kBoneCount>(map, "bone_lengths_m"), detail::field(map, "given").as<bool>(),
-            detail::field(map, "measured").as<bool>()};
+    const detail::Fields f(handle.get(), "body");
+    return {f.floats<kBoneCount>("bone_lengths_m"), f.get<bool>("given"), f.get<bool>("measured")};
+}
+
+inline Welcome read_welcome(const msgpack::object_handle& handle) {
+    const detail::Fields f(handle.get(), "welcome");
+    return {f.text("session"), f.text("role"), f.text("server"), f.text("model"), f.texts("models"),
+            f.optional_text("provider")};
+}
+
+inline Models read_models(const msgpack::object_handle& handle) {
+    const detail::Fields f(handle.get(), "models");
+    Models models{f.text("active"), {}};
+    const msgpack::object& list = f.array("models");
+    for (uint32_t i = 0; i < list.via.array.size; ++i) {
+        const detail::Fields m(list.via.array.ptr[i], f.path("models") + "[" + std::to_string(i) + "]");
+        models.models.push_back({m.text("name"), m.texts("inputs"), m.optional_text("description").value_or(""),
+                                 m.optional_text("sha256"), m.optional_text("encoder_sha256")});
+    }
+    return models;
+}
+
+inline SessionStatus read_session(const msgpack::object_handle& handle) {
+    const detail::Fields f(handle.get(), "session");
+    return {f.text("session"), f.text("event"), f.text("model"), f.get<bool>("input"), f.get<int64_t>("renders")};
+}
+
+inline Calibration read_calibration(const msgpack::object_handle& handle) {
+    const detail::Fields f(handle.get(), "calibration");
+    return {f.text("status"),
+            f.text("pose"),
+            f.optional_text("message").value_or(""),
+            f.get_optional<float>("head_height_m"),
+            f.get_optional<float>("arm_span_m"),
+            f.optional_floats<12>("corrections")};
+}
+
+inline Pong read_pong(const msgpack::object_handle& handle) {
+    const detail::Fields f(handle.get(), "pong");
+    return {f.get_optional<int64_t>("nonce"), f.get_optional<int64_t>("t_us"), f.get<int64_t>("server_t_us")};
 }
 
 // ------------------------------------------------------------------------------ frames (PROTOCOL.md §3.2, §3.3)

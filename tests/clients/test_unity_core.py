@@ -8,10 +8,10 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import cv2
 import msgpack
 import numpy as np
 import pytest
+from cameraimages import camera_images
 from loopback import running_server
 from scipy.spatial.transform import Rotation
 
@@ -165,21 +165,8 @@ def _smpl_world_local(pose: dict[str, list[float]]) -> np.ndarray:
     return Rotation.from_rotvec(rotvecs).as_matrix()
 
 
-def _camera_images(folder: Path) -> tuple[Path, Path]:
-    """A 160×128 JPEG and 16-bit millimetre PNG: a floor 1.5 m away with a warm patch."""
-    rgb = np.full((128, 160, 3), 90, np.uint8)
-    rgb[40:90, 60:100] = (40, 120, 200)
-    depth = np.full((128, 160), 1500, np.uint16)
-    ok_rgb, jpeg = cv2.imencode(".jpg", rgb)
-    ok_depth, png = cv2.imencode(".png", depth)
-    assert ok_rgb and ok_depth
-    (folder / "rgb.jpg").write_bytes(jpeg.tobytes())
-    (folder / "depth.png").write_bytes(png.tobytes())
-    return folder / "rgb.jpg", folder / "depth.png"
-
-
 def test_live_session_against_a_real_server(program: Path, tmp_path: Path) -> None:
-    rgb, depth = _camera_images(tmp_path)
+    rgb, depth = camera_images(tmp_path)
     with running_server() as server:
         out = run(program, "live", server.url, "unity-live", str(rgb), str(depth))
     assert "ok: " in out, out

@@ -27,6 +27,92 @@ static void same_bytes(const std::string& expected, const msgpack::sbuffer& actu
     check(expected == std::string(actual.data(), actual.size()), what + " gives the golden bytes");
 }
 
+static msgpack::object_handle read_message(const std::string& dir, const std::string& name, std::string& bytes) {
+    bytes = read_file(dir + "/" + name + ".msgpack");
+    auto handle = unpack(bytes.data(), bytes.size());
+    check(message_type(handle) == name, name + " type");
+    return handle;
+}
+
+static std::string repeat4(const std::string& part) { return part + part + part + part; }
+
+// The bytes of a golden message with one field's value replaced.
+static std::string with_field(const std::string& golden_bytes, const std::string& field, const msgpack::object& value) {
+    auto handle = unpack(golden_bytes.data(), golden_bytes.size());
+    msgpack::zone zone;
+    msgpack::object root(handle.get(), zone);  // a deep copy whose field values can be swapped
+    bool replaced = false;
+    for (uint32_t i = 0; i < root.via.map.size; ++i)
+        if (root.via.map.ptr[i].key.as<std::string>() == field) {
+            root.via.map.ptr[i].val = value;
+            replaced = true;
+        }
+    check(replaced, "the golden message has " + field);
+    msgpack::sbuffer bytes;
+    msgpack::pack(bytes, root);
+    return {bytes.data(), bytes.size()};
+}
+
+// The reader must refuse the golden message with `field` set to `value`, naming the field.
+template <typename Reader>
+static void refuses_field(const std::string& golden_bytes, const std::string& field, const msgpack::object& value,
+                          Reader read, const std::string& expected_in_message) {
+    const std::string bytes = with_field(golden_bytes, field, value);
+    std::string what = "(accepted)";
+    try {
+        read(unpack(bytes.data(), bytes.size()));
+    } catch (const ProtocolError& exc) {
+        what = exc.what();
+    }
+    check(what.find(expected_in_message) == 0, "a bad " + field + " is refused naming it (got \"" + what + "\")");
+}
+
+static void server_messages(const std::string& dir) {
+    std::string bytes;
+    Welcome welcome = read_welcome(read_message(dir, "welcome", bytes));
+    check(welcome.session == "room-1" && welcome.role == "input" && welcome.server == "egoposevr/0.1.0" &&
+              welcome.model == "egoposevr" && welcome.models == std::vector<std::string>{"egoposevr", "hmd"} &&
+              !welcome.provider.has_value(),
+          "welcome fields");
+    refuses_field(bytes, "models", msgpack::object(7), read_welcome, "welcome.models: expected an array");
+
+    Models models = read_models(read_message(dir, "models", bytes));
+    check(models.active == "egoposevr" && models.models.size() == 2, "models: active and count");
+    const ModelInfo& fusion = models.models[0];
+    check(fusion.name == "egoposevr" && fusion.inputs == std::vector<std::string>{"hmd", "rgb", "depth"} &&
+              fusion.description == "HMD + RGB-D fusion with KPO",
+          "models[0] fields");
+    check(fusion.sha256 == repeat4("0123456789abcdef") && fusion.encoder_sha256 == repeat4("fedcba9876543210"),
+          "models[0] digests");
+    check(models.models[1].name == "hmd" && !models.models[1].sha256 && !models.models[1].encoder_sha256,
+          "models[1] has no digests");
+    refuses_field(bytes, "active", msgpack::object(true), read_models, "models.active: expected a string");
+
+    SessionStatus session = read_session(read_message(dir, "session", bytes));
+    check(session.session == "room-1" && session.event == "input_joined" && session.input &&
+              session.model == "egoposevr" && session.renders == 2,
+          "session fields");
+    refuses_field(bytes, "renders", msgpack::object(1.5), read_session, "session.renders: wrong type");
+
+    Calibration calibration = read_calibration(read_message(dir, "calibration", bytes));
+    check(calibration.status == "done" && calibration.pose == "tpose" && calibration.head_height_m == 1.5f &&
+              calibration.arm_span_m == 1.5f && calibration.corrections && (*calibration.corrections)[7] == 0.96875f,
+          "calibration fields");
+    const std::string nil_corrections = with_field(bytes, "corrections", msgpack::object());
+    check(!read_calibration(unpack(nil_corrections.data(), nil_corrections.size())).corrections,
+          "a nil optional reads as absent");
+    refuses_field(bytes, "corrections", msgpack::object(1), read_calibration,
+                  "calibration.corrections: expected an array");
+
+    Pong pong = read_pong(read_message(dir, "pong", bytes));
+    check(pong.nonce == 3 && pong.t_us == 1000900 && pong.server_t_us == 5000000123LL, "pong fields");
+
+    read_pose(read_message(dir, "pose", bytes));
+    refuses_field(bytes, "joints", msgpack::object(), read_pose, "pose.joints: missing");
+    refuses_field(bytes, "seq", msgpack::object(1.5), read_pose, "pose.seq: wrong type");
+    refuses_field(bytes, "model", msgpack::object(3), read_pose, "pose.model: expected a string");
+}
+
 static void golden(const std::string& dir) {
     same_bytes(read_file(dir + "/hello.msgpack"),
                encode(Hello{"input", "room-1", "egoposevr", "s3cret", "unity/1.0"}), "hello");
@@ -42,6 +128,22 @@ static void golden(const std::string& dir) {
     same_bytes(read_file(dir + "/select_model.msgpack"), encode(SelectModel{"hmd"}), "select_model");
     same_bytes(read_file(dir + "/calibrate.msgpack"), encode(Calibrate{"tpose", 2.0f, false}), "calibrate");
     same_bytes(read_file(dir + "/get_body.msgpack"), encode(GetBody{}), "get_body");
+    same_bytes(read_file(dir + "/list_models.msgpack"), encode(ListModels{}), "list_models");
+    same_bytes(read_file(dir + "/ping.msgpack"), encode(Ping{3, 1000900}), "ping");
+    // The golden rgbd's JPEG and PNG bytes, taken from the file as a camera app would take its encoder's output.
+    const std::string rgbd_bytes = read_file(dir + "/rgbd.msgpack");
+    auto rgbd_handle = unpack(rgbd_bytes.data(), rgbd_bytes.size());
+    const detail::Fields rgbd_fields(rgbd_handle.get(), "rgbd");
+    Rgbd rgbd;
+    rgbd.seq = 7;
+    rgbd.t_us = 1000500;
+    rgbd.width = 4;
+    rgbd.height = 2;
+    rgbd.intrinsics = {2, 2, 2, 1};
+    rgbd.rgb = rgbd_fields.required("rgb").as<std::string>();
+    rgbd.depth = rgbd_fields.required("depth").as<std::string>();
+    rgbd.cam_from_head = std::array<float, 16>{1, 0, 0, 0, 0, 0, 1, 0.125f, 0, -1, 0, -0.0625f, 0, 0, 0, 1};
+    same_bytes(rgbd_bytes, encode(rgbd), "rgbd");
     // protocol/examples.py's body: near the mean body's, in 1/16 m steps
     const BoneLengths lengths{0.125f, 0.125f, 0.125f, 0.375f, 0.375f, 0.125f, 0.4375f, 0.4375f, 0.0625f, 0.125f, 0.125f,
                               0.1875f, 0.125f, 0.125f, 0.125f, 0.125f, 0.125f, 0.25f, 0.25f, 0.25f, 0.25f};
@@ -118,6 +220,7 @@ int main(int argc, char** argv) {
     }
     try {
         golden(argv[1]);
+        server_messages(argv[1]);
         openxr_from_unreal(argv[2]);
     } catch (const std::exception& exc) {
         std::printf("FAILED: %s\n", exc.what());
