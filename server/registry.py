@@ -62,6 +62,7 @@ class ModelRegistry:
         self._failed: dict[Path, _Stamp] = {}  # not retried until the file changes
         self._shared: dict[Path, Any] = {}  # visual encoder sessions, by path
         self._encoder_stamps: dict[Path, _Stamp] = {}
+        self._encoder_digests: dict[Path, str] = {}  # sha256 of each cached encoder, hashed once per version
         self._digests: dict[str, tuple[str, str | None]] = {}  # name -> (model file, encoder file) sha256
 
     def names(self) -> list[str]:
@@ -132,7 +133,7 @@ class ModelRegistry:
             if current != stamp:
                 stale.add(path)
                 self._shared.pop(path, None)
-                del self._encoder_stamps[path]
+                del self._encoder_stamps[path], self._encoder_digests[path]
         return stale
 
     def _load(self, name: str, stamp: _Stamp, models: dict[str, LoadedModel]) -> str:
@@ -146,13 +147,17 @@ class ModelRegistry:
             self._stamps.pop(name, None)
             log.warning("model %s failed to load: %s", name, exc)
             return f"model {name} failed: {exc}"
-        if model.info.visual_path is not None and model.info.visual_path not in self._encoder_stamps:
-            self._encoder_stamps[model.info.visual_path] = _stamp(model.info.visual_path)
+        encoder = model.info.visual_path
+        if encoder is not None and encoder not in self._encoder_stamps:
+            self._encoder_stamps[encoder] = _stamp(encoder)
+            self._encoder_digests[encoder] = file_digest(encoder)
         self._failed.pop(stamp.path, None)
         self.failures.pop(stamp.path, None)
         reloaded = name in models
         models[name], self._stamps[name] = model, stamp
-        encoder = model.info.visual_path
-        self._digests[name] = (file_digest(stamp.path), file_digest(encoder) if encoder is not None else None)
+        self._digests[name] = (
+            file_digest(stamp.path),
+            self._encoder_digests[encoder] if encoder is not None else None,
+        )
         action = "reloaded" if reloaded else "loaded"
         return f"model {name} {action} from {stamp.path} (sha256 {self._digests[name][0][:12]})"

@@ -378,10 +378,18 @@ inline std::string message_type(const msgpack::object_handle& handle) {
     return type->as<std::string>();
 }
 
+// What a v1 server message can hold (models: 256 entries; texts: 1 KiB): a length past these is damage, refused
+// before msgpack-c allocates for it.
+inline msgpack::unpack_limit server_message_limits() {
+    return msgpack::unpack_limit(/*array=*/1024, /*map=*/256, /*str=*/64 * 1024, /*bin=*/16 * 1024 * 1024,
+                                 /*ext=*/0, /*depth=*/8);
+}
+
 inline msgpack::object_handle unpack(const char* data, size_t size) {
     try {
         size_t offset = 0;
-        msgpack::object_handle handle = msgpack::unpack(data, size, offset);
+        msgpack::object_handle handle =
+            msgpack::unpack(data, size, offset, nullptr, nullptr, server_message_limits());
         if (offset != size) throw ProtocolError("trailing bytes after the message");
         return handle;
     } catch (const msgpack::unpack_error& exc) {

@@ -4,6 +4,7 @@
 #include <fstream>
 #include <iterator>
 #include <string>
+#include <typeinfo>
 #include <vector>
 
 #include "../EgoPoseProtocol.h"
@@ -213,6 +214,59 @@ static void openxr_from_unreal(const std::string& dir) {
     same_bytes(read_file(dir + "/openxr-tracked.msgpack"), encode(hmd), "openxr-tracked from Unreal's frame");
 }
 
+// Reads a server message as a client would: its type, then that type's reader.
+static void read_any(const std::string& bytes) {
+    auto handle = unpack(bytes.data(), bytes.size());
+    const std::string type = message_type(handle);
+    if (type == "welcome") read_welcome(handle);
+    if (type == "pose") read_pose(handle);
+    if (type == "models") read_models(handle);
+    if (type == "error") read_error(handle);
+    if (type == "session") read_session(handle);
+    if (type == "calibration") read_calibration(handle);
+    if (type == "body") read_body(handle);
+    if (type == "pong") read_pong(handle);
+}
+
+// Every golden server message damaged many ways (bytes changed, cut short, grown): each reads or is refused with
+// a ProtocolError; any other exception (a msgpack type error escaping, a bad_alloc) fails.
+static void damaged_messages(const std::string& dir) {
+    uint64_t state = 12345;
+    auto next = [&state]() {  // a fixed xorshift: the same damage on every run
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        return state;
+    };
+    int refused = 0, read = 0;
+    for (const char* name : {"welcome", "pose", "models", "error", "session", "calibration", "body", "pong"}) {
+        const std::string golden_bytes = read_file(dir + "/" + name + ".msgpack");
+        for (int trial = 0; trial < 3000; ++trial) {
+            std::string bytes = golden_bytes;
+            const int kind = static_cast<int>(next() % 3);
+            if (kind == 0 || bytes.empty()) {
+                for (int k = 0; k < 1 + static_cast<int>(next() % 4); ++k)
+                    bytes[next() % bytes.size()] = static_cast<char>(next());
+            } else if (kind == 1) {
+                bytes.resize(next() % bytes.size());
+            } else {
+                bytes.insert(next() % bytes.size(), 1 + next() % 8, static_cast<char>(next()));
+            }
+            try {
+                read_any(bytes);
+                ++read;
+            } catch (const ProtocolError&) {
+                ++refused;
+            } catch (const std::exception& exc) {
+                throw std::runtime_error(std::string(name) + " damaged (trial " + std::to_string(trial) +
+                                         ") escaped as " + typeid(exc).name() + ": " + exc.what());
+            }
+        }
+    }
+    check(refused > 1000 && read > 100, "damaged messages: " + std::to_string(refused) + " refused, " +
+                                            std::to_string(read) + " still read");
+}
+
 int main(int argc, char** argv) {
     if (argc != 3) {
         std::fprintf(stderr, "usage: core_test GOLDEN_DIR OPENXR_DIR\n");
@@ -221,6 +275,7 @@ int main(int argc, char** argv) {
     try {
         golden(argv[1]);
         server_messages(argv[1]);
+        damaged_messages(argv[1]);
         openxr_from_unreal(argv[2]);
     } catch (const std::exception& exc) {
         std::printf("FAILED: %s\n", exc.what());
