@@ -103,6 +103,47 @@ static class CoreTests
         MustRefuse(new byte[] { 0x81, 0x01, 0x02 }, "a non-string key");
         MustRefuse(new byte[] { 0x90, 0x90 }, "trailing bytes");
         MustRefuse(new byte[] { 0xdd, 0xff, 0xff, 0xff, 0xff }, "an array longer than the data");
+        DamagedMessages(goldenDir);
+    }
+
+    /// <summary>Every golden server message damaged many ways (bytes changed, cut short, grown): each decodes or
+    /// is a ProtocolException, never another exception (a cast, an index, an allocation).</summary>
+    static void DamagedMessages(string goldenDir)
+    {
+        var random = new Random(12345);
+        int refused = 0, read = 0;
+        foreach (string serverType in new[] { "welcome", "pose", "models", "error", "session", "calibration", "body", "pong" })
+        {
+            byte[] golden = File.ReadAllBytes(Path.Combine(goldenDir, serverType + ".msgpack"));
+            for (int trial = 0; trial < 3000; trial++)
+            {
+                var bytes = new List<byte>(golden);
+                int kind = random.Next(3);
+                if (kind == 0)
+                    for (int k = 0; k <= random.Next(4); k++) bytes[random.Next(bytes.Count)] = (byte)random.Next(256);
+                else if (kind == 1)
+                {
+                    int keep = random.Next(bytes.Count);
+                    bytes.RemoveRange(keep, bytes.Count - keep);
+                }
+                else
+                    bytes.InsertRange(random.Next(bytes.Count), Enumerable.Repeat((byte)random.Next(256), 1 + random.Next(8)));
+                try
+                {
+                    Protocol.DecodeFromServer(bytes.ToArray());
+                    read++;
+                }
+                catch (ProtocolException)
+                {
+                    refused++;
+                }
+                catch (Exception exc)
+                {
+                    throw new Exception(serverType + " damaged (trial " + trial + ") escaped as " + exc.GetType().Name + ": " + exc.Message);
+                }
+            }
+        }
+        Check(refused > 1000 && read > 100, "damaged messages: " + refused + " refused, " + read + " still read");
     }
 
     static void MustRefuse(byte[] bytes, string what)
