@@ -1,28 +1,14 @@
 // Checks EgoPoseProtocol.h against the protocol's golden fixtures and PROTOCOL.md's worked examples.
 // Built and run by tests/clients/test_unreal_core.py: core_test GOLDEN_DIR OPENXR_DIR; exit 0 when all pass.
 #include <cstdio>
-#include <fstream>
-#include <iterator>
 #include <string>
 #include <typeinfo>
 #include <vector>
 
 #include "../EgoPoseProtocol.h"
+#include "checks.h"
 
 using namespace egopose;
-
-static int checks = 0;
-
-static void check(bool ok, const std::string& what) {
-    ++checks;
-    if (!ok) throw std::runtime_error("check failed: " + what);
-}
-
-static std::string read_file(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    if (!in) throw std::runtime_error("cannot read " + path);
-    return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
-}
 
 static void same_bytes(const std::string& expected, const msgpack::sbuffer& actual, const std::string& what) {
     check(expected == std::string(actual.data(), actual.size()), what + " gives the golden bytes");

@@ -5,28 +5,14 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <fstream>
-#include <iterator>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "../EgoPoseProtocol.h"
+#include "checks.h"
 
 using namespace egopose;
-
-static int checks = 0;
-
-static void check(bool ok, const std::string& what) {
-    ++checks;
-    if (!ok) throw std::runtime_error("check failed: " + what);
-}
-
-static std::string read_file(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    if (!in) throw std::runtime_error("cannot read " + path);
-    return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
-}
 
 static void send(const msgpack::sbuffer& message) {
     const uint32_t n = static_cast<uint32_t>(message.size());
