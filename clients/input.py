@@ -36,6 +36,7 @@ Connection handling: the client says ``hello`` as ``input``, and if the connecti
 exponential backoff and resumes the same session (same id, model and sequence counters). Samples sent while
 offline are dropped and counted (``dropped_offline``): for a real-time stream, stale data is worth nothing.
 A fatal refusal that retrying cannot fix (``auth_failed``, ``session_busy``) stops the client and is raised.
+A server message that breaks the protocol is logged, counted (``unreadable``) and skipped; the stream goes on.
 
 A returning wearer (PROTOCOL.md §4.2): pass the body kept from their last session as ``body=`` (or give it
 with :meth:`HeadsetClient.set_body`); the client gives it first after every welcome, reconnects included, so no
@@ -68,6 +69,7 @@ from ..protocol import (
     Message,
     Models,
     Pose,
+    ProtocolError,
     Rgbd,
     SelectModel,
     SetBody,
@@ -126,6 +128,9 @@ class HeadsetClient:
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
         self.reconnects = 0
+        self.unreadable = (
+            0  # server messages that broke the protocol: logged and skipped, the connection kept
+        )
         self._poses: asyncio.Queue[Pose] = asyncio.Queue(pose_buffer)
         self._ws: ClientConnection | None = None
         self._online = asyncio.Event()
@@ -155,7 +160,16 @@ class HeadsetClient:
             role="input", session=self.session, model=self.model, token=self.token, client=self.label
         )
         await ws.send(encode(hello))
-        first = decode_from_server(await ws.recv())
+        try:
+            first = decode_from_server(await ws.recv())
+        except ProtocolError as exc:
+            await ws.close()
+            raise InputClientError(f"the server's answer to hello is unreadable: {exc}") from exc
+        if not isinstance(first, Welcome | Error):
+            await ws.close()
+            raise InputClientError(
+                f"the server answered hello with {getattr(first, 'type', 'an unknown type')}"
+            )
         if isinstance(first, Error):
             await ws.close()
             raise InputClientError(f"the server refused the session: {first.code}: {first.message}")
@@ -188,7 +202,12 @@ class HeadsetClient:
         while not self._closed:
             try:
                 async for data in self._ws:
-                    msg = decode_from_server(data)
+                    try:
+                        msg = decode_from_server(data)
+                    except ProtocolError as exc:  # one bad message costs that message, not the stream
+                        self.unreadable += 1
+                        log.warning("an unreadable server message was skipped: %s", exc)
+                        continue
                     if msg is not None:  # a type this version does not know: ignored (PROTOCOL.md §9)
                         self._on_message(msg)
                     delay = self.backoff_s[0]

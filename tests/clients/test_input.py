@@ -12,7 +12,8 @@ from syntheticusers import User, holding
 
 from egoposevr.clients.input import BodyRefused, HeadsetClient, InputClientError, encode_frame
 from egoposevr.model.inputs import decode_rgbd
-from egoposevr.protocol import decode
+from egoposevr.protocol import decode, encode
+from egoposevr.protocol.examples import example_messages
 from egoposevr.recordings.egrec import KIND_CLIENT, read_records
 
 MESSAGES = [decode(r.payload) for r in read_records(RECORDINGS / "walk-0000.egrec") if r.kind == KIND_CLIENT]
@@ -207,3 +208,38 @@ async def test_a_body_given_at_construction_is_given_again_after_a_server_restar
         await headset.close()
     with pytest.raises(ValueError, match="21 positive finite"):
         HeadsetClient("ws://127.0.0.1:1/ws", "x", body=[0.3] * 20 + [float("nan")])
+
+
+async def _fake_server(replies: list[bytes]):
+    """A server on loopback that answers a hello with ``replies`` (bytes as they are), then keeps the connection."""
+    from websockets.asyncio.server import serve
+
+    async def handler(ws):
+        await ws.recv()  # the hello
+        for reply in replies:
+            await ws.send(reply)
+        await ws.wait_closed()
+
+    return await serve(handler, "127.0.0.1", 0)
+
+
+@pytest.mark.asyncio
+async def test_an_unreadable_server_message_is_skipped_and_counted_and_the_stream_goes_on():
+    examples = example_messages()
+    welcome, pose = encode(examples["welcome"]), encode(examples["pose"])
+    damaged = [b"\x93\x01", welcome[:-3], encode(examples["pose"])[:40]]  # not a map, cut short twice
+    async with await _fake_server([welcome, *damaged, pose]) as server:
+        port = server.sockets[0].getsockname()[1]
+        async with HeadsetClient(f"ws://127.0.0.1:{port}/ws", "bad-bytes") as headset:
+            (received,) = await asyncio.wait_for(first_poses(headset, 1), 10)
+            assert received == examples["pose"]
+            assert headset.unreadable == len(damaged) and headset.reconnects == 0 and headset.online
+
+
+@pytest.mark.asyncio
+async def test_an_unreadable_answer_to_hello_is_a_clear_error():
+    async with await _fake_server([b"\xc1"]) as server:  # 0xc1: never used by msgpack
+        port = server.sockets[0].getsockname()[1]
+        headset = HeadsetClient(f"ws://127.0.0.1:{port}/ws", "bad-hello", reconnect=False)
+        with pytest.raises(InputClientError, match="answer to hello is unreadable"):
+            await headset.connect()
