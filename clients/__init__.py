@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import urllib.parse
 from typing import Any
 
-from ..protocol import SetBody
+from ..protocol import Message, ProtocolError, SetBody, decode_from_server
+
+log = logging.getLogger("egoposevr.clients")
 
 WS_PATH = "/ws"
 
@@ -52,3 +55,18 @@ def body_lengths(values: Any) -> list[float]:
         raise ValueError(
             f"a body is 21 positive finite bone lengths in metres (0.01-1 m each), got {values!r}"
         ) from None
+
+
+def read_server_message(
+    data: bytes | bytearray | memoryview, counts: dict[str, int] | None = None
+) -> Message | None:
+    """A server message for a client's read loop, or None for one to skip: a type this version does not know
+    (PROTOCOL.md §9) or bytes that are no v1 message, which are logged and, with ``counts``, counted under
+    ``"unreadable"`` (§8: one bad message costs that message, not the stream)."""
+    try:
+        return decode_from_server(data)
+    except ProtocolError as exc:
+        log.warning("an unreadable server message was skipped: %s", exc)
+        if counts is not None:
+            counts["unreadable"] = counts.get("unreadable", 0) + 1
+        return None

@@ -36,7 +36,8 @@ Connection handling: the client says ``hello`` as ``input``, and if the connecti
 exponential backoff and resumes the same session (same id, model and sequence counters). Samples sent while
 offline are dropped and counted (``dropped_offline``): for a real-time stream, stale data is worth nothing.
 A fatal refusal that retrying cannot fix (``auth_failed``, ``session_busy``) stops the client and is raised.
-A server message that breaks the protocol is logged, counted (``unreadable``) and skipped; the stream goes on.
+A server message that breaks the protocol is logged, counted (``counts["unreadable"]``) and skipped; the stream
+goes on.
 
 A returning wearer (PROTOCOL.md §4.2): pass the body kept from their last session as ``body=`` (or give it
 with :meth:`HeadsetClient.set_body`); the client gives it first after every welcome, reconnects included, so no
@@ -77,7 +78,7 @@ from ..protocol import (
     decode_from_server,
     encode,
 )
-from . import body_lengths, session_url
+from . import body_lengths, read_server_message, session_url
 
 log = logging.getLogger("egoposevr.input")
 # Fatal refusals that retrying cannot fix: a wrong token, a session taken, or a hello the server refuses for
@@ -128,9 +129,7 @@ class HeadsetClient:
         self.dropped_offline = 0  # samples and frames sent while disconnected
         self.dropped_poses = 0  # poses the reader did not take in time (the buffer keeps the newest)
         self.reconnects = 0
-        self.unreadable = (
-            0  # server messages that broke the protocol: logged and skipped, the connection kept
-        )
+        self.counts: dict[str, int] = {}  # "unreadable": server messages that broke the protocol, skipped
         self._poses: asyncio.Queue[Pose] = asyncio.Queue(pose_buffer)
         self._ws: ClientConnection | None = None
         self._online = asyncio.Event()
@@ -202,13 +201,8 @@ class HeadsetClient:
         while not self._closed:
             try:
                 async for data in self._ws:
-                    try:
-                        msg = decode_from_server(data)
-                    except ProtocolError as exc:  # one bad message costs that message, not the stream
-                        self.unreadable += 1
-                        log.warning("an unreadable server message was skipped: %s", exc)
-                        continue
-                    if msg is not None:  # a type this version does not know: ignored (PROTOCOL.md §9)
+                    msg = read_server_message(data, self.counts)
+                    if msg is not None:
                         self._on_message(msg)
                     delay = self.backoff_s[0]
             except ConnectionClosed:

@@ -26,8 +26,8 @@ from ..model.inputs import decode_rgbd
 from ..model.runtime.loading import LoadedModel
 from ..model.runtime.pipeline import Pipeline
 from ..model.skeleton import JOINT_NAMES, LOWER_BODY, NUM_JOINTS, PARENTS, UPPER_BODY
-from ..protocol import Hello, decode_from_server, encode
-from . import session_url
+from ..protocol import Hello, encode
+from . import read_server_message, session_url
 from .replay import Recording
 
 # BGR colours: the predicted body warm on the left side, cool on the right, the truth grey.
@@ -158,7 +158,7 @@ async def _live_poses(url: str, session: str, seconds: float) -> list[tuple[floa
         start = time.perf_counter()
         while (left := seconds - (time.perf_counter() - start)) > 0:
             try:
-                msg = decode_from_server(await asyncio.wait_for(ws.recv(), left))
+                msg = read_server_message(await asyncio.wait_for(ws.recv(), left))
             except TimeoutError:
                 break
             if msg is not None and msg.type == "pose":

@@ -34,11 +34,10 @@ from ..protocol import (
     ProtocolError,
     SetBody,
     decode,
-    decode_from_server,
     encode,
 )
 from ..recordings.egrec import KIND_CLIENT, KIND_TRUTH, Cut, read_header, read_records
-from . import body_lengths, session_url
+from . import body_lengths, read_server_message, session_url
 
 LOOP_SEQ_STRIDE = 1_000_000  # seq offset per loop: far above any recording's own seq range
 KEEP_SAMPLES = 200_000  # per measured quantity: about 37 minutes of poses at 90 Hz
@@ -328,9 +327,9 @@ class Replayer:
         try:
             async for data in ws:
                 received = time.perf_counter()
-                msg = decode_from_server(data)
+                msg = read_server_message(data, self.stats.errors)
                 if msg is None:
-                    continue  # a type this version does not know: ignored (PROTOCOL.md §9)
+                    continue
                 if msg.type == "pose":
                     self._on_pose(msg, received)
                 elif msg.type == "body":

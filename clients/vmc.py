@@ -35,8 +35,8 @@ from scipy.spatial.transform import Rotation
 from websockets.asyncio.client import connect
 
 from ..model.skeleton import NUM_JOINTS, rest_offsets, smpl_to_local_rot
-from ..protocol import Hello, decode_from_server, encode
-from . import session_url
+from ..protocol import Hello, encode
+from . import read_server_message, session_url
 
 # Unity HumanBodyBones names in SMPL joint order.
 UNITY_BONES: Final = (
@@ -110,9 +110,9 @@ async def bridge(url: str, session: str, to: tuple[str, int], seconds: float | N
                     data = await asyncio.wait_for(ws.recv(), None if seconds is None else left)
                 except TimeoutError:
                     break
-                msg = decode_from_server(data)
+                msg = read_server_message(data, counts)
                 if msg is None:
-                    continue  # a type this version does not know: ignored (PROTOCOL.md §9)
+                    continue
                 if msg.type == "error" and msg.fatal:
                     raise RuntimeError(f"the server refused the viewer: {msg.code}: {msg.message}")
                 if msg.type != "pose":

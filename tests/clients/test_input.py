@@ -233,7 +233,9 @@ async def test_an_unreadable_server_message_is_skipped_and_counted_and_the_strea
         async with HeadsetClient(f"ws://127.0.0.1:{port}/ws", "bad-bytes") as headset:
             (received,) = await asyncio.wait_for(first_poses(headset, 1), 10)
             assert received == examples["pose"]
-            assert headset.unreadable == len(damaged) and headset.reconnects == 0 and headset.online
+            assert (
+                headset.counts == {"unreadable": len(damaged)} and headset.reconnects == 0 and headset.online
+            )
 
 
 @pytest.mark.asyncio
