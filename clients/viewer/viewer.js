@@ -53,7 +53,14 @@ function connect(session) {
   ws = new WebSocket(wsUrl(session));
   ws.binaryType = "arraybuffer";
   ws.onopen = () => send({ type: "hello", role: "render", session, client: "egoposevr viewer" });
-  ws.onmessage = (event) => onMessage(decode(new Uint8Array(event.data)));
+  ws.onmessage = (event) => {
+    let msg;
+    try { msg = decode(new Uint8Array(event.data)); } catch (err) {  // skipped and shown; the stream goes on (PROTOCOL.md §8)
+      state.errors = [...state.errors.slice(-19), `unreadable server message: ${err.message}`];
+      return;
+    }
+    onMessage(msg);
+  };
   ws.onclose = () => { state.connected = false; setTimeout(() => connect(state.session), 1000); };
 }
 
