@@ -3,7 +3,8 @@
 // the frame conversions of §3.2. A server message that breaks the schema throws ProtocolError naming the field.
 //
 // Plain C++17 and msgpack-cxx, no Unreal types: tests/clients/test_unreal_core.py compiles it with g++ and checks
-// it against the golden fixtures. EgoPoseComponent.h/.cpp is the Unreal side that uses it.
+// it against the golden fixtures and, as a scripted client, a real server. EgoPoseComponent.h/.cpp is the Unreal
+// side that uses it.
 //
 // Frames: the protocol's world is right-handed, +Y up, -Z forward, metres; quaternions (x, y, z, w). Unreal's is
 // left-handed, +Z up, +X forward, +Y right, centimetres.
