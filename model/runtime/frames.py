@@ -37,6 +37,9 @@ from . import kernels
 from .loading import LoadedModel
 
 HEAD_HISTORY_S = 1.0  # headset poses kept to place frames that arrive late
+# A stream's first headset samples, for a model that reads the camera, wait at most this long for the stream's
+# first frame (PROTOCOL.md §first-frame): the first answer, which the leg hold keeps, then sees the legs.
+FIRST_FRAME_WAIT_US = 150_000
 
 
 @dataclasses.dataclass(frozen=True)

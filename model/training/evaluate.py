@@ -32,7 +32,7 @@ from ..inputs import decode_rgbd
 from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
 from ..runtime.calibration import DEFAULT_SECONDS, Calibration, CalibrationCollector
-from ..runtime.frames import encode_frame
+from ..runtime.frames import FIRST_FRAME_WAIT_US, encode_frame
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
@@ -56,22 +56,38 @@ FACING: Final = np.array(TRACKED_JOINTS)
 
 
 def replay_sequence(
-    pipeline: Pipeline, seq: dict[str, Any], camera: dict[str, Any] | None = None, send_frames: bool = True
+    pipeline: Pipeline,
+    seq: dict[str, Any],
+    camera: dict[str, Any] | None = None,
+    send_frames: bool = True,
+    first_frame_wait: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence, its frames sent with
     its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
-    camera (every pose then has ``camera = False``)."""
+    camera (every pose then has ``camera = False``). With ``first_frame_wait``, as the server does for a model
+    that reads the camera (PROTOCOL.md §first-frame): the stream's first samples wait, up to
+    ``FIRST_FRAME_WAIT_US`` after the first, for the first frame to arrive, and are answered once it has."""
     camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
     uses_camera = send_frames and pipeline.model.visual is not None
-    joints, rots, k = [], [], 0
-    for i, t_us in enumerate(seq["hmd_t_us"]):
+    t_all = np.asarray(seq["hmd_t_us"])
+    joints, rots, k, held = [], [], 0, []
+    for i, t_us in enumerate(t_all):
         while uses_camera and k < len(seq["cam_t_us"]) and seq["cam_t_us"][k] + CAMERA_LATENCY_US <= t_us:
             rgb, depth = decode_rgbd(seq["rgb_jpeg"][k], seq["depth_png"][k])
             pipeline.push_rgbd(int(seq["cam_t_us"][k]), rgb, depth, intrinsics, cam_from_head)
             k += 1
-        pose = pipeline.push_hmd(int(t_us), seq["hmd_poses"][i], seq["hmd_valid"][i])
+        held.append(i)
+        if first_frame_wait and uses_camera and k == 0 and t_us - t_all[0] < FIRST_FRAME_WAIT_US:
+            continue  # waiting for the stream's first frame
+        for j in held:
+            pose = pipeline.push_hmd(int(t_all[j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
+            joints.append(pose.joints)
+            rots.append(pose.local_rot)
+        held = []
+    for j in held:  # a stream shorter than the wait, without a frame
+        pose = pipeline.push_hmd(int(t_all[j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
         joints.append(pose.joints)
         rots.append(pose.local_rot)
     return np.array(joints), np.array(rots)
@@ -277,6 +293,7 @@ def evaluate(
     sure_plant: bool = False,
     warm_reseat: bool = True,
     send_frames: bool = True,
+    first_frame_wait: bool = False,
     truth_body: bool = False,
     returning: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -306,15 +323,17 @@ def evaluate(
     legs and planted feet at the network's answers once its windows fill where it folds the legs (Pipeline's;
     on by default: MODEL_CARD.md, rule 62);
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
+    ``first_frame_wait`` True answers a stream's first samples once its first frame is in, as the server does
+    (:func:`replay_sequence`);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
     ``returning`` True serves each sequence after learning the wearer's body from an earlier session (the
     estimate the end of another sequence of the same body gives, or of the same sequence where the split has no
     other: :func:`earlier_sessions`; what ``get_body`` answers), given from the first sample (``set_body``,
     PROTOCOL.md §4.2): a returning wearer whose client kept their body.
-    ``runtime`` {label: {option: bool}} serves a label with some of those eleven (as ``contacts``,
+    ``runtime`` {label: {option: bool}} serves a label with some of those twelve (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``warm_reseat``, ``send_frames``, ``truth_body``, ``returning``) set otherwise, or with the network pipeline's
+    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``truth_body``, ``returning``) set otherwise, or with the network pipeline's
     ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame is in the window; Pipeline's,
     off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
     (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
@@ -347,6 +366,7 @@ def evaluate(
                    "sure_plant": sure_plant, "warm_reseat": warm_reseat}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
+        waits = options.pop("first_frame_wait", first_frame_wait)  # the server's (the replay's), too
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
         returns = options.pop("returning", returning)
         pipeline = pipeline_for(model, **options)
@@ -358,8 +378,9 @@ def evaluate(
             if calibrate:
                 calibrate_like_a_user(pipeline, seq, rigs[i])
             if returns:
-                learn_the_wearer(pipeline, seqs[earlier[i]], frames)
-            errors.append(sequence_errors(*replay_sequence(pipeline, seq, send_frames=frames), seq))
+                learn_the_wearer(pipeline, seqs[earlier[i]], frames, waits)
+            served = replay_sequence(pipeline, seq, send_frames=frames, first_frame_wait=waits)
+            errors.append(sequence_errors(*served, seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
         totals[name] = [sequence_totals(e) for e in errors]  # each view below pools these
@@ -406,13 +427,15 @@ def earlier_sessions(seqs: list[dict[str, Any]]) -> list[int]:
     return out
 
 
-def learn_the_wearer(pipeline: Any, seq: dict[str, Any], send_frames: bool) -> None:
+def learn_the_wearer(
+    pipeline: Any, seq: dict[str, Any], send_frames: bool, first_frame_wait: bool = False
+) -> None:
     """A returning wearer (``evaluate``'s ``returning``): the wearer's earlier session ``seq`` served with the
     body estimated, and the body it ends with given to the pipeline, as a client that kept it sends
     ``set_body`` (PROTOCOL.md §4.2); none where ``body.measured`` says it is not worth keeping (the wearer only
     sat, or the camera measured nothing), and the body is estimated as usual."""
     pipeline.give_body(None)
-    replay_sequence(pipeline, seq, send_frames=send_frames)
+    replay_sequence(pipeline, seq, send_frames=send_frames, first_frame_wait=first_frame_wait)
     scale, worth_keeping = pipeline.served_body()
     pipeline.give_body(scale if worth_keeping else None)  # a client keeps only a body worth keeping
 
