@@ -27,6 +27,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from ..model.runtime.frames import FIRST_FRAME_WAIT_US
 from ..protocol import DEFAULT_MAX_MESSAGE_BYTES
 
 ENV_PREFIX = "EGOPOSEVR_"
@@ -93,6 +94,13 @@ class ServerConfig(BaseSettings):
         True,
         description="decode + encode camera frames on a low-priority thread beside the headset jobs "
         "(off: each frame rides on the next headset job, adding its cost to that pose's latency)",
+    )
+    first_frame_wait_ms: float = Field(
+        FIRST_FRAME_WAIT_US / 1000,
+        ge=0,
+        le=1000,
+        description="for a model that reads the camera, a stream's first headset samples wait at most this long "
+        "for its first camera frame, so that the first answer sees the legs (0: answered at once)",
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

@@ -375,7 +375,10 @@ class Hub:
         name = self.default_model_name()
         cfg = self.config
         bucket = TokenBucket(cfg.rate_limit_hz, cfg.rate_burst)
-        session = Session(hello.session, name, self.registry.get(name), bucket, frame_lane=cfg.frame_lane)
+        session = Session(
+            hello.session, name, self.registry.get(name), bucket, frame_lane=cfg.frame_lane,
+            first_frame_wait_ns=round(cfg.first_frame_wait_ms * 1e6),
+        )  # fmt: skip
         self.sessions[session.id] = session
         self.metrics.sessions.set(len(self.sessions))
         return session

@@ -34,6 +34,7 @@ import contextlib
 import logging
 import os
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -101,6 +102,7 @@ class Scheduler:
         self._lane_busy = False
         self._logged: set[str] = set()  # session ids whose failure was logged
         self._wakeup = asyncio.Event()
+        self._holds: dict[Session, asyncio.TimerHandle] = {}  # sessions whose samples wait for a first frame
         self._dispatcher: asyncio.Task[None] | None = None
         self._closed = False
 
@@ -121,9 +123,13 @@ class Scheduler:
         self._sessions.discard(session)
         self._ready.pop(session, None)
         self._logged.discard(session.id)
+        if (hold := self._holds.pop(session, None)) is not None:
+            hold.cancel()
 
     def close(self) -> None:
         self._closed = True
+        for hold in self._holds.values():
+            hold.cancel()
         if self._dispatcher is not None:
             self._dispatcher.cancel()
         self._pool.shutdown(wait=False, cancel_futures=True)
@@ -131,8 +137,22 @@ class Scheduler:
 
     # ------------------------------------------------------------------------------ headset jobs
     def _mark_ready(self, session: Session) -> None:
-        if session in self._sessions and session not in self._running and session.has_work:
+        if session not in self._sessions or session in self._running:
+            return
+        if session.has_work:
             self._ready.setdefault(session, asyncio.get_running_loop().time())
+        elif (
+            left_ns := session.holding_ns(time.perf_counter_ns())
+        ) is not None and session not in self._holds:
+            # its samples wait for the stream's first frame: look again when the wait runs out
+            self._holds[session] = asyncio.get_running_loop().call_later(
+                left_ns / 1e9, self._hold_over, session
+            )
+
+    def _hold_over(self, session: Session) -> None:
+        self._holds.pop(session, None)
+        if not self._closed:
+            self.wake(session)
 
     async def _dispatch_forever(self) -> None:
         while True:
@@ -255,6 +275,8 @@ class Scheduler:
                 self.metrics.replaced_frames.inc()
             if session in self._sessions:
                 publish(session, RunResult(errors=result.errors), self.metrics)
+                self._mark_ready(session)  # samples that waited for this stream's first frame
+        self._wakeup.set()
         self._start_frames()  # newer frames may be waiting
 
 

@@ -10,6 +10,11 @@ Newest wins: headset samples that arrive while inference is busy wait in ``pendi
 only the newest of them and feeds the older ones to the pipeline as history (``observe_hmd``), counting them
 as skipped. Only the newest RGB-D frame is kept; a frame replaced before use is counted.
 
+First frame (PROTOCOL.md §first-frame): for a model that reads the camera, a stream's first samples (after a
+connect, a reconnect or a model switch) wait in ``pending`` until its first frame is ready for a job, or until
+``first_frame_wait_ns`` after the first of them (:meth:`Session.holding_ns`): the stream's first answer, which the
+runtime's leg hold keeps, then sees the legs. The scheduler wakes the session when the wait runs out.
+
 Frame lane (``frame_lane=True``, what the server runs): camera frames never ride on a headset job. The
 scheduler takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frames`
 (image decode + visual encoder, stateless, several sessions' frames in one encoder call) on its low-priority
@@ -33,7 +38,7 @@ from ..model.inputs import decode_rgbd
 from ..model.runtime.body import bone_lengths_m, scale_of_lengths
 from ..model.runtime.calibration import Calibration as MeasuredCalibration
 from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
-from ..model.runtime.frames import EncodedFrame, check_frame, encode_frames
+from ..model.runtime.frames import FIRST_FRAME_WAIT_US, EncodedFrame, check_frame, encode_frames
 from ..model.runtime.loading import LoadedModel
 from ..model.runtime.pipeline import PendingPose, PoseResult, run_fusion
 from ..model.runtime.procedural import pipeline_for
@@ -144,6 +149,7 @@ class Session:
         rate: TokenBucket,
         frame_lane: bool = False,
         make_pipeline: Callable[[Any], Any] = pipeline_for,
+        first_frame_wait_ns: int = FIRST_FRAME_WAIT_US * 1000,
     ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it
@@ -168,6 +174,8 @@ class Session:
         self._pipeline_model_name = model_name  # run() only: the model the pipeline runs
         self._previous_encode_us = 0
         self._collector: tuple[Calibrate, CalibrationCollector] | None = None  # run() only
+        self.first_frame_wait_ns = first_frame_wait_ns
+        self._awaiting_frame = True  # this stream has answered nothing and has no frame ready yet
 
     # ------------------------------------------------------------------------------ event loop side
     @property
@@ -189,7 +197,18 @@ class Session:
         replaced = self.frame is not None
         self.replaced_frames += replaced
         self.frame = received
+        if not self.frame_lane:
+            self._awaiting_frame = False  # it rides on the next job, before the samples
         return not replaced
+
+    def holding_ns(self, now_ns: int) -> int | None:
+        """How much longer the pending samples wait for the stream's first frame (ns), or None when they do not
+        wait: the stream has answered or has a frame ready, or its model reads no camera, or nothing is
+        pending."""
+        if not (self._awaiting_frame and self.pending and self._model.visual is not None):
+            return None
+        left = self.pending[0].recv_ns + self.first_frame_wait_ns - now_ns
+        return left if left > 0 else None
 
     def select(self, name: str, model: LoadedModel) -> None:
         """Switch model at the next job; the pipeline starts fresh (its caches belong to the old model)."""
@@ -198,6 +217,7 @@ class Session:
         self._model = model
         self._encoded.clear()  # encoded by the previous model's encoder
         self._reset = False  # a new pipeline is a reset
+        self._awaiting_frame = True
 
     def request_calibration(self, msg: Calibrate) -> None:
         """A ``calibrate`` request: the next job starts (or clears) it, with or without headset samples."""
@@ -214,6 +234,7 @@ class Session:
         self.frame = None
         self._encoded.clear()
         self._reset = self._next_model is None
+        self._awaiting_frame = True
 
     @property
     def next_model(self) -> LoadedModel:
@@ -223,12 +244,14 @@ class Session:
     @property
     def has_work(self) -> bool:
         requests = bool(self._calibrate) or bool(self._body)
-        return bool(self.pending) or requests or (self.frame is not None and not self.frame_lane)
+        samples = bool(self.pending) and self.holding_ns(time.perf_counter_ns()) is None
+        return samples or requests or (self.frame is not None and not self.frame_lane)
 
     def take_job(self) -> Job | None:
         if not self.has_work:
             return None
-        samples = tuple(self.pending)
+        # A job for a calibration or a body request while the samples wait leaves them waiting.
+        samples = tuple(self.pending) if self.holding_ns(time.perf_counter_ns()) is None else ()
         self.skipped += max(len(samples) - 1, 0)
         lane = list(self._encoded) if samples else []  # frames wait for a sample to be answered with
         job = Job(
@@ -244,9 +267,10 @@ class Session:
         )
         self._calibrate.clear()
         self._body.clear()
-        self.pending.clear()
         if samples:
+            self.pending.clear()
             self._encoded.clear()
+            self._awaiting_frame = False
         if not self.frame_lane:
             self.frame = None
         self._next_model, self._reset = None, False
@@ -275,6 +299,8 @@ class Session:
         overflow = len(self._encoded) == MAX_ENCODED_FRAMES
         self.replaced_frames += overflow
         self._encoded.append(result)
+        if result.encoded is not None:
+            self._awaiting_frame = False
         return not overflow
 
     # ------------------------------------------------------------------------------ worker thread side

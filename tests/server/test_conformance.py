@@ -553,6 +553,33 @@ def test_poses_say_whether_a_camera_frame_contributed(server):
         assert replay_until(headset, messages[1:], lambda: any(p.camera for p in headset.poses()), timeout=20)
 
 
+@pytest.mark.protocol("first-frame")
+def test_a_streams_first_pose_waits_for_its_first_frame_or_runs_out_of_time(server):
+    """A stream's first samples are answered once its first frame is read, the newest of them with the camera
+    and the rest counted as skipped; with no frame, 150 ms after the first; later samples are never held."""
+    messages = recorded_messages("walk-0000")
+    samples = [data for _, kind, data in messages if kind == "hmd"][:6]
+    frame = next(data for _, kind, data in messages if kind == "rgbd")
+    with Client(server.url, "first-frame") as headset:
+        headset.hello("input", "first-frame", model="egoposevr")
+        for data in samples[:3]:
+            headset.send(data)
+        time.sleep(0.03)  # the camera's first frame comes a frame's time after the headset's first sample
+        headset.send(frame)
+        first = headset.recv_type("pose")
+        assert first.camera is True and first.skipped == first.seq - decode(samples[0]).seq
+    with Client(server.url, "no-frame") as headset:
+        headset.hello("input", "no-frame", model="hmd-rgbd")
+        sent = time.perf_counter()
+        headset.send(samples[0])
+        first = headset.recv_type("pose")
+        waited_s = time.perf_counter() - sent
+        assert first.camera is False and first.seq == decode(samples[0]).seq and waited_s >= 0.14
+        headset.send(samples[1])
+        second = headset.recv_type("pose")
+        assert (second.seq, second.skipped) == (decode(samples[1]).seq, 0)  # answered as it came
+
+
 # ------------------------------------------------------------------------------------------ §5 hmd
 def _lose_left_hand(samples: list[Hmd], fill: str) -> list[Hmd]:
     """The left controller lost for 2 s in the middle, its numbers replaced by ``fill``."""

@@ -10,7 +10,7 @@ import pytest
 from loopback import recorded_messages, server_config
 
 from egoposevr.model.runtime.pipeline import Pipeline
-from egoposevr.protocol import Hello, Ping, SelectModel, decode, encode
+from egoposevr.protocol import GetBody, Hello, Ping, SelectModel, decode, encode
 from egoposevr.protocol.examples import example_messages
 from egoposevr.server.broadcast import publish
 from egoposevr.server.hub import Hub
@@ -42,8 +42,12 @@ def received(msg) -> Received:
     return Received(msg, time.perf_counter_ns(), 1000)
 
 
-def new_session(registry, model="hmd", frame_lane=False) -> Session:
-    return Session("s", model, registry.get(model), TokenBucket(1000, 100), frame_lane=frame_lane)
+def new_session(registry, model="hmd", frame_lane=False, first_frame_wait_ns=0) -> Session:
+    """A session whose samples, unless a test asks otherwise, never wait for a first frame."""
+    return Session(
+        "s", model, registry.get(model), TokenBucket(1000, 100), frame_lane=frame_lane,
+        first_frame_wait_ns=first_frame_wait_ns,
+    )  # fmt: skip
 
 
 def camera_frame(sample, seq: int):
@@ -122,6 +126,66 @@ def test_frame_lane_keeps_frames_off_the_headset_job_and_feeds_the_next_one(regi
     run = session.run(job)
     pose = decode(run.pose)
     assert pose.camera is True and "image" in pose.timing_us
+
+
+def test_a_streams_first_samples_wait_for_its_first_frame_then_the_newest_is_answered_with_it(
+    registry, samples
+):
+    """PROTOCOL.md §first-frame: nothing is answered before the stream's first frame is encoded; then the newest
+    sample is, with the camera, the older ones its history; later samples never wait again."""
+    session = new_session(registry, "egoposevr", frame_lane=True, first_frame_wait_ns=10**12)
+    for msg in samples[:3]:
+        session.offer_hmd(received(msg))
+    session.offer_rgbd(received(camera_frame(samples[0], 1)))
+    assert (
+        not session.has_work and session.take_job() is None and session.holding_ns(time.perf_counter_ns()) > 0
+    )
+    frame, model = session.take_frame()
+    assert not session.has_work  # still in the lane
+    session.offer_encoded(encode_received_frame(frame, model), model)
+    job = session.take_job()
+    assert len(job.samples) == 3 and len(job.encoded) == 1
+    pose = decode(session.run(job).pose)
+    assert (pose.seq, pose.skipped, pose.camera) == (samples[2].seq, 2, True)
+    session.offer_hmd(received(samples[3]))  # no newer frame: answered at once, the cached frame still young
+    assert session.has_work and decode(session.run(session.take_job()).pose).seq == samples[3].seq
+
+
+def test_the_first_frame_wait_runs_out_and_is_armed_again_by_a_new_stream_or_model(registry, samples):
+    session = new_session(registry, "egoposevr", first_frame_wait_ns=20_000_000)  # 20 ms
+    session.offer_hmd(received(samples[0]))
+    session.offer_hmd(received(samples[1]))
+    assert not session.has_work
+    time.sleep(0.03)
+    assert session.has_work and session.holding_ns(time.perf_counter_ns()) is None
+    pose = decode(session.run(session.take_job()).pose)
+    assert (pose.seq, pose.skipped, pose.camera) == (samples[1].seq, 1, False)
+    session.offer_hmd(received(samples[2]))
+    assert session.has_work  # the stream has answered: no wait
+    session.run(session.take_job())
+    session.restart_stream()  # a new input client
+    session.offer_hmd(received(samples[3]))
+    assert not session.has_work
+    session.select("hmd", registry.get("hmd"))  # a model that reads no camera never waits
+    assert session.has_work
+    session.run(session.take_job())
+    session.select("egoposevr", registry.get("egoposevr"))
+    session.offer_hmd(received(samples[4]))
+    assert not session.has_work
+
+
+def test_a_request_while_the_samples_wait_is_answered_and_leaves_them_waiting(registry, samples):
+    session = new_session(registry, "egoposevr", first_frame_wait_ns=10**12)
+    session.offer_hmd(received(samples[0]))
+    session.request_body(GetBody())
+    job = session.take_job()
+    assert job.samples == () and len(job.body) == 1
+    assert [n.type for n in session.run(job).notices] == ["body"]
+    assert len(session.pending) == 1 and not session.has_work
+    session.offer_rgbd(received(camera_frame(samples[0], 1)))  # without the lane: the frame rides on the job
+    job = session.take_job()
+    assert len(job.samples) == 1 and job.frame is not None
+    assert decode(session.run(job).pose).camera is True
 
 
 def test_frame_lane_reports_bad_frames_and_drops_results_of_a_replaced_model(registry, samples):
