@@ -1,0 +1,74 @@
+"""eval's replay of a dataset sequence: when the camera's frames arrive, and a stream's first samples waiting for
+the first one (PROTOCOL.md §first-frame), checked on a fake pipeline that logs its calls."""
+
+from __future__ import annotations
+
+import types
+
+import cv2
+import numpy as np
+
+from egoposevr.model.runtime.frames import FIRST_FRAME_WAIT_US
+from egoposevr.model.training.evaluate import CAMERA_LATENCY_US, replay_sequence
+
+
+class LoggingPipeline:
+    """Records ('hmd', t_us) and ('rgbd', t_us) in call order; answers every sample with zeros."""
+
+    def __init__(self, camera: bool = True) -> None:
+        self.model = types.SimpleNamespace(visual=object() if camera else None)
+        self.calls: list[tuple[str, int]] = []
+
+    def reset(self) -> None:
+        self.calls.clear()
+
+    def push_rgbd(self, t_us, *_args) -> bool:
+        self.calls.append(("rgbd", t_us))
+        return True
+
+    def push_hmd(self, t_us, *_args):
+        self.calls.append(("hmd", t_us))
+        return types.SimpleNamespace(joints=np.zeros((22, 3)), local_rot=np.zeros((22, 3, 3)))
+
+
+def _sequence(hmd_hz: float, first_frame_us: int, n: int = 40) -> dict:
+    """``n`` headset samples at ``hmd_hz`` and 30 Hz frames from ``first_frame_us`` (tiny real images)."""
+    jpeg = cv2.imencode(".jpg", np.zeros((2, 2, 3), np.uint8))[1].tobytes()
+    png = cv2.imencode(".png", np.zeros((2, 2), np.uint16))[1].tobytes()
+    cam_t_us = np.arange(first_frame_us, 2_000_000, 33_333)
+    return {
+        "hmd_t_us": np.round(np.arange(n) * 1e6 / hmd_hz).astype(np.int64),
+        "hmd_poses": np.zeros((n, 3, 7)),
+        "hmd_valid": np.ones((n, 3), bool),
+        "cam_t_us": cam_t_us,
+        "rgb_jpeg": [jpeg] * len(cam_t_us),
+        "depth_png": [png] * len(cam_t_us),
+        "camera": {"intrinsics": [1.0, 1.0, 1.0, 1.0], "cam_from_head": np.eye(4).ravel()},
+    }
+
+
+def test_the_first_samples_are_answered_once_the_first_frame_has_arrived_and_none_is_lost():
+    seq, pipeline = _sequence(90, first_frame_us=10_000), LoggingPipeline()
+    joints, _ = replay_sequence(pipeline, seq)
+    assert len(joints) == len(seq["hmd_t_us"])  # every sample answered, in order
+    assert [t for kind, t in pipeline.calls if kind == "hmd"] == list(seq["hmd_t_us"])
+    arrives_us = 10_000 + CAMERA_LATENCY_US
+    assert pipeline.calls[0] == ("rgbd", 10_000)  # before any sample is answered
+    first_after = next(i for i, t in enumerate(seq["hmd_t_us"]) if t >= arrives_us)
+    assert pipeline.calls[first_after] == ("hmd", seq["hmd_t_us"][first_after - 1])  # then the held ones
+
+    answered_at_once = LoggingPipeline()
+    replay_sequence(answered_at_once, seq, first_frame_wait=False)
+    assert answered_at_once.calls[0] == ("hmd", 0) and ("rgbd", 10_000) in answered_at_once.calls
+
+
+def test_the_wait_runs_out_and_a_headset_without_the_camera_never_waits():
+    late = _sequence(90, first_frame_us=FIRST_FRAME_WAIT_US + 100_000)  # the first frame comes too late
+    pipeline = LoggingPipeline()
+    replay_sequence(pipeline, late)
+    hmd_before_frame = [t for kind, t in pipeline.calls[: [k for k, _ in pipeline.calls].index("rgbd")]]
+    assert hmd_before_frame and max(hmd_before_frame) >= FIRST_FRAME_WAIT_US  # answered once the wait ran out
+    for camera, send_frames in ((False, True), (True, False)):
+        pipeline = LoggingPipeline(camera)
+        replay_sequence(pipeline, late, send_frames=send_frames)
+        assert [k for k, _ in pipeline.calls] == ["hmd"] * len(late["hmd_t_us"])
