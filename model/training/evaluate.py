@@ -66,8 +66,8 @@ def replay_sequence(
     its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
     camera (every pose then has ``camera = False``). As the server does for a model that reads the camera
     (PROTOCOL.md §first-frame), the stream's first samples wait, up to ``FIRST_FRAME_WAIT_US`` after the first,
-    for the first frame to arrive, and are answered once it has; ``first_frame_wait`` False answers them at
-    once."""
+    for the first frame to arrive; then the newest is answered and the older ones feed its history, each scored
+    with that first pose; ``first_frame_wait`` False answers every sample at once."""
     camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
@@ -82,16 +82,25 @@ def replay_sequence(
         held.append(i)
         if first_frame_wait and uses_camera and k == 0 and t_us - t_all[0] < FIRST_FRAME_WAIT_US:
             continue  # waiting for the stream's first frame
-        for j in held:
-            pose = pipeline.push_hmd(int(t_all[j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
-            joints.append(pose.joints)
-            rots.append(pose.local_rot)
+        pose = _answer_newest(pipeline, seq, held)
+        joints += [pose.joints] * len(held)
+        rots += [pose.local_rot] * len(held)
         held = []
-    for j in held:  # a stream shorter than the wait, without a frame
-        pose = pipeline.push_hmd(int(t_all[j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
-        joints.append(pose.joints)
-        rots.append(pose.local_rot)
+    if held:  # a stream shorter than the wait, without a frame
+        pose = _answer_newest(pipeline, seq, held)
+        joints += [pose.joints] * len(held)
+        rots += [pose.local_rot] * len(held)
     return np.array(joints), np.array(rots)
+
+
+def _answer_newest(pipeline: Pipeline, seq: dict[str, Any], samples: list[int]) -> Any:
+    """The server's newest-wins for ``samples`` (indices, in order): all but the last feed the history, the
+    last is answered. A sample answered by no pose is scored with the first pose served after it, the one its
+    user sees first."""
+    for j in samples[:-1]:
+        pipeline.observe_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
+    j = samples[-1]
+    return pipeline.push_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
 
 
 def procrustes_aligned(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -28,7 +28,10 @@ class LoggingPipeline:
 
     def push_hmd(self, t_us, *_args):
         self.calls.append(("hmd", t_us))
-        return types.SimpleNamespace(joints=np.zeros((22, 3)), local_rot=np.zeros((22, 3, 3)))
+        return types.SimpleNamespace(joints=np.full((22, 3), t_us), local_rot=np.zeros((22, 3, 3)))
+
+    def observe_hmd(self, t_us, *_args) -> None:
+        self.calls.append(("observe", t_us))
 
 
 def _sequence(hmd_hz: float, first_frame_us: int, n: int = 40) -> dict:
@@ -47,15 +50,16 @@ def _sequence(hmd_hz: float, first_frame_us: int, n: int = 40) -> dict:
     }
 
 
-def test_the_first_samples_are_answered_once_the_first_frame_has_arrived_and_none_is_lost():
+def test_the_first_samples_wait_for_the_first_frame_then_the_newest_is_answered_as_the_server_does():
     seq, pipeline = _sequence(90, first_frame_us=10_000), LoggingPipeline()
     joints, _ = replay_sequence(pipeline, seq)
-    assert len(joints) == len(seq["hmd_t_us"])  # every sample answered, in order
-    assert [t for kind, t in pipeline.calls if kind == "hmd"] == list(seq["hmd_t_us"])
-    arrives_us = 10_000 + CAMERA_LATENCY_US
-    assert pipeline.calls[0] == ("rgbd", 10_000)  # before any sample is answered
-    first_after = next(i for i, t in enumerate(seq["hmd_t_us"]) if t >= arrives_us)
-    assert pipeline.calls[first_after] == ("hmd", seq["hmd_t_us"][first_after - 1])  # then the held ones
+    t_us = list(seq["hmd_t_us"])
+    first = next(i for i, t in enumerate(t_us) if t >= 10_000 + CAMERA_LATENCY_US)  # the frame has arrived
+    assert pipeline.calls[0] == ("rgbd", 10_000)  # before any sample is fed
+    assert pipeline.calls[1 : first + 2] == [("observe", t) for t in t_us[:first]] + [("hmd", t_us[first])]
+    assert [t for kind, t in pipeline.calls if kind == "hmd"] == t_us[first:]  # then one answer a sample
+    assert len(joints) == len(t_us)  # every sample scored: the held ones with the first pose served
+    np.testing.assert_array_equal(joints[: first + 1, 0, 0], [t_us[first]] * (first + 1))
 
     answered_at_once = LoggingPipeline()
     replay_sequence(answered_at_once, seq, first_frame_wait=False)
@@ -66,8 +70,11 @@ def test_the_wait_runs_out_and_a_headset_without_the_camera_never_waits():
     late = _sequence(90, first_frame_us=FIRST_FRAME_WAIT_US + 100_000)  # the first frame comes too late
     pipeline = LoggingPipeline()
     replay_sequence(pipeline, late)
-    hmd_before_frame = [t for kind, t in pipeline.calls[: [k for k, _ in pipeline.calls].index("rgbd")]]
-    assert hmd_before_frame and max(hmd_before_frame) >= FIRST_FRAME_WAIT_US  # answered once the wait ran out
+    answered = [t for kind, t in pipeline.calls if kind == "hmd"]
+    assert (
+        answered[0] >= FIRST_FRAME_WAIT_US and answered[0] - FIRST_FRAME_WAIT_US < 1e6 / 90
+    )  # the wait ran out
+    assert pipeline.calls.index(("hmd", answered[0])) < pipeline.calls.index(("rgbd", late["cam_t_us"][0]))
     for camera, send_frames in ((False, True), (True, False)):
         pipeline = LoggingPipeline(camera)
         replay_sequence(pipeline, late, send_frames=send_frames)
