@@ -554,9 +554,15 @@ def test_poses_say_whether_a_camera_frame_contributed(server):
 
 
 @pytest.mark.protocol("first-frame")
-def test_a_streams_first_pose_waits_for_its_first_frame_or_runs_out_of_time(server):
-    """A stream's first samples are answered once its first frame is read, the newest of them with the camera
-    and the rest counted as skipped; with no frame, 150 ms after the first; later samples are never held."""
+def test_a_streams_first_pose_waits_for_its_first_frame_or_runs_out_of_time():
+    """With --first-frame-wait-ms 150, a stream's first samples are answered once its first frame is read, the
+    newest of them with the camera and the rest counted as skipped; with no frame, 150 ms after the first; later
+    samples are never held."""
+    with running_server(first_frame_wait_ms=150) as server:
+        _first_frame_session(server)
+
+
+def _first_frame_session(server) -> None:
     messages = recorded_messages("walk-0000")
     samples = [data for _, kind, data in messages if kind == "hmd"][:6]
     frame = next(data for _, kind, data in messages if kind == "rgbd")
