@@ -32,9 +32,9 @@ folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MOD
 folded pelvis that keeps its heading while no camera frame is in the window on or off (@seated-yaw,
 @no-seated-yaw; off by default: MODEL_CARD.md, rule 65), so --models egoposevr@no-leg-hold,egoposevr says,
 paired, what one stage of the runtime changes.
-@first-frame-wait answers a stream's first headset samples once its first camera frame is in (at most 150 ms after
-the first), as the server does with --first-frame-wait-ms 150 (PROTOCOL.md §first-frame; off by default:
-MODEL_CARD.md, rule 68; @no-first-frame-wait without).
+@no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
+(at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
+68 and 69; @first-frame-wait with).
 --no-camera (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
@@ -100,8 +100,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
-        "@seated-yaw), its first samples held for the first camera frame or not (@first-frame-wait, "
-        "@no-first-frame-wait; off by default), without the camera (@no-camera), with the truth's body (@truth-body), or as a returning "
+        "@seated-yaw), its first samples answered before the first camera frame (@no-first-frame-wait; by "
+        "default they wait for it, @first-frame-wait), without the camera (@no-camera), with the truth's body (@truth-body), or as a returning "
         "wearer whose body the client kept (@returning); "
         "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip

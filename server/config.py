@@ -96,12 +96,12 @@ class ServerConfig(BaseSettings):
         "(off: each frame rides on the next headset job, adding its cost to that pose's latency)",
     )
     first_frame_wait_ms: float = Field(
-        0.0,
+        FIRST_FRAME_WAIT_US / 1000,
         ge=0,
         le=1000,
         description="for a model that reads the camera, a stream's first headset samples wait at most this long "
-        f"for its first camera frame (0: answered at once; {FIRST_FRAME_WAIT_US // 1000} is the form MODEL_CARD's "
-        "rule 68 read, which failed on one set: PROTOCOL.md §first-frame)",
+        "for its first camera frame, so that the first answer has the camera's measure of the legs (0: answered "
+        "at once; PROTOCOL.md §first-frame)",
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

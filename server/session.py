@@ -10,7 +10,7 @@ Newest wins: headset samples that arrive while inference is busy wait in ``pendi
 only the newest of them and feeds the older ones to the pipeline as history (``observe_hmd``), counting them
 as skipped. Only the newest RGB-D frame is kept; a frame replaced before use is counted.
 
-First frame (PROTOCOL.md §first-frame; off unless ``first_frame_wait_ns`` > 0): for a model that reads the
+First frame (PROTOCOL.md §first-frame; ``first_frame_wait_ns`` 0 turns it off): for a model that reads the
 camera, a stream's first samples (after a connect, a reconnect or a model switch) wait in ``pending`` until its
 first frame is ready for a job, or until ``first_frame_wait_ns`` after the first of them
 (:meth:`Session.holding_ns`): the stream's first answer, which the runtime's leg hold keeps, then has the camera's
@@ -39,7 +39,7 @@ from ..model.inputs import decode_rgbd
 from ..model.runtime.body import bone_lengths_m, scale_of_lengths
 from ..model.runtime.calibration import Calibration as MeasuredCalibration
 from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
-from ..model.runtime.frames import EncodedFrame, check_frame, encode_frames
+from ..model.runtime.frames import FIRST_FRAME_WAIT_US, EncodedFrame, check_frame, encode_frames
 from ..model.runtime.loading import LoadedModel
 from ..model.runtime.pipeline import PendingPose, PoseResult, run_fusion
 from ..model.runtime.procedural import pipeline_for
@@ -150,7 +150,7 @@ class Session:
         rate: TokenBucket,
         frame_lane: bool = False,
         make_pipeline: Callable[[Any], Any] = pipeline_for,
-        first_frame_wait_ns: int = 0,
+        first_frame_wait_ns: int = FIRST_FRAME_WAIT_US * 1000,
     ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it

@@ -37,9 +37,9 @@ from . import kernels
 from .loading import LoadedModel
 
 HEAD_HISTORY_S = 1.0  # headset poses kept to place frames that arrive late
-# With the server's --first-frame-wait-ms on (off by default: MODEL_CARD.md, rule 68), a stream's first headset
-# samples, for a model that reads the camera, wait at most this long for its first frame (PROTOCOL.md
-# §first-frame), so that the first answer, which the leg hold keeps, has the camera's measure of the legs.
+# A stream's first headset samples, for a model that reads the camera, wait at most this long for its first frame
+# (the server's --first-frame-wait-ms; PROTOCOL.md §first-frame; MODEL_CARD.md, rules 68 and 69), so that the first
+# answer, which the leg hold keeps, has the camera's measure of the legs.
 FIRST_FRAME_WAIT_US = 150_000
 
 

@@ -60,14 +60,14 @@ def replay_sequence(
     seq: dict[str, Any],
     camera: dict[str, Any] | None = None,
     send_frames: bool = True,
-    first_frame_wait: bool = False,
+    first_frame_wait: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence, its frames sent with
     its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
-    camera (every pose then has ``camera = False``). With ``first_frame_wait``, as the server does with
-    ``--first-frame-wait-ms`` (PROTOCOL.md §first-frame), the stream's first samples wait, up to
-    ``FIRST_FRAME_WAIT_US`` after the first, for the first frame to arrive; then the newest is answered and the
-    older ones feed its history, each scored with that first pose."""
+    camera (every pose then has ``camera = False``). As the server does (PROTOCOL.md §first-frame), the stream's
+    first samples wait, up to ``FIRST_FRAME_WAIT_US`` after the first, for the first frame to arrive; then the
+    newest is answered and the older ones feed its history, each scored with that first pose;
+    ``first_frame_wait`` False answers every sample at once (the server's ``--first-frame-wait-ms 0``)."""
     camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
@@ -303,7 +303,7 @@ def evaluate(
     sure_plant: bool = False,
     warm_reseat: bool = True,
     send_frames: bool = True,
-    first_frame_wait: bool = False,
+    first_frame_wait: bool = True,
     truth_body: bool = False,
     returning: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -333,8 +333,8 @@ def evaluate(
     legs and planted feet at the network's answers once its windows fill where it folds the legs (Pipeline's;
     on by default: MODEL_CARD.md, rule 62);
     ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
-    ``first_frame_wait`` True answers a stream's first samples once its first frame is in, as the server does
-    with ``--first-frame-wait-ms`` (:func:`replay_sequence`; off by default: MODEL_CARD.md, rule 68);
+    ``first_frame_wait`` False answers a stream's first samples at once instead of once its first frame is in,
+    as the server does by default (:func:`replay_sequence`; MODEL_CARD.md, rules 68 and 69);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
     ``returning`` True serves each sequence after learning the wearer's body from an earlier session (the
@@ -438,7 +438,7 @@ def earlier_sessions(seqs: list[dict[str, Any]]) -> list[int]:
 
 
 def learn_the_wearer(
-    pipeline: Any, seq: dict[str, Any], send_frames: bool, first_frame_wait: bool = False
+    pipeline: Any, seq: dict[str, Any], send_frames: bool, first_frame_wait: bool = True
 ) -> None:
     """A returning wearer (``evaluate``'s ``returning``): the wearer's earlier session ``seq`` served with the
     body estimated, and the body it ends with given to the pipeline, as a client that kept it sends

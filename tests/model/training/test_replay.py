@@ -52,7 +52,7 @@ def _sequence(hmd_hz: float, first_frame_us: int, n: int = 40) -> dict:
 
 def test_the_first_samples_wait_for_the_first_frame_then_the_newest_is_answered_as_the_server_does():
     seq, pipeline = _sequence(90, first_frame_us=10_000), LoggingPipeline()
-    joints, _ = replay_sequence(pipeline, seq, first_frame_wait=True)
+    joints, _ = replay_sequence(pipeline, seq)
     t_us = list(seq["hmd_t_us"])
     first = next(i for i, t in enumerate(t_us) if t >= 10_000 + CAMERA_LATENCY_US)  # the frame has arrived
     assert pipeline.calls[0] == ("rgbd", 10_000)  # before any sample is fed
@@ -62,14 +62,14 @@ def test_the_first_samples_wait_for_the_first_frame_then_the_newest_is_answered_
     np.testing.assert_array_equal(joints[: first + 1, 0, 0], [t_us[first]] * (first + 1))
 
     answered_at_once = LoggingPipeline()
-    replay_sequence(answered_at_once, seq)  # the default: answered at once
+    replay_sequence(answered_at_once, seq, first_frame_wait=False)
     assert answered_at_once.calls[0] == ("hmd", 0) and ("rgbd", 10_000) in answered_at_once.calls
 
 
 def test_the_wait_runs_out_and_a_headset_without_the_camera_never_waits():
     late = _sequence(90, first_frame_us=FIRST_FRAME_WAIT_US + 100_000)  # the first frame comes too late
     pipeline = LoggingPipeline()
-    replay_sequence(pipeline, late, first_frame_wait=True)
+    replay_sequence(pipeline, late)
     answered = [t for kind, t in pipeline.calls if kind == "hmd"]
     assert (
         answered[0] >= FIRST_FRAME_WAIT_US and answered[0] - FIRST_FRAME_WAIT_US < 1e6 / 90
@@ -77,5 +77,5 @@ def test_the_wait_runs_out_and_a_headset_without_the_camera_never_waits():
     assert pipeline.calls.index(("hmd", answered[0])) < pipeline.calls.index(("rgbd", late["cam_t_us"][0]))
     for camera, send_frames in ((False, True), (True, False)):
         pipeline = LoggingPipeline(camera)
-        replay_sequence(pipeline, late, send_frames=send_frames, first_frame_wait=True)
+        replay_sequence(pipeline, late, send_frames=send_frames)
         assert [k for k, _ in pipeline.calls] == ["hmd"] * len(late["hmd_t_us"])
