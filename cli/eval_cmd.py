@@ -101,8 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
         "@seated-yaw), its first samples answered before the first camera frame (@no-first-frame-wait; by "
-        "default they wait for it, @first-frame-wait), without the camera (@no-camera), with the truth's body (@truth-body), or as a returning "
-        "wearer whose body the client kept (@returning); "
+        "default they wait for it, @first-frame-wait), without the camera (@no-camera), with the truth's body "
+        "(@truth-body), or as a returning wearer whose body the client kept (@returning); "
         "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")

@@ -61,8 +61,8 @@ class ModelRegistry:
         self._stamps: dict[str, _Stamp] = {}  # the file version each model was loaded from
         self._failed: dict[Path, _Stamp] = {}  # not retried until the file changes
         self._shared: dict[Path, Any] = {}  # visual encoder sessions, by path
-        self._encoder_stamps: dict[Path, _Stamp] = {}
-        self._encoder_digests: dict[Path, str] = {}  # sha256 of each cached encoder, hashed once per version
+        # each cached encoder's file version and sha256, hashed once per version
+        self._encoder_files: dict[Path, tuple[_Stamp, str]] = {}
         self._digests: dict[str, tuple[str, str | None]] = {}  # name -> (model file, encoder file) sha256
 
     def names(self) -> list[str]:
@@ -125,7 +125,7 @@ class ModelRegistry:
     def _forget_changed_encoders(self) -> set[Path]:
         """Drop cached visual encoders whose file changed or vanished; returns their paths."""
         stale = set()
-        for path, stamp in list(self._encoder_stamps.items()):
+        for path, (stamp, _) in list(self._encoder_files.items()):
             try:
                 current = _stamp(path)
             except OSError:
@@ -133,7 +133,7 @@ class ModelRegistry:
             if current != stamp:
                 stale.add(path)
                 self._shared.pop(path, None)
-                del self._encoder_stamps[path], self._encoder_digests[path]
+                del self._encoder_files[path]
         return stale
 
     def _load(self, name: str, stamp: _Stamp, models: dict[str, LoadedModel]) -> str:
@@ -148,16 +148,15 @@ class ModelRegistry:
             log.warning("model %s failed to load: %s", name, exc)
             return f"model {name} failed: {exc}"
         encoder = model.info.visual_path
-        if encoder is not None and encoder not in self._encoder_stamps:
-            self._encoder_stamps[encoder] = _stamp(encoder)
-            self._encoder_digests[encoder] = file_digest(encoder)
+        if encoder is not None and encoder not in self._encoder_files:
+            self._encoder_files[encoder] = (_stamp(encoder), file_digest(encoder))
         self._failed.pop(stamp.path, None)
         self.failures.pop(stamp.path, None)
         reloaded = name in models
         models[name], self._stamps[name] = model, stamp
         self._digests[name] = (
             file_digest(stamp.path),
-            self._encoder_digests[encoder] if encoder is not None else None,
+            self._encoder_files[encoder][1] if encoder is not None else None,
         )
         action = "reloaded" if reloaded else "loaded"
         return f"model {name} {action} from {stamp.path} (sha256 {self._digests[name][0][:12]})"

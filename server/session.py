@@ -245,14 +245,17 @@ class Session:
     @property
     def has_work(self) -> bool:
         requests = bool(self._calibrate) or bool(self._body)
-        samples = bool(self.pending) and self.holding_ns(time.perf_counter_ns()) is None
-        return samples or requests or (self.frame is not None and not self.frame_lane)
+        return self._samples_ready() or requests or (self.frame is not None and not self.frame_lane)
+
+    def _samples_ready(self) -> bool:
+        """Samples are pending and none waits for the stream's first frame."""
+        return bool(self.pending) and self.holding_ns(time.perf_counter_ns()) is None
 
     def take_job(self) -> Job | None:
         if not self.has_work:
             return None
         # A job for a calibration or a body request while the samples wait leaves them waiting.
-        samples = tuple(self.pending) if self.holding_ns(time.perf_counter_ns()) is None else ()
+        samples = tuple(self.pending) if self._samples_ready() else ()
         self.skipped += max(len(samples) - 1, 0)
         lane = list(self._encoded) if samples else []  # frames wait for a sample to be answered with
         job = Job(

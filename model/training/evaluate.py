@@ -80,16 +80,15 @@ def replay_sequence(
             pipeline.push_rgbd(int(seq["cam_t_us"][k]), rgb, depth, intrinsics, cam_from_head)
             k += 1
         held.append(i)
-        if first_frame_wait and uses_camera and k == 0 and t_us - t_all[0] < FIRST_FRAME_WAIT_US:
-            continue  # waiting for the stream's first frame
+        waiting = first_frame_wait and uses_camera and k == 0 and t_us - t_all[0] < FIRST_FRAME_WAIT_US
+        if (
+            waiting and i < len(t_all) - 1
+        ):  # for the stream's first frame (a stream shorter than the wait ends)
+            continue
         pose = _answer_newest(pipeline, seq, held)
         joints += [pose.joints] * len(held)
         rots += [pose.local_rot] * len(held)
         held = []
-    if held:  # a stream shorter than the wait, without a frame
-        pose = _answer_newest(pipeline, seq, held)
-        joints += [pose.joints] * len(held)
-        rots += [pose.local_rot] * len(held)
     return np.array(joints), np.array(rots)
 
 
@@ -343,8 +342,8 @@ def evaluate(
     PROTOCOL.md §4.2): a returning wearer whose client kept their body.
     ``runtime`` {label: {option: bool}} serves a label with some of those twelve (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``truth_body``, ``returning``) set otherwise, or with the network pipeline's
-    ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame is in the window; Pipeline's,
+    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``truth_body``, ``returning``) set otherwise, or
+    with the network pipeline's ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame is in the window; Pipeline's,
     off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
     (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
     stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for

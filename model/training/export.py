@@ -191,14 +191,9 @@ def training_record(ckpt: dict[str, Any], path: Path | None = None) -> dict[str,
     return record
 
 
-def export_visual(
-    ckpt_path: Path,
-    out_path: Path,
-    command: Sequence[str] | None = None,
-    invocation: dict[str, Any] | None = None,
-) -> float:
-    """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error. ``command``: the command line its
-    record names (``invocation``: the record itself, one for every file of an export)."""
+def export_visual(ckpt_path: Path, out_path: Path, invocation: dict[str, Any] | None = None) -> float:
+    """visual-<kind>.pt -> visual-<kind>.onnx; returns the parity error. ``invocation``: the export's record
+    (:func:`~.train.invocation_record`, one for every file of an export; None: an unrecorded command)."""
     ckpt = load_checkpoint(ckpt_path)
     module = _VisualOutputs(build_net(ckpt, ckpt_path)).eval()
     cfg = module.net.cfg
@@ -209,7 +204,7 @@ def export_visual(
         format=FORMAT_VERSION, kind="visual", name=ckpt["name"], config=cfg,
         camera=parse(CameraInfo, ckpt["camera"]), joint_names=JOINT_NAMES,
         training=provenance.hoist_ancestors(
-            training_record(ckpt, ckpt_path) | {"export": invocation or invocation_record(command)}
+            training_record(ckpt, ckpt_path) | {"export": invocation or invocation_record(None)}
         ),
         units="image: RGB - 0.5 (3) [+ depth m / 2] (C, h, w); uv normalised [0, 1] of the image; "
               "depth_m metres along the optical axis; zeta probability in view",
@@ -280,14 +275,12 @@ def export_model(
     runs_dirs: list[Path],
     out_path: Path,
     lean_gate: bool = False,
-    command: Sequence[str] | None = None,
     invocation: dict[str, Any] | None = None,
 ) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
     :class:`SeedEnsemble`); returns the parity error. ``lean_gate``: a model with KPO asks the runtime for
     the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there).
-    ``command``: the command line its record names (``invocation``: the record itself, one for every file of an
-    export)."""
+    ``invocation``: as :func:`export_visual`."""
     entry = ZOO[name]
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
@@ -297,7 +290,7 @@ def export_model(
     module = _served_module(nets)
     records = [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
     training = {"ensemble": records} if len(records) > 1 else records[0]
-    training = provenance.hoist_ancestors(training | {"export": invocation or invocation_record(command)})
+    training = provenance.hoist_ancestors(training | {"export": invocation or invocation_record(None)})
     _export_fusion(module, cfg, out_path)
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
@@ -578,8 +571,8 @@ def export_zoo(
     ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
     regressors are that folder's, copied as they are (None: nothing exported, nothing to check). Several
     runs folders make each model the :class:`SeedEnsemble` of their nets; they must then have been trained
-    on one set of encoders, given as ``encoders_dir``. ``lean_gate`` and ``command``: as
-    :func:`export_model`."""
+    on one set of encoders, given as ``encoders_dir``. ``lean_gate``: as :func:`export_model`; ``command``: the
+    command line every file's record names."""
     if len(runs_dirs) > 1 and encoders_dir is None:
         raise ValueError(
             "an ensemble of several runs needs --encoders: the encoders its nets were trained on"
@@ -594,8 +587,8 @@ def export_zoo(
             copy_encoder(encoders_dir / name, out_dir / name)
             errors[name] = None
         else:
-            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, command, invocation)
+            errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, invocation)
     for name in names:
         out_path = out_dir / f"{name}.onnx"
-        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_path, lean_gate, command, invocation)
+        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_path, lean_gate, invocation)
     return errors
