@@ -27,7 +27,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from ..model.runtime.frames import FIRST_FRAME_WAIT_US
+from ..model.runtime.frames import FIRST_FRAME_WAIT_US, LOW_HEAD_M, LOW_HEAD_WAIT_ON, LOW_HEAD_WAIT_US
 from ..protocol import DEFAULT_MAX_MESSAGE_BYTES
 
 ENV_PREFIX = "EGOPOSEVR_"
@@ -102,6 +102,15 @@ class ServerConfig(BaseSettings):
         description="for a model that reads the camera, a stream's first headset samples wait at most this long "
         "for its first camera frame, so that the first answer has the camera's measure of the legs (0: answered "
         "at once; PROTOCOL.md §first-frame)",
+    )
+    low_head_wait_ms: float = Field(
+        LOW_HEAD_WAIT_US / 1000 if LOW_HEAD_WAIT_ON else 0,
+        ge=0,
+        le=2000,
+        description="for a model that reads the camera, a stream whose first headset sample has the head lower than "
+        f"{LOW_HEAD_M} m (seated or crouched) waits at most this long for the net's whole input windows before its "
+        "first answer, so that a seated person's legs are first served warm and not re-seated (0: only the first "
+        "frame is waited for; needs the frame lane; PROTOCOL.md §first-frame)",
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

@@ -378,6 +378,7 @@ class Hub:
         session = Session(
             hello.session, name, self.registry.get(name), bucket, frame_lane=cfg.frame_lane,
             first_frame_wait_ns=round(cfg.first_frame_wait_ms * 1e6),
+            low_head_wait_ns=round(cfg.low_head_wait_ms * 1e6),
         )  # fmt: skip
         self.sessions[session.id] = session
         self.metrics.sessions.set(len(self.sessions))

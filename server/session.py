@@ -39,7 +39,16 @@ from ..model.inputs import decode_rgbd
 from ..model.runtime.body import bone_lengths_m, scale_of_lengths
 from ..model.runtime.calibration import Calibration as MeasuredCalibration
 from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
-from ..model.runtime.frames import FIRST_FRAME_WAIT_US, EncodedFrame, check_frame, encode_frames
+from ..model.runtime.frames import (
+    FIRST_FRAME_WAIT_US,
+    LOW_HEAD_WAIT_ON,
+    LOW_HEAD_WAIT_US,
+    EncodedFrame,
+    FirstAnswerWait,
+    check_frame,
+    encode_frames,
+    first_answer_wait,
+)
 from ..model.runtime.loading import LoadedModel
 from ..model.runtime.pipeline import PendingPose, PoseResult, run_fusion
 from ..model.runtime.procedural import pipeline_for
@@ -61,7 +70,9 @@ from ..protocol import (
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
-MAX_ENCODED_FRAMES = 8  # lane results waiting for a headset sample (a camera streaming without a headset)
+# lane results waiting for a headset sample: a camera streaming without a headset, or a stream's first second while
+# a low head's first answer waits for the net's whole windows (frames.first_answer_wait)
+MAX_ENCODED_FRAMES = 32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +162,7 @@ class Session:
         frame_lane: bool = False,
         make_pipeline: Callable[[Any], Any] = pipeline_for,
         first_frame_wait_ns: int = FIRST_FRAME_WAIT_US * 1000,
+        low_head_wait_ns: int = LOW_HEAD_WAIT_US * 1000 if LOW_HEAD_WAIT_ON else 0,
     ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it
@@ -176,7 +188,8 @@ class Session:
         self._previous_encode_us = 0
         self._collector: tuple[Calibrate, CalibrationCollector] | None = None  # run() only
         self.first_frame_wait_ns = first_frame_wait_ns
-        self._awaiting_frame = True  # this stream has answered nothing and has no frame ready yet
+        self.low_head_wait_ns = low_head_wait_ns
+        self._start_stream()
 
     # ------------------------------------------------------------------------------ event loop side
     @property
@@ -185,6 +198,10 @@ class Session:
 
     def offer_hmd(self, received: Received) -> bool:
         """Queue a sample; returns True when the oldest pending one had to be dropped (counted as skipped)."""
+        if self._first_answer_due and self._stream_samples == 0:
+            self._first_wait = self._wait_of(received)
+            self._stream_start_ns = received.recv_ns
+        self._stream_samples += self._first_answer_due
         dropped = len(self.pending) == MAX_PENDING_SAMPLES
         if dropped:
             self.pending.popleft()
@@ -199,17 +216,44 @@ class Session:
         self.replaced_frames += replaced
         self.frame = received
         if not self.frame_lane:
-            self._awaiting_frame = False  # it rides on the next job, before the samples
+            self._stream_frames = 1  # it rides on the next job, before the samples
         return not replaced
 
     def holding_ns(self, now_ns: int) -> int | None:
-        """How much longer the pending samples wait for the stream's first frame (ns), or None when they do not
-        wait: the stream has answered or has a frame ready, or its model reads no camera, or nothing is
-        pending."""
-        if not (self._awaiting_frame and self.pending and self._model.visual is not None):
+        """How much longer the pending samples wait for what the stream's first answer needs (ns: its first frame,
+        or with a low head the net's whole windows: frames.first_answer_wait), or None when they do not wait: the
+        stream has answered or has what it needs, or its model reads no camera, or nothing is pending."""
+        wait = self._first_wait
+        if not (
+            self._first_answer_due and self.pending and wait is not None and self._model.visual is not None
+        ):
             return None
-        left = self.pending[0].recv_ns + self.first_frame_wait_ns - now_ns
-        return left if left > 0 else None
+        if wait.met(self._stream_frames, self._stream_samples, (now_ns - self._stream_start_ns) // 1000):
+            return None
+        return self._stream_start_ns + wait.wait_us * 1000 - now_ns
+
+    def _start_stream(self) -> None:
+        """A new stream (a connect, a reconnect or a model switch): its first answer waits again."""
+        self._first_answer_due = True  # this stream has answered nothing yet
+        self._first_wait: FirstAnswerWait | None = None  # decided by its first sample
+        self._stream_start_ns = 0  # when its first sample arrived
+        self._stream_samples = 0  # samples and frames it has had since
+        self._stream_frames = 0
+        if self.pending:  # a model switch with samples waiting: the new stream begins with them
+            self._first_wait = self._wait_of(self.pending[0])
+            self._stream_start_ns, self._stream_samples = self.pending[0].recv_ns, len(self.pending)
+
+    def _wait_of(self, first: Received) -> FirstAnswerWait | None:
+        """What the stream whose first sample is ``first`` waits for (None: its model reads no camera). Without
+        the frame lane only the newest frame reaches a job, so no wait is for more than one."""
+        if self._model.visual is None:
+            return None
+        config = self._model.info.config
+        head_y_m = float(first.msg.head[1]) if first.msg.valid[0] else None
+        low_head_wait_us = self.low_head_wait_ns // 1000 if self.frame_lane else 0
+        return first_answer_wait(
+            head_y_m, config.window, config.visual_window, self.first_frame_wait_ns // 1000, low_head_wait_us
+        )
 
     def select(self, name: str, model: LoadedModel) -> None:
         """Switch model at the next job; the pipeline starts fresh (its caches belong to the old model)."""
@@ -218,7 +262,7 @@ class Session:
         self._model = model
         self._encoded.clear()  # encoded by the previous model's encoder
         self._reset = False  # a new pipeline is a reset
-        self._awaiting_frame = True
+        self._start_stream()
 
     def request_calibration(self, msg: Calibrate) -> None:
         """A ``calibrate`` request: the next job starts (or clears) it, with or without headset samples."""
@@ -235,7 +279,7 @@ class Session:
         self.frame = None
         self._encoded.clear()
         self._reset = self._next_model is None
-        self._awaiting_frame = True
+        self._start_stream()
 
     @property
     def next_model(self) -> LoadedModel:
@@ -248,7 +292,7 @@ class Session:
         return self._samples_ready() or requests or (self.frame is not None and not self.frame_lane)
 
     def _samples_ready(self) -> bool:
-        """Samples are pending and none waits for the stream's first frame."""
+        """Samples are pending and none waits for the stream's first answer's needs."""
         return bool(self.pending) and self.holding_ns(time.perf_counter_ns()) is None
 
     def take_job(self) -> Job | None:
@@ -274,7 +318,7 @@ class Session:
         if samples:
             self.pending.clear()
             self._encoded.clear()
-            self._awaiting_frame = False
+            self._first_answer_due = False
         if not self.frame_lane:
             self.frame = None
         self._next_model, self._reset = None, False
@@ -304,7 +348,7 @@ class Session:
         self.replaced_frames += overflow
         self._encoded.append(result)
         if result.encoded is not None:
-            self._awaiting_frame = False
+            self._stream_frames += 1
         return not overflow
 
     # ------------------------------------------------------------------------------ worker thread side

@@ -32,7 +32,14 @@ from ..inputs import decode_rgbd
 from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
 from ..runtime.calibration import DEFAULT_SECONDS, Calibration, CalibrationCollector
-from ..runtime.frames import FIRST_FRAME_WAIT_US, encode_frame
+from ..runtime.frames import (
+    FIRST_FRAME_WAIT_US,
+    LOW_HEAD_WAIT_ON,
+    LOW_HEAD_WAIT_US,
+    FirstAnswerWait,
+    encode_frame,
+    first_answer_wait,
+)
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
 from ..runtime.pipeline import Pipeline
 from ..runtime.procedural import ProceduralModel, pipeline_for
@@ -61,18 +68,22 @@ def replay_sequence(
     camera: dict[str, Any] | None = None,
     send_frames: bool = True,
     first_frame_wait: bool = True,
+    low_head_wait: bool = LOW_HEAD_WAIT_ON,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence, its frames sent with
     its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
     camera (every pose then has ``camera = False``). As the server does (PROTOCOL.md §first-frame), the stream's
-    first samples wait, up to ``FIRST_FRAME_WAIT_US`` after the first, for the first frame to arrive; then the
-    newest is answered and the older ones feed its history, each scored with that first pose;
-    ``first_frame_wait`` False answers every sample at once (the server's ``--first-frame-wait-ms 0``)."""
+    first samples wait, up to ``FIRST_FRAME_WAIT_US`` after the first, for the first frame to arrive (with
+    ``low_head_wait``, a stream that begins with the head low waits for the net's whole windows, up to
+    ``LOW_HEAD_WAIT_US``: frames.first_answer_wait); then the newest is answered and the older ones feed its
+    history, each scored with that first pose; ``first_frame_wait`` and ``low_head_wait`` False answer every
+    sample at once (the server's ``--first-frame-wait-ms 0 --low-head-wait-ms 0``)."""
     camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
     uses_camera = send_frames and pipeline.model.visual is not None
     t_all = np.asarray(seq["hmd_t_us"])
+    wait = _first_answer_wait(pipeline, seq, first_frame_wait, low_head_wait) if uses_camera else None
     joints, rots, k, held = [], [], 0, []
     for i, t_us in enumerate(t_all):
         while uses_camera and k < len(seq["cam_t_us"]) and seq["cam_t_us"][k] + CAMERA_LATENCY_US <= t_us:
@@ -80,16 +91,29 @@ def replay_sequence(
             pipeline.push_rgbd(int(seq["cam_t_us"][k]), rgb, depth, intrinsics, cam_from_head)
             k += 1
         held.append(i)
-        waiting = first_frame_wait and uses_camera and k == 0 and t_us - t_all[0] < FIRST_FRAME_WAIT_US
-        if (
-            waiting and i < len(t_all) - 1
-        ):  # for the stream's first frame (a stream shorter than the wait ends)
+        first = len(held) == i + 1  # nothing answered yet
+        waiting = first and wait is not None and not wait.met(k, len(held), int(t_us - t_all[0]))
+        if waiting and i < len(t_all) - 1:  # (a stream shorter than the wait ends)
             continue
         pose = _answer_newest(pipeline, seq, held)
         joints += [pose.joints] * len(held)
         rots += [pose.local_rot] * len(held)
         held = []
     return np.array(joints), np.array(rots)
+
+
+def _first_answer_wait(
+    pipeline: Pipeline, seq: dict[str, Any], first_frame_wait: bool, low_head_wait: bool
+) -> FirstAnswerWait:
+    """What the server makes this sequence's first answer wait for (frames.first_answer_wait)."""
+    head_y_m = float(seq["hmd_poses"][0][0][1]) if seq["hmd_valid"][0][0] else None
+    return first_answer_wait(
+        head_y_m,
+        pipeline.window,
+        pipeline.visual_window,
+        FIRST_FRAME_WAIT_US if first_frame_wait else 0,
+        LOW_HEAD_WAIT_US if low_head_wait else 0,
+    )
 
 
 def _answer_newest(pipeline: Pipeline, seq: dict[str, Any], samples: list[int]) -> Any:
@@ -303,6 +327,7 @@ def evaluate(
     warm_reseat: bool = True,
     send_frames: bool = True,
     first_frame_wait: bool = True,
+    low_head_wait: bool = LOW_HEAD_WAIT_ON,
     truth_body: bool = False,
     returning: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
@@ -331,18 +356,22 @@ def evaluate(
     high the network lifts it (contact.SURE_P; off by default), ``warm_reseat`` False does not re-seat held
     legs and planted feet at the network's answers once its windows fill where it folds the legs (Pipeline's;
     on by default: MODEL_CARD.md, rule 62);
-    ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`);
+    ``send_frames`` False sends no camera frame, as a headset without the camera (:func:`replay_sequence`, which
+    ``waits`` ({``first_frame_wait``, ``low_head_wait``}) go to too);
     ``first_frame_wait`` False answers a stream's first samples at once instead of once its first frame is in,
-    as the server does by default (:func:`replay_sequence`; MODEL_CARD.md, rules 68 and 69);
+    as the server does by default (:func:`replay_sequence`; MODEL_CARD.md, rules 68 and 69); ``low_head_wait``
+    makes a stream that begins with the head low wait for the net's whole windows (frames.first_answer_wait;
+    MODEL_CARD.md, rule 70);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
     ``returning`` True serves each sequence after learning the wearer's body from an earlier session (the
     estimate the end of another sequence of the same body gives, or of the same sequence where the split has no
     other: :func:`earlier_sessions`; what ``get_body`` answers), given from the first sample (``set_body``,
     PROTOCOL.md §4.2): a returning wearer whose client kept their body.
-    ``runtime`` {label: {option: bool}} serves a label with some of those twelve (as ``contacts``,
+    ``runtime`` {label: {option: bool}} serves a label with some of those thirteen (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``truth_body``, ``returning``) set otherwise, or
+    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``low_head_wait``, ``truth_body``, ``returning``) set
+    otherwise, or
     with the network pipeline's ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame is in the window; Pipeline's,
     off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
     (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
@@ -375,7 +404,10 @@ def evaluate(
                    "sure_plant": sure_plant, "warm_reseat": warm_reseat}  # fmt: skip
         options |= (runtime or {}).get(name, {})
         frames = options.pop("send_frames", send_frames)  # the replay's, not the pipeline's
-        waits = options.pop("first_frame_wait", first_frame_wait)  # the server's (the replay's), too
+        waits = {  # the server's (the replay's), too
+            "first_frame_wait": options.pop("first_frame_wait", first_frame_wait),
+            "low_head_wait": options.pop("low_head_wait", low_head_wait),
+        }
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
         returns = options.pop("returning", returning)
         pipeline = pipeline_for(model, **options)
@@ -387,8 +419,8 @@ def evaluate(
             if calibrate:
                 calibrate_like_a_user(pipeline, seq, rigs[i])
             if returns:
-                learn_the_wearer(pipeline, seqs[earlier[i]], frames, waits)
-            served = replay_sequence(pipeline, seq, send_frames=frames, first_frame_wait=waits)
+                learn_the_wearer(pipeline, seqs[earlier[i]], frames, **waits)
+            served = replay_sequence(pipeline, seq, send_frames=frames, **waits)
             errors.append(sequence_errors(*served, seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
@@ -436,15 +468,13 @@ def earlier_sessions(seqs: list[dict[str, Any]]) -> list[int]:
     return out
 
 
-def learn_the_wearer(
-    pipeline: Any, seq: dict[str, Any], send_frames: bool, first_frame_wait: bool = True
-) -> None:
+def learn_the_wearer(pipeline: Any, seq: dict[str, Any], send_frames: bool, **waits: bool) -> None:
     """A returning wearer (``evaluate``'s ``returning``): the wearer's earlier session ``seq`` served with the
     body estimated, and the body it ends with given to the pipeline, as a client that kept it sends
     ``set_body`` (PROTOCOL.md §4.2); none where ``body.measured`` says it is not worth keeping (the wearer only
     sat, or the camera measured nothing), and the body is estimated as usual."""
     pipeline.give_body(None)
-    replay_sequence(pipeline, seq, send_frames=send_frames, first_frame_wait=first_frame_wait)
+    replay_sequence(pipeline, seq, send_frames=send_frames, **waits)
     scale, worth_keeping = pipeline.served_body()
     pipeline.give_body(scale if worth_keeping else None)  # a client keeps only a body worth keeping
 

@@ -33,12 +33,14 @@ from loopback import (
 
 from egoposevr.cli.main import main as cli_main
 from egoposevr.model.provenance import file_digest
+from egoposevr.model.runtime.frames import LOW_HEAD_M
 from egoposevr.model.skeleton import forward_kinematics
 from egoposevr.model.synth.headset import HeadsetRig, device_poses
 from egoposevr.model.weights import WEIGHTS_DIR
 from egoposevr.protocol import ErrorCode, Hello, Hmd, ListModels, Ping, SelectModel, decode, encode
 from egoposevr.protocol.examples import example_messages, openxr_examples
 from egoposevr.protocol.openxr import controller_pose
+from egoposevr.server.registry import ModelRegistry
 from egoposevr.server.session import Session
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -584,6 +586,37 @@ def _first_frame_session(server) -> None:
         headset.send(samples[1])
         second = headset.recv_type("pose")
         assert (second.seq, second.skipped) == (decode(samples[1]).seq, 0)  # answered as it came
+
+
+@pytest.mark.protocol("first-frame")
+def test_a_stream_that_begins_with_the_head_low_is_first_answered_once_the_nets_windows_are_full():
+    """With --low-head-wait-ms, a stream whose first sample has the head lower than LOW_HEAD_M is first answered
+    once the net's headset window of samples and visual window of frames are in (the newest answered, the rest
+    skipped), not at its first frame."""
+    messages = recorded_messages("walk-0000")
+    samples = [decode(data) for _, kind, data in messages if kind == "hmd"]
+    frames = [decode(data) for _, kind, data in messages if kind == "rgbd"]
+    registry = ModelRegistry()
+    registry.rescan()
+    config = registry.get("egoposevr").info.config  # the served file's windows
+    seated = [s.model_copy(update={"head": [s.head[0], LOW_HEAD_M - 0.3, *s.head[2:]]}) for s in samples]
+    with (
+        running_server(first_frame_wait_ms=150, low_head_wait_ms=2000) as server,
+        Client(server.url, "seated") as headset,
+    ):
+        headset.hello("input", "seated", model="egoposevr")
+        for sample in seated[: config.window - 1]:
+            headset.send(sample)
+        for frame in frames[: config.visual_window]:
+            headset.send(frame)
+        time.sleep(0.3)  # the frames are in: a stream that waited only for its first frame has been answered
+        headset.send(seated[config.window - 1])
+        first = headset.recv_type("pose", timeout=10)
+        assert (first.seq, first.skipped, first.camera) == (
+            seated[config.window - 1].seq,
+            config.window - 1,
+            True,
+        )
 
 
 # ------------------------------------------------------------------------------------------ §5 hmd

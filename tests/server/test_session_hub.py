@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from loopback import recorded_messages, server_config
 
+from egoposevr.model.runtime.frames import LOW_HEAD_M
 from egoposevr.model.runtime.pipeline import Pipeline
 from egoposevr.protocol import GetBody, Hello, Ping, SelectModel, decode, encode
 from egoposevr.protocol.examples import example_messages
@@ -42,12 +43,21 @@ def received(msg) -> Received:
     return Received(msg, time.perf_counter_ns(), 1000)
 
 
-def new_session(registry, model="hmd", frame_lane=False, first_frame_wait_ns=0) -> Session:
-    """A session whose samples, unless a test asks otherwise, never wait for a first frame."""
+def new_session(
+    registry, model="hmd", frame_lane=False, first_frame_wait_ns=0, low_head_wait_ns=0
+) -> Session:
+    """A session whose samples, unless a test asks otherwise, never wait for a first frame or full windows."""
     return Session(
         "s", model, registry.get(model), TokenBucket(1000, 100), frame_lane=frame_lane,
-        first_frame_wait_ns=first_frame_wait_ns,
+        first_frame_wait_ns=first_frame_wait_ns, low_head_wait_ns=low_head_wait_ns,
     )  # fmt: skip
+
+
+def with_head_at(sample, head_y_m: float):
+    """``sample`` with its headset ``head_y_m`` above the floor."""
+    head = list(sample.head)
+    head[1] = head_y_m
+    return sample.model_copy(update={"head": head})
 
 
 def camera_frame(sample, seq: int):
@@ -172,6 +182,59 @@ def test_the_first_frame_wait_runs_out_and_is_armed_again_by_a_new_stream_or_mod
     session.select("egoposevr", registry.get("egoposevr"))
     session.offer_hmd(received(samples[4]))
     assert not session.has_work
+
+
+def test_a_low_heads_first_answer_waits_for_the_nets_whole_windows(registry, samples):
+    """PROTOCOL.md §first-frame: a stream that begins with the head low (seated) is first answered once the net's
+    headset window of samples and visual window of frames are in; a standing one once its first frame is."""
+    config = registry.get("egoposevr").info.config
+    seated = [with_head_at(m, LOW_HEAD_M - 0.25) for m in samples[: config.window]]
+    session = new_session(
+        registry, "egoposevr", frame_lane=True, first_frame_wait_ns=10**12, low_head_wait_ns=10**12
+    )
+    for i, msg in enumerate(seated[:-1]):
+        session.offer_hmd(received(msg))
+        if i < config.visual_window:
+            session.offer_rgbd(received(camera_frame(msg, i)))
+            frame, model = session.take_frame()
+            session.offer_encoded(encode_received_frame(frame, model), model)
+        assert not session.has_work and session.holding_ns(time.perf_counter_ns()) > 0
+    session.offer_hmd(received(seated[-1]))  # the headset window is full too
+    job = session.take_job()
+    assert (len(job.samples), len(job.encoded)) == (config.window, config.visual_window)
+    pose = decode(session.run(job).pose)
+    assert (pose.seq, pose.skipped, pose.camera) == (seated[-1].seq, config.window - 1, True)
+
+    session.restart_stream()  # a standing stream: its first frame is enough
+    session.offer_hmd(received(with_head_at(samples[0], LOW_HEAD_M + 0.25)))
+    session.offer_rgbd(received(camera_frame(samples[0], 99)))
+    frame, model = session.take_frame()
+    session.offer_encoded(encode_received_frame(frame, model), model)
+    assert session.has_work
+
+
+def test_a_low_heads_wait_runs_out_and_needs_the_frame_lane(registry, samples):
+    low = [with_head_at(m, LOW_HEAD_M - 0.25) for m in samples[:3]]
+    session = new_session(
+        registry, "egoposevr", frame_lane=True, first_frame_wait_ns=1, low_head_wait_ns=20_000_000
+    )
+    session.offer_hmd(received(low[0]))
+    assert not session.has_work
+    time.sleep(0.03)  # the low head's wait (20 ms) runs out; a standing stream's (1 ns) would have at once
+    assert session.has_work and len(session.take_job().samples) == 1
+    session.offer_hmd(received(low[1]))
+    assert session.has_work  # the stream has answered
+    session.select("egoposevr", registry.get("egoposevr"))  # a switch with a sample waiting: it waits again
+    assert not session.has_work
+    time.sleep(0.03)
+    assert session.has_work
+
+    session = new_session(
+        registry, "egoposevr", first_frame_wait_ns=10**12, low_head_wait_ns=10**12
+    )  # no lane
+    session.offer_hmd(received(low[2]))
+    session.offer_rgbd(received(camera_frame(low[2], 1)))  # rides on the job: the only frame a job can have
+    assert session.has_work
 
 
 def test_a_request_while_the_samples_wait_is_answered_and_leaves_them_waiting(registry, samples):

@@ -1,5 +1,6 @@
 """eval's replay of a dataset sequence: when the camera's frames arrive, and a stream's first samples waiting for
-the first one (PROTOCOL.md §first-frame), checked on a fake pipeline that logs its calls."""
+the first one, or with a low head for the net's whole windows (PROTOCOL.md §first-frame), checked on a fake pipeline
+that logs its calls."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import types
 import cv2
 import numpy as np
 
-from egoposevr.model.runtime.frames import FIRST_FRAME_WAIT_US
+from egoposevr.model.runtime.frames import FIRST_FRAME_WAIT_US, LOW_HEAD_M, LOW_HEAD_WAIT_US
 from egoposevr.model.training.evaluate import CAMERA_LATENCY_US, replay_sequence
 
 
@@ -17,6 +18,7 @@ class LoggingPipeline:
 
     def __init__(self, camera: bool = True) -> None:
         self.model = types.SimpleNamespace(visual=object() if camera else None)
+        self.window, self.visual_window = 12, 3  # the net's HMD and visual windows
         self.calls: list[tuple[str, int]] = []
 
     def reset(self) -> None:
@@ -34,14 +36,17 @@ class LoggingPipeline:
         self.calls.append(("observe", t_us))
 
 
-def _sequence(hmd_hz: float, first_frame_us: int, n: int = 40) -> dict:
-    """``n`` headset samples at ``hmd_hz`` and 30 Hz frames from ``first_frame_us`` (tiny real images)."""
+def _sequence(hmd_hz: float, first_frame_us: int, n: int = 40, head_y_m: float = 1.6) -> dict:
+    """``n`` headset samples at ``hmd_hz``, the head ``head_y_m`` up, and 30 Hz frames from ``first_frame_us``
+    (tiny real images)."""
     jpeg = cv2.imencode(".jpg", np.zeros((2, 2, 3), np.uint8))[1].tobytes()
     png = cv2.imencode(".png", np.zeros((2, 2), np.uint16))[1].tobytes()
     cam_t_us = np.arange(first_frame_us, 2_000_000, 33_333)
+    poses = np.zeros((n, 3, 7))
+    poses[:, 0, 1] = head_y_m
     return {
         "hmd_t_us": np.round(np.arange(n) * 1e6 / hmd_hz).astype(np.int64),
-        "hmd_poses": np.zeros((n, 3, 7)),
+        "hmd_poses": poses,
         "hmd_valid": np.ones((n, 3), bool),
         "cam_t_us": cam_t_us,
         "rgb_jpeg": [jpeg] * len(cam_t_us),
@@ -79,3 +84,43 @@ def test_the_wait_runs_out_and_a_headset_without_the_camera_never_waits():
         pipeline = LoggingPipeline(camera)
         replay_sequence(pipeline, late, send_frames=send_frames)
         assert [k for k, _ in pipeline.calls] == ["hmd"] * len(late["hmd_t_us"])
+
+
+def _answered(pipeline: LoggingPipeline) -> list[int]:
+    return [t for kind, t in pipeline.calls if kind == "hmd"]
+
+
+def test_a_low_head_waits_for_the_nets_whole_windows_and_only_with_the_option():
+    seq = _sequence(90, first_frame_us=10_000, head_y_m=LOW_HEAD_M - 0.2)  # seated
+    t_us = list(seq["hmd_t_us"])
+    pipeline = LoggingPipeline()
+    replay_sequence(pipeline, seq, low_head_wait=True)
+    first = t_us.index(_answered(pipeline)[0])
+    before = pipeline.calls[: pipeline.calls.index(("hmd", t_us[first]))]
+    frames_in = sum(kind == "rgbd" for kind, _ in before)
+    assert first + 1 == pipeline.window and frames_in >= pipeline.visual_window  # the windows, no more
+    assert [t for kind, t in before if kind == "observe"] == t_us[:first]  # the held samples are its history
+
+    standing = _sequence(90, first_frame_us=10_000, head_y_m=LOW_HEAD_M + 0.2)
+    for sequence, option in ((standing, True), (seq, False)):  # the first frame only
+        pipeline = LoggingPipeline()
+        replay_sequence(pipeline, sequence, low_head_wait=option)
+        assert _answered(pipeline)[0] == next(t for t in t_us if t >= 10_000 + CAMERA_LATENCY_US)
+
+
+def test_a_low_heads_wait_runs_out_and_untracked_or_camera_less_streams_do_not_take_it():
+    no_frames = _sequence(90, first_frame_us=5_000_000, n=150, head_y_m=1.0)  # the camera never sends
+    pipeline = LoggingPipeline()
+    replay_sequence(pipeline, no_frames, low_head_wait=True)
+    first = _answered(pipeline)[0]
+    assert LOW_HEAD_WAIT_US <= first < LOW_HEAD_WAIT_US + 1e6 / 90
+
+    untracked = _sequence(90, first_frame_us=10_000, head_y_m=1.0)
+    untracked["hmd_valid"][0, 0] = False  # no head height to judge by: the first frame's wait
+    pipeline = LoggingPipeline()
+    replay_sequence(pipeline, untracked, low_head_wait=True)
+    assert _answered(pipeline)[0] < FIRST_FRAME_WAIT_US
+
+    pipeline = LoggingPipeline(camera=False)
+    replay_sequence(pipeline, no_frames, low_head_wait=True)
+    assert _answered(pipeline)[0] == 0
