@@ -102,7 +102,9 @@ class Scheduler:
         self._lane_busy = False
         self._logged: set[str] = set()  # session ids whose failure was logged
         self._wakeup = asyncio.Event()
-        self._holds: dict[Session, asyncio.TimerHandle] = {}  # sessions whose samples wait for a first frame
+        self._holds: dict[
+            Session, asyncio.TimerHandle
+        ] = {}  # sessions whose samples wait (Session.holding_ns)
         self._dispatcher: asyncio.Task[None] | None = None
         self._closed = False
 
@@ -139,15 +141,18 @@ class Scheduler:
     def _mark_ready(self, session: Session) -> None:
         if session not in self._sessions or session in self._running:
             return
+        loop = asyncio.get_running_loop()
         if session.has_work:
-            self._ready.setdefault(session, asyncio.get_running_loop().time())
-        elif (
-            left_ns := session.holding_ns(time.perf_counter_ns())
-        ) is not None and session not in self._holds:
-            # its samples wait for the stream's first frame: look again when the wait runs out
-            self._holds[session] = asyncio.get_running_loop().call_later(
-                left_ns / 1e9, self._hold_over, session
-            )
+            self._ready.setdefault(session, loop.time())
+        elif (left_ns := session.holding_ns(time.perf_counter_ns())) is not None:
+            # its samples wait for what the stream's first answer needs: look again when the wait runs out (an
+            # earlier stream's later timer, after a reconnect, is replaced)
+            held = self._holds.get(session)
+            if held is not None and held.when() <= loop.time() + left_ns / 1e9:
+                return
+            if held is not None:
+                held.cancel()
+            self._holds[session] = loop.call_later(left_ns / 1e9, self._hold_over, session)
 
     def _hold_over(self, session: Session) -> None:
         self._holds.pop(session, None)

@@ -619,6 +619,30 @@ def test_a_stream_that_begins_with_the_head_low_is_first_answered_once_the_nets_
         )
 
 
+@pytest.mark.protocol("first-frame")
+def test_a_reconnected_stream_waits_its_own_time_not_the_previous_streams():
+    """A seated stream that never got its frames, then a new input client that takes the session over standing, no
+    frame either: the new stream's first pose comes after its own 150 ms, not when the seated stream's 2 s ran
+    out."""
+    samples = [decode(data) for _, kind, data in recorded_messages("walk-0000") if kind == "hmd"]
+    seated = samples[0].model_copy(
+        update={"head": [samples[0].head[0], LOW_HEAD_M - 0.3, *samples[0].head[2:]]}
+    )
+    with (
+        running_server(first_frame_wait_ms=150, low_head_wait_ms=2000) as server,
+        Client(server.url, "again") as first,
+    ):
+        first.hello("input", "again", model="egoposevr")
+        first.send(seated)
+        time.sleep(0.1)
+        with Client(server.url, "again") as second:  # takes the session's input over: a new stream
+            second.hello("input", "again", model="egoposevr")
+            sent = time.perf_counter()
+            second.send(samples[1])
+            pose = second.recv_type("pose")
+            assert pose.seq == samples[1].seq and 0.14 <= time.perf_counter() - sent < 1.0
+
+
 # ------------------------------------------------------------------------------------------ §5 hmd
 def _lose_left_hand(samples: list[Hmd], fill: str) -> list[Hmd]:
     """The left controller lost for 2 s in the middle, its numbers replaced by ``fill``."""
