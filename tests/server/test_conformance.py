@@ -621,21 +621,23 @@ def test_a_stream_that_begins_with_the_head_low_is_first_answered_once_the_nets_
 
 @pytest.mark.protocol("first-frame")
 def test_a_reconnected_stream_waits_its_own_time_not_the_previous_streams():
-    """A seated stream that never got its frames, then a new input client that takes the session over standing, no
-    frame either: the new stream's first pose comes after its own 150 ms, not when the seated stream's 2 s ran
-    out."""
+    """A seated stream that never got its frames, then (a render client keeping the session) a new input client
+    standing, no frame either: the new stream's first pose comes after its own 150 ms, not when the seated stream's
+    2 s run out."""
     samples = [decode(data) for _, kind, data in recorded_messages("walk-0000") if kind == "hmd"]
     seated = samples[0].model_copy(
         update={"head": [samples[0].head[0], LOW_HEAD_M - 0.3, *samples[0].head[2:]]}
     )
     with (
         running_server(first_frame_wait_ms=150, low_head_wait_ms=2000) as server,
-        Client(server.url, "again") as first,
+        Client(server.url, "again") as render,
     ):
-        first.hello("input", "again", model="egoposevr")
-        first.send(seated)
-        time.sleep(0.1)
-        with Client(server.url, "again") as second:  # takes the session's input over: a new stream
+        render.hello("render", "again")
+        with Client(server.url, "again") as first:
+            first.hello("input", "again", model="egoposevr")
+            first.send(seated)
+            time.sleep(0.1)
+        with Client(server.url, "again") as second:  # the session's next stream
             second.hello("input", "again", model="egoposevr")
             sent = time.perf_counter()
             second.send(samples[1])
