@@ -35,8 +35,8 @@ paired, what one stage of the runtime changes.
 @no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
 (at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
 68 and 69; @first-frame-wait with); @low-head-wait makes a stream whose first sample has the head low (seated or
-crouched) wait for the net's whole windows instead (at most 1 s), as the server's --low-head-wait-ms (MODEL_CARD.md,
-rule 70; @no-low-head-wait without).
+crouched) wait for the net's visual window of frames instead (at most 1 s), as the server's --low-head-wait-ms
+(MODEL_CARD.md, rules 70 and 71; @no-low-head-wait without).
 --no-camera (or @no-camera) sends no RGB-D frame: what a headset without the camera is served (the RGB-D models run on
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
@@ -105,8 +105,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
         "@seated-yaw), its first samples answered before the first camera frame (@no-first-frame-wait; by "
-        "default they wait for it, @first-frame-wait), a low head's first answer made once the net's windows are "
-        "full (@low-head-wait, @no-low-head-wait), without the camera (@no-camera), with the truth's body "
+        "default they wait for it, @first-frame-wait), a low head's first answer made once the net's visual window "
+        "is full (@low-head-wait, @no-low-head-wait), without the camera (@no-camera), with the truth's body "
         "(@truth-body), or as a returning wearer whose body the client kept (@returning); "
         "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip

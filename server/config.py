@@ -108,9 +108,9 @@ class ServerConfig(BaseSettings):
         ge=0,
         le=2000,
         description="for a model that reads the camera, a stream whose first headset sample has the head lower than "
-        f"{LOW_HEAD_M} m (seated or crouched) waits at most this long for the net's whole input windows before its "
-        "first answer, so that a seated person's legs are first served warm and not re-seated (0: only the first "
-        "frame is waited for; needs the frame lane; PROTOCOL.md §first-frame)",
+        f"{LOW_HEAD_M} m (seated or crouched) waits at most this long for the net's visual window of frames before "
+        "its first answer, so that a seated person's legs are not first served from one frame and then re-seated "
+        "(0: only the first frame is waited for; needs the frame lane; PROTOCOL.md §first-frame)",
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 

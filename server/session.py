@@ -70,9 +70,7 @@ from ..protocol import (
 
 # Older samples only feed the HMD history; beyond this many the oldest are dropped outright (counted).
 MAX_PENDING_SAMPLES = 64
-# lane results waiting for a headset sample: a camera streaming without a headset, or a stream's first second while
-# a low head's first answer waits for the net's whole windows (frames.first_answer_wait)
-MAX_ENCODED_FRAMES = 32
+MAX_ENCODED_FRAMES = 8  # lane results waiting for a headset sample (a camera streaming without a headset)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -198,10 +196,9 @@ class Session:
 
     def offer_hmd(self, received: Received) -> bool:
         """Queue a sample; returns True when the oldest pending one had to be dropped (counted as skipped)."""
-        if self._first_answer_due and self._stream_samples == 0:
+        if self._first_answer_due and self._stream_start_ns is None:
             self._first_wait = self._wait_of(received)
             self._stream_start_ns = received.recv_ns
-        self._stream_samples += self._first_answer_due
         dropped = len(self.pending) == MAX_PENDING_SAMPLES
         if dropped:
             self.pending.popleft()
@@ -221,38 +218,37 @@ class Session:
 
     def holding_ns(self, now_ns: int) -> int | None:
         """How much longer the pending samples wait for what the stream's first answer needs (ns: its first frame,
-        or with a low head the net's whole windows: frames.first_answer_wait), or None when they do not wait: the
-        stream has answered or has what it needs, or its model reads no camera, or nothing is pending."""
-        wait = self._first_wait
-        if not (
-            self._first_answer_due and self.pending and wait is not None and self._model.visual is not None
-        ):
+        or with a low head the net's visual window of frames: frames.first_answer_wait), or None when they do not
+        wait: the stream has answered or has what it needs, or its model reads no camera, or nothing is pending."""
+        wait, start_ns = self._first_wait, self._stream_start_ns
+        if not (self._first_answer_due and self.pending and wait is not None and start_ns is not None):
             return None
-        if wait.met(self._stream_frames, self._stream_samples, (now_ns - self._stream_start_ns) // 1000):
+        if wait.met(self._stream_frames, (now_ns - start_ns) // 1000):
             return None
-        return self._stream_start_ns + wait.wait_us * 1000 - now_ns
+        return start_ns + wait.wait_us * 1000 - now_ns
 
     def _start_stream(self) -> None:
         """A new stream (a connect, a reconnect or a model switch): its first answer waits again."""
         self._first_answer_due = True  # this stream has answered nothing yet
         self._first_wait: FirstAnswerWait | None = None  # decided by its first sample
-        self._stream_start_ns = 0  # when its first sample arrived
-        self._stream_samples = 0  # samples and frames it has had since
-        self._stream_frames = 0
+        self._stream_start_ns: int | None = None  # when its first sample arrived
+        self._stream_frames = 0  # frames ready for it since
         if self.pending:  # a model switch with samples waiting: the new stream begins with them
             self._first_wait = self._wait_of(self.pending[0])
-            self._stream_start_ns, self._stream_samples = self.pending[0].recv_ns, len(self.pending)
+            self._stream_start_ns = self.pending[0].recv_ns
 
     def _wait_of(self, first: Received) -> FirstAnswerWait | None:
         """What the stream whose first sample is ``first`` waits for (None: its model reads no camera). Without
         the frame lane only the newest frame reaches a job, so no wait is for more than one."""
         if self._model.visual is None:
             return None
-        config = self._model.info.config
         head_y_m = float(first.msg.head[1]) if first.msg.valid[0] else None
         low_head_wait_us = self.low_head_wait_ns // 1000 if self.frame_lane else 0
         return first_answer_wait(
-            head_y_m, config.window, config.visual_window, self.first_frame_wait_ns // 1000, low_head_wait_us
+            head_y_m,
+            self._model.info.config.visual_window,
+            self.first_frame_wait_ns // 1000,
+            low_head_wait_us,
         )
 
     def select(self, name: str, model: LoadedModel) -> None:

@@ -43,39 +43,38 @@ HEAD_HISTORY_S = 1.0  # headset poses kept to place frames that arrive late
 FIRST_FRAME_WAIT_US = 150_000
 # A stream whose first headset sample holds the head lower than this above the floor (stage space: PROTOCOL.md §3)
 # begins seated or crouched (the training bodies' standing eyes are 1.45-1.80 m up, seated ones 1.0-1.25); a
-# seated stream's first answer made with padded windows folds its legs wrongly and is then re-seated, a move of
-# still legs (MODEL_CARD.md, "Waiting for more than the first frame").
+# seated stream's first answer made with one frame in its visual window folds its legs wrongly and is then
+# re-seated, a move of still legs (MODEL_CARD.md, "Waiting for more than the first frame").
 LOW_HEAD_M = 1.35
 # ... so, with LOW_HEAD_WAIT_ON (the server's and eval's default; the server's --low-head-wait-ms 0 turns it off),
-# such a stream's first answer waits for the net's whole input windows (its HMD window of samples and its visual
-# window of frames), at most this long after its first sample (MODEL_CARD.md, rule 70).
+# such a stream's first answer waits for the net's visual window of frames, at most this long after its first
+# sample (MODEL_CARD.md, rule 71; rule 70's wait for the headset window too cost a late first pose's upper body).
 LOW_HEAD_WAIT_US = 1_000_000
 LOW_HEAD_WAIT_ON = False
 
 
 @dataclasses.dataclass(frozen=True)
 class FirstAnswerWait:
-    """What a stream's first answer waits for: ``frames`` camera frames and ``samples`` headset samples since
-    the stream began, at most ``wait_us`` after its first sample."""
+    """What a stream's first answer waits for: ``frames`` camera frames since the stream began, at most
+    ``wait_us`` after its first sample."""
 
     frames: int
-    samples: int
     wait_us: int
 
-    def met(self, frames: int, samples: int, waited_us: int) -> bool:
+    def met(self, frames: int, waited_us: int) -> bool:
         """Whether the first answer is due, ``waited_us`` after the stream's first sample."""
-        return waited_us >= self.wait_us or (frames >= self.frames and samples >= self.samples)
+        return waited_us >= self.wait_us or frames >= self.frames
 
 
 def first_answer_wait(
-    head_y_m: float | None, window: int, visual_window: int, first_frame_wait_us: int, low_head_wait_us: int
+    head_y_m: float | None, visual_window: int, first_frame_wait_us: int, low_head_wait_us: int
 ) -> FirstAnswerWait:
     """The wait of a stream (of a model that reads the camera) whose first headset sample has the head
-    ``head_y_m`` above the floor (None: untracked): its net's whole windows where the head is low and
+    ``head_y_m`` above the floor (None: untracked): its net's visual window of frames where the head is low and
     ``low_head_wait_us`` > 0, else its first frame (``first_frame_wait_us`` 0: none)."""
     if low_head_wait_us > 0 and head_y_m is not None and head_y_m < LOW_HEAD_M:
-        return FirstAnswerWait(visual_window, window, max(low_head_wait_us, first_frame_wait_us))
-    return FirstAnswerWait(1, 1, first_frame_wait_us)
+        return FirstAnswerWait(visual_window, max(low_head_wait_us, first_frame_wait_us))
+    return FirstAnswerWait(1, first_frame_wait_us)
 
 
 @dataclasses.dataclass(frozen=True)

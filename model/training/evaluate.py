@@ -74,7 +74,7 @@ def replay_sequence(
     its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
     camera (every pose then has ``camera = False``). As the server does (PROTOCOL.md §first-frame), the stream's
     first samples wait, up to ``FIRST_FRAME_WAIT_US`` after the first, for the first frame to arrive (with
-    ``low_head_wait``, a stream that begins with the head low waits for the net's whole windows, up to
+    ``low_head_wait``, a stream that begins with the head low waits for the net's visual window of frames, up to
     ``LOW_HEAD_WAIT_US``: frames.first_answer_wait); then the newest is answered and the older ones feed its
     history, each scored with that first pose; ``first_frame_wait`` and ``low_head_wait`` False answer every
     sample at once (the server's ``--first-frame-wait-ms 0 --low-head-wait-ms 0``)."""
@@ -92,7 +92,7 @@ def replay_sequence(
             k += 1
         held.append(i)
         first = len(held) == i + 1  # nothing answered yet
-        waiting = first and wait is not None and not wait.met(k, len(held), int(t_us - t_all[0]))
+        waiting = first and wait is not None and not wait.met(k, int(t_us - t_all[0]))
         if waiting and i < len(t_all) - 1:  # (a stream shorter than the wait ends)
             continue
         pose = _answer_newest(pipeline, seq, held)
@@ -109,7 +109,6 @@ def _first_answer_wait(
     head_y_m = float(seq["hmd_poses"][0][0][1]) if seq["hmd_valid"][0][0] else None
     return first_answer_wait(
         head_y_m,
-        pipeline.window,
         pipeline.visual_window,
         FIRST_FRAME_WAIT_US if first_frame_wait else 0,
         LOW_HEAD_WAIT_US if low_head_wait else 0,
@@ -360,8 +359,8 @@ def evaluate(
     ``waits`` ({``first_frame_wait``, ``low_head_wait``}) go to too);
     ``first_frame_wait`` False answers a stream's first samples at once instead of once its first frame is in,
     as the server does by default (:func:`replay_sequence`; MODEL_CARD.md, rules 68 and 69); ``low_head_wait``
-    makes a stream that begins with the head low wait for the net's whole windows (frames.first_answer_wait;
-    MODEL_CARD.md, rule 70);
+    makes a stream that begins with the head low wait for the net's visual window of frames
+    (frames.first_answer_wait; MODEL_CARD.md, rules 70 and 71);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
     ``returning`` True serves each sequence after learning the wearer's body from an earlier session (the

@@ -46,7 +46,7 @@ def received(msg) -> Received:
 def new_session(
     registry, model="hmd", frame_lane=False, first_frame_wait_ns=0, low_head_wait_ns=0
 ) -> Session:
-    """A session whose samples, unless a test asks otherwise, never wait for a first frame or full windows."""
+    """A session whose samples, unless a test asks otherwise, never wait for a first frame or a visual window."""
     return Session(
         "s", model, registry.get(model), TokenBucket(1000, 100), frame_lane=frame_lane,
         first_frame_wait_ns=first_frame_wait_ns, low_head_wait_ns=low_head_wait_ns,
@@ -184,30 +184,32 @@ def test_the_first_frame_wait_runs_out_and_is_armed_again_by_a_new_stream_or_mod
     assert not session.has_work
 
 
-def test_a_low_heads_first_answer_waits_for_the_nets_whole_windows(registry, samples):
+def test_a_low_heads_first_answer_waits_for_the_nets_visual_window(registry, samples):
     """PROTOCOL.md §first-frame: a stream that begins with the head low (seated) is first answered once the net's
-    headset window of samples and visual window of frames are in; a standing one once its first frame is."""
-    config = registry.get("egoposevr").info.config
-    seated = [with_head_at(m, LOW_HEAD_M - 0.25) for m in samples[: config.window]]
+    visual window of frames is in; a standing one once its first frame is."""
+    visual_window = registry.get("egoposevr").info.config.visual_window
+    seated = [with_head_at(m, LOW_HEAD_M - 0.25) for m in samples[: visual_window + 3]]
     session = new_session(
         registry, "egoposevr", frame_lane=True, first_frame_wait_ns=10**12, low_head_wait_ns=10**12
     )
     for i, msg in enumerate(seated[:-1]):
         session.offer_hmd(received(msg))
-        if i < config.visual_window:
+        if 3 <= i < 3 + visual_window - 1:  # the camera's frames begin later than the headset's samples
             session.offer_rgbd(received(camera_frame(msg, i)))
             frame, model = session.take_frame()
             session.offer_encoded(encode_received_frame(frame, model), model)
         assert not session.has_work and session.holding_ns(time.perf_counter_ns()) > 0
-    session.offer_hmd(received(seated[-1]))  # the headset window is full too
+    session.offer_rgbd(received(camera_frame(seated[-2], 99)))  # the window's last frame
+    frame, model = session.take_frame()
+    session.offer_encoded(encode_received_frame(frame, model), model)
     job = session.take_job()
-    assert (len(job.samples), len(job.encoded)) == (config.window, config.visual_window)
+    assert (len(job.samples), len(job.encoded)) == (len(seated) - 1, visual_window)
     pose = decode(session.run(job).pose)
-    assert (pose.seq, pose.skipped, pose.camera) == (seated[-1].seq, config.window - 1, True)
+    assert (pose.seq, pose.skipped, pose.camera) == (seated[-2].seq, len(seated) - 2, True)
 
     session.restart_stream()  # a standing stream: its first frame is enough
     session.offer_hmd(received(with_head_at(samples[0], LOW_HEAD_M + 0.25)))
-    session.offer_rgbd(received(camera_frame(samples[0], 99)))
+    session.offer_rgbd(received(camera_frame(samples[0], 100)))
     frame, model = session.take_frame()
     session.offer_encoded(encode_received_frame(frame, model), model)
     assert session.has_work

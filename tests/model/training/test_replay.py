@@ -1,5 +1,5 @@
 """eval's replay of a dataset sequence: when the camera's frames arrive, and a stream's first samples waiting for
-the first one, or with a low head for the net's whole windows (PROTOCOL.md §first-frame), checked on a fake pipeline
+the first one, or with a low head for the net's visual window (PROTOCOL.md §first-frame), checked on a fake pipeline
 that logs its calls."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ class LoggingPipeline:
 
     def __init__(self, camera: bool = True) -> None:
         self.model = types.SimpleNamespace(visual=object() if camera else None)
-        self.window, self.visual_window = 12, 3  # the net's HMD and visual windows
+        self.visual_window = 3  # the net's visual window
         self.calls: list[tuple[str, int]] = []
 
     def reset(self) -> None:
@@ -90,15 +90,16 @@ def _answered(pipeline: LoggingPipeline) -> list[int]:
     return [t for kind, t in pipeline.calls if kind == "hmd"]
 
 
-def test_a_low_head_waits_for_the_nets_whole_windows_and_only_with_the_option():
+def test_a_low_head_waits_for_the_nets_visual_window_and_only_with_the_option():
     seq = _sequence(90, first_frame_us=10_000, head_y_m=LOW_HEAD_M - 0.2)  # seated
     t_us = list(seq["hmd_t_us"])
     pipeline = LoggingPipeline()
     replay_sequence(pipeline, seq, low_head_wait=True)
     first = t_us.index(_answered(pipeline)[0])
     before = pipeline.calls[: pipeline.calls.index(("hmd", t_us[first]))]
-    frames_in = sum(kind == "rgbd" for kind, _ in before)
-    assert first + 1 == pipeline.window and frames_in >= pipeline.visual_window  # the windows, no more
+    frames = [t for kind, t in before if kind == "rgbd"]
+    assert len(frames) == pipeline.visual_window  # the window's frames, no more
+    assert t_us[first - 1] < frames[-1] + CAMERA_LATENCY_US <= t_us[first]  # answered as the last one is in
     assert [t for kind, t in before if kind == "observe"] == t_us[:first]  # the held samples are its history
 
     standing = _sequence(90, first_frame_us=10_000, head_y_m=LOW_HEAD_M + 0.2)
