@@ -14,7 +14,9 @@ First frame (PROTOCOL.md §first-frame; ``first_frame_wait_ns`` 0 turns it off):
 camera, a stream's first samples (after a connect, a reconnect or a model switch) wait in ``pending`` until its
 first frame is ready for a job, or until ``first_frame_wait_ns`` after the first of them
 (:meth:`Session.holding_ns`): the stream's first answer, which the runtime's leg hold keeps, then has the camera's
-measure of the legs. The scheduler wakes the session when the wait runs out.
+measure of the legs. With ``low_head_wait_ns``, a stream whose first sample has the head low (seated) waits for the
+net's visual window of frames instead, at most that long (frames.first_answer_wait decides from the stream's first
+sample). The scheduler wakes the session when the wait runs out.
 
 Frame lane (``frame_lane=True``, what the server runs): camera frames never ride on a headset job. The
 scheduler takes the newest frame with :meth:`Session.take_frame` and runs :func:`encode_received_frames`

@@ -370,9 +370,8 @@ def evaluate(
     ``runtime`` {label: {option: bool}} serves a label with some of those thirteen (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
     ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``low_head_wait``, ``truth_body``, ``returning``) set
-    otherwise, or
-    with the network pipeline's ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame is in the window; Pipeline's,
-    off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
+    otherwise, or with the network pipeline's ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame
+    is in the window; Pipeline's, off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
     (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
     stage or the camera, is a paired comparison. ``loaded``: what :func:`split_sequences` gave for
     these arguments, when the caller has already read the split (``eval --keypoints`` reads it once for both
