@@ -102,9 +102,8 @@ class Scheduler:
         self._lane_busy = False
         self._logged: set[str] = set()  # session ids whose failure was logged
         self._wakeup = asyncio.Event()
-        self._holds: dict[
-            Session, asyncio.TimerHandle
-        ] = {}  # sessions whose samples wait (Session.holding_ns)
+        # sessions whose samples wait for what their stream's first answer needs (Session.holding_ns)
+        self._holds: dict[Session, asyncio.TimerHandle] = {}
         self._dispatcher: asyncio.Task[None] | None = None
         self._closed = False
 

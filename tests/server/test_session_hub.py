@@ -188,24 +188,24 @@ def test_a_low_heads_first_answer_waits_for_the_nets_visual_window(registry, sam
     """PROTOCOL.md §first-frame: a stream that begins with the head low (seated) is first answered once the net's
     visual window of frames is in; a standing one once its first frame is."""
     visual_window = registry.get("egoposevr").info.config.visual_window
-    seated = [with_head_at(m, LOW_HEAD_M - 0.25) for m in samples[: visual_window + 3]]
+    seated = [with_head_at(m, LOW_HEAD_M - 0.25) for m in samples[: visual_window + 2]]
     session = new_session(
         registry, "egoposevr", frame_lane=True, first_frame_wait_ns=10**12, low_head_wait_ns=10**12
     )
-    for i, msg in enumerate(seated[:-1]):
+    for i, msg in enumerate(seated):
         session.offer_hmd(received(msg))
         if 3 <= i < 3 + visual_window - 1:  # the camera's frames begin later than the headset's samples
             session.offer_rgbd(received(camera_frame(msg, i)))
             frame, model = session.take_frame()
             session.offer_encoded(encode_received_frame(frame, model), model)
         assert not session.has_work and session.holding_ns(time.perf_counter_ns()) > 0
-    session.offer_rgbd(received(camera_frame(seated[-2], 99)))  # the window's last frame
+    session.offer_rgbd(received(camera_frame(seated[-1], 99)))  # the window's last frame
     frame, model = session.take_frame()
     session.offer_encoded(encode_received_frame(frame, model), model)
     job = session.take_job()
-    assert (len(job.samples), len(job.encoded)) == (len(seated) - 1, visual_window)
+    assert (len(job.samples), len(job.encoded)) == (len(seated), visual_window)
     pose = decode(session.run(job).pose)
-    assert (pose.seq, pose.skipped, pose.camera) == (seated[-2].seq, len(seated) - 2, True)
+    assert (pose.seq, pose.skipped, pose.camera) == (seated[-1].seq, len(seated) - 1, True)
 
     session.restart_stream()  # a standing stream: its first frame is enough
     session.offer_hmd(received(with_head_at(samples[0], LOW_HEAD_M + 0.25)))
