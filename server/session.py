@@ -244,10 +244,10 @@ class Session:
         the frame lane only the newest frame reaches a job, so no wait is for more than one."""
         if self._model.visual is None:
             return None
-        head_y_m = float(first.msg.head[1]) if first.msg.valid[0] else None
         low_head_wait_us = self.low_head_wait_ns // 1000 if self.frame_lane else 0
         return first_answer_wait(
-            head_y_m,
+            first.msg.head,
+            first.msg.valid[0],
             self._model.info.config.visual_window,
             self.first_frame_wait_ns // 1000,
             low_head_wait_us,

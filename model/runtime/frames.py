@@ -16,6 +16,7 @@ import copy
 import dataclasses
 import time
 from collections import deque
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -67,12 +68,17 @@ class FirstAnswerWait:
 
 
 def first_answer_wait(
-    head_y_m: float | None, visual_window: int, first_frame_wait_us: int, low_head_wait_us: int
+    head_pose: Sequence[float],
+    head_tracked: bool,
+    visual_window: int,
+    first_frame_wait_us: int,
+    low_head_wait_us: int,
 ) -> FirstAnswerWait:
-    """The wait of a stream (of a model that reads the camera) whose first headset sample has the head
-    ``head_y_m`` above the floor (None: untracked): its net's visual window of frames where the head is low and
-    ``low_head_wait_us`` > 0, else its first frame (``first_frame_wait_us`` 0: none)."""
-    if low_head_wait_us > 0 and head_y_m is not None and head_y_m < LOW_HEAD_M:
+    """The wait of a stream (of a model that reads the camera) whose first headset sample has the head at
+    ``head_pose`` ([px, py, pz, ...], stage space: y metres above the floor) and ``head_tracked``: its net's visual
+    window of frames where the tracked head is low and ``low_head_wait_us`` > 0, else its first frame
+    (``first_frame_wait_us`` 0: none)."""
+    if low_head_wait_us > 0 and head_tracked and head_pose[1] < LOW_HEAD_M:
         return FirstAnswerWait(visual_window, max(low_head_wait_us, first_frame_wait_us))
     return FirstAnswerWait(1, first_frame_wait_us)
 

@@ -106,9 +106,9 @@ def _first_answer_wait(
     pipeline: Pipeline, seq: dict[str, Any], first_frame_wait: bool, low_head_wait: bool
 ) -> FirstAnswerWait:
     """What the server makes this sequence's first answer wait for (frames.first_answer_wait)."""
-    head_y_m = float(seq["hmd_poses"][0][0][1]) if seq["hmd_valid"][0][0] else None
     return first_answer_wait(
-        head_y_m,
+        seq["hmd_poses"][0][0],
+        bool(seq["hmd_valid"][0][0]),
         pipeline.visual_window,
         FIRST_FRAME_WAIT_US if first_frame_wait else 0,
         LOW_HEAD_WAIT_US if low_head_wait else 0,
