@@ -152,6 +152,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _number(
         parser,
+        "--target-lead-ms",
+        "MS",
+        "fusion nets: learn the pose MS milliseconds after each window's newest sample, an answer ahead by about "
+        "what the runtime's joint filter lags (default 0: the newest sample's pose)",
+    )
+    _number(
+        parser,
         "--arm-swap",
         "P",
         "fusion nets: a share P of the sequences also trains with another sequence's arm motion "
@@ -261,7 +268,7 @@ def run(args: argparse.Namespace) -> int:
             ("tracking_cone_deg", tuple(args.tracking_cone) if args.tracking_cone else None),
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
             ("arm_swap_p", args.arm_swap), ("drop_camera_p", args.drop_camera),
-            ("cold_start_p", args.cold_start),
+            ("cold_start_p", args.cold_start), ("target_lead_ms", args.target_lead_ms),
         )
         if value is not None
     }  # fmt: skip
@@ -344,6 +351,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.drop_camera is not None and not 0.0 <= args.drop_camera <= 1.0, "--drop-camera P needs 0 <= P <= 1"),
         (args.cold_start is not None and not 0.0 <= args.cold_start <= 1.0, "--cold-start P needs 0 <= P <= 1"),
+        (args.target_lead_ms is not None and not 0.0 <= args.target_lead_ms <= 200.0, "--target-lead-ms MS needs 0 <= MS <= 200"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
         (args.batch is not None and not 1 <= args.batch <= 4096, "--batch B needs 1 <= B <= 4096"),
     )  # fmt: skip

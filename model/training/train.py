@@ -107,6 +107,11 @@ class TrainConfig:
     # answers are such windows, and the runtime's planted feet and held legs begin on them. 0: only the
     # sequences' own starts are (the bundled nets' recipe).
     cold_start_p: float = 0.0
+    # The nets learn the pose this many ms after each window's newest sample (its rotations, its joints under
+    # the head and the feet's contact then, in the window's own heading frame): an answer ahead by about what
+    # the runtime's joint filter lags (pipeline.POSITION_MIN_CUTOFF_HZ). 0: the pose at the window's newest
+    # sample, as the paper (the bundled nets' recipe).
+    target_lead_ms: float = 0.0
     drop_frame_p: float = 0.05
     position_weight: float = 10.0  # L1 metres vs L1 6D
     rotation_weight: float = 3.0  # without it, a leg could settle twisted half a turn with the knee reversed
@@ -711,8 +716,7 @@ def prepare_fusion_sequence(
     runtime anchors a model trained with them."""
     t_us, poses = seq["hmd_t_us"], seq["hmd_poses"].astype(np.float64)
     rot, origin = heading_frame(poses[:, 0])
-    local = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))  # (N, J, 3, 3)
-    local[:, 0] = np.swapaxes(rot, -1, -2) @ local[:, 0]  # pelvis in the heading frame
+    local = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))  # (N, J, 3, 3), pelvis in the world
     head_joint = joints_from_devices(poses, rig_offsets_m)[0][:, 0]
     K, J = len(seq["cam_t_us"]), local.shape[1]
     kp_world, conf = np.zeros((K, J, 3)), np.zeros((K, J))
@@ -736,6 +740,9 @@ def prepare_fusion_sequence(
         if seq.get("arms_unseen"):  # the images show another person's arms than the truth's
             conf[:, ARM_JOINTS] = 0.0
     latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
+    ahead = led_samples(t_us, tc.target_lead_ms)
+    target_local = local[ahead]  # a copy (fancy indexing)
+    target_local[:, 0] = np.swapaxes(rot, -1, -2) @ target_local[:, 0]  # the later pelvis, this heading frame
     return FusionSequence(
         hmd=_cached(
             cache,
@@ -748,16 +755,25 @@ def prepare_fusion_sequence(
         valid=np.asarray(seq["hmd_valid"], dtype=bool),
         head_pose=poses[:, 0],
         t_us=t_us,
-        target_sixd=matrix_to_sixd(local).astype(np.float32),
-        joints_h=to_heading(seq["gt_joints_m"].astype(np.float64), rot, origin).astype(np.float32),
-        anchor_h=to_heading(head_joint[:, None], rot, origin)[:, 0].astype(np.float32),
+        target_sixd=matrix_to_sixd(target_local).astype(np.float32),
+        joints_h=to_heading(seq["gt_joints_m"][ahead].astype(np.float64), rot, origin).astype(np.float32),
+        anchor_h=to_heading(head_joint[ahead, None], rot, origin)[:, 0].astype(np.float32),
         offsets=rest_offsets(seq["bone_scale"]).astype(np.float32),
         frame_t_us=seq["cam_t_us"],
         arrival_us=(seq["cam_t_us"] + latency_us).astype(np.int64),
         kp_world=kp_world,
         confidence=conf,
-        contact=contacts(seq["gt_joints_m"], t_us).astype(np.float32),
+        contact=contacts(seq["gt_joints_m"], t_us)[ahead].astype(np.float32),
     )
+
+
+def led_samples(t_us: np.ndarray, lead_ms: float) -> np.ndarray:
+    """(N,) for each sample of t_us (N,) the first sample at least lead_ms later (the last one near the
+    end): whose pose a net trained with ``TrainConfig.target_lead_ms`` answers at it. 0 ms: each itself."""
+    if lead_ms <= 0:
+        return np.arange(len(t_us))
+    later = np.searchsorted(t_us, np.asarray(t_us, dtype=np.float64) + lead_ms * 1000.0, side="left")
+    return np.minimum(later, len(t_us) - 1)
 
 
 def sample_window(

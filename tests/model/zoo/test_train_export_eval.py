@@ -847,14 +847,26 @@ def test_hanging_hands_larger_keypoint_errors_and_swapped_arms_are_training_opti
 
     args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
     options = ["--hanging-loss", "0.3", "--keypoint-error-gain", "1.5"]
-    options += ["--arm-swap", "0.5", "--drop-camera", "0.3", "--cold-start", "0.2"]
+    options += ["--arm-swap", "0.5", "--drop-camera", "0.3", "--cold-start", "0.2", "--target-lead-ms", "30"]
     steps = ["--visual-steps", "2", "--fusion-steps", "2"]
     assert main([*args, "--out", str(tmp_path), *options, *steps]) == 0
     recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
-    given = ("hanging_loss_m", "keypoint_error_gain", "arm_swap_p", "drop_camera_p", "cold_start_p")
-    assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3, 0.2)
+    given = (
+        "hanging_loss_m",
+        "keypoint_error_gain",
+        "arm_swap_p",
+        "drop_camera_p",
+        "cold_start_p",
+        "target_lead_ms",
+    )
+    assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3, 0.2, 30.0)
     refused = [["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"]]
-    refused += [["--arm-swap", "2"], ["--drop-camera", "1.5"], ["--cold-start", "-0.1"]]
+    refused += [
+        ["--arm-swap", "2"],
+        ["--drop-camera", "1.5"],
+        ["--cold-start", "-0.1"],
+        ["--target-lead-ms", "-5"],
+    ]
     for bad in refused:
         assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
         assert bad[0] in capsys.readouterr().err
@@ -907,6 +919,45 @@ def test_cold_start_trains_windows_of_a_stream_begun_inside_them(tiny_data):
         assert tokens[:, present].sum() == min(since.sum(), cfg.visual_window)
         ages.add(age)
     assert len(ages) > 2 and min(ages) < cfg.window - 1  # streams of several ages, some begun inside
+
+
+def test_a_target_lead_trains_on_the_later_pose_in_the_windows_own_heading_frame(tiny_data):
+    """`target_lead_ms`: each window's targets are the pose that many ms after its newest sample (its joints
+    under the head and its contacts then), expressed in the window's own heading frame; the inputs do not
+    change. Placed back in the world, the led joints are the truth's later joints."""
+    import dataclasses
+
+    from egoposevr.model.inputs import heading_frame
+    from egoposevr.model.training.train import led_samples
+
+    seq = load_split(tiny_data, "val")[0]
+    now_tc = PRESETS["tiny"]
+    led_tc = dataclasses.replace(now_tc, target_lead_ms=30.0)
+    now = prepare_fusion_sequence(seq, np.random.default_rng(0), now_tc, None)
+    led = prepare_fusion_sequence(seq, np.random.default_rng(0), led_tc, None)
+    t_us = np.asarray(seq["hmd_t_us"])
+    ahead = led_samples(t_us, 30.0)
+    assert (t_us[ahead[:-10]] - t_us[:-10] >= 30_000).all() and (np.diff(ahead) >= 0).all()
+    assert ahead[-1] == len(t_us) - 1 and (led_samples(t_us, 0.0) == np.arange(len(t_us))).all()
+    np.testing.assert_array_equal(led.hmd, now.hmd)
+    np.testing.assert_array_equal(led.contact, now.contact[ahead])
+    rot, origin = heading_frame(np.asarray(seq["hmd_poses"], dtype=np.float64)[:, 0])
+    world = led.joints_h.astype(np.float64) @ np.swapaxes(rot, -1, -2) + origin[:, None]
+    np.testing.assert_allclose(world, np.asarray(seq["gt_joints_m"])[ahead], atol=1e-5)
+    moved = np.linalg.norm(led.joints_h - now.joints_h, axis=-1).max()
+    assert moved > 1e-3  # the tiny sequences move within 30 ms
+    # the pelvis rotation: the later one, turned into this sample's heading frame
+    pelvis_world_led = rot @ sixd_matrix(led.target_sixd[:, 0])
+    pelvis_world_now = rot @ sixd_matrix(now.target_sixd[:, 0])
+    np.testing.assert_allclose(pelvis_world_led, pelvis_world_now[ahead], atol=1e-5)
+    np.testing.assert_array_equal(led.target_sixd[:, 1:], now.target_sixd[ahead, 1:])
+
+
+def sixd_matrix(sixd: np.ndarray) -> np.ndarray:
+    """(N, 6) 6D rotations -> (N, 3, 3)."""
+    from egoposevr.model.rotations import sixd_to_matrix
+
+    return sixd_to_matrix(sixd.astype(np.float64))
 
 
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
