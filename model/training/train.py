@@ -574,7 +574,9 @@ def train_visual(
 # ----------------------------------------------------------------------------------------- stage 2
 @dataclasses.dataclass
 class FusionSequence:
-    """One sequence prepared for stage 2. N headset samples, K camera frames."""
+    """One sequence prepared for stage 2. N headset samples, K camera frames. The targets at sample i (the
+    rotations, the joints, their head anchor and the contacts) are the truth's at ``led_samples(t_us,
+    tc.target_lead_ms)[i]`` (i itself without a lead), in sample i's heading frame."""
 
     hmd: np.ndarray  # (N, 72 + 6) world-frame features, then the tracking state (nets without it read 72)
     valid: np.ndarray  # (N, 3) bool: devices tracked
