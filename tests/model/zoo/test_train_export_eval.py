@@ -851,22 +851,12 @@ def test_hanging_hands_larger_keypoint_errors_and_swapped_arms_are_training_opti
     steps = ["--visual-steps", "2", "--fusion-steps", "2"]
     assert main([*args, "--out", str(tmp_path), *options, *steps]) == 0
     recorded = load_checkpoint(tmp_path / "fusion-hmd-rgbd.pt")["train_config"]
-    given = (
-        "hanging_loss_m",
-        "keypoint_error_gain",
-        "arm_swap_p",
-        "drop_camera_p",
-        "cold_start_p",
-        "target_lead_ms",
-    )
+    given = ("hanging_loss_m", "keypoint_error_gain", "arm_swap_p", "drop_camera_p")
+    given += ("cold_start_p", "target_lead_ms")
     assert tuple(recorded[key] for key in given) == (0.3, 1.5, 0.5, 0.3, 0.2, 30.0)
     refused = [["--hanging-loss", "0"], ["--keypoint-error-gain", "-1"]]
-    refused += [
-        ["--arm-swap", "2"],
-        ["--drop-camera", "1.5"],
-        ["--cold-start", "-0.1"],
-        ["--target-lead-ms", "-5"],
-    ]
+    refused += [["--arm-swap", "2"], ["--drop-camera", "1.5"], ["--cold-start", "-0.1"]]
+    refused += [["--target-lead-ms", "-5"]]
     for bad in refused:
         assert main([*args, "--out", str(tmp_path / "x"), *bad]) == 2
         assert bad[0] in capsys.readouterr().err
@@ -928,6 +918,7 @@ def test_a_target_lead_trains_on_the_later_pose_in_the_windows_own_heading_frame
     import dataclasses
 
     from egoposevr.model.inputs import heading_frame
+    from egoposevr.model.rotations import sixd_to_matrix
     from egoposevr.model.training.train import led_samples
 
     seq = load_split(tiny_data, "val")[0]
@@ -947,17 +938,10 @@ def test_a_target_lead_trains_on_the_later_pose_in_the_windows_own_heading_frame
     moved = np.linalg.norm(led.joints_h - now.joints_h, axis=-1).max()
     assert moved > 1e-3  # the tiny sequences move within 30 ms
     # the pelvis rotation: the later one, turned into this sample's heading frame
-    pelvis_world_led = rot @ sixd_matrix(led.target_sixd[:, 0])
-    pelvis_world_now = rot @ sixd_matrix(now.target_sixd[:, 0])
+    pelvis_world_led = rot @ sixd_to_matrix(led.target_sixd[:, 0].astype(np.float64))
+    pelvis_world_now = rot @ sixd_to_matrix(now.target_sixd[:, 0].astype(np.float64))
     np.testing.assert_allclose(pelvis_world_led, pelvis_world_now[ahead], atol=1e-5)
     np.testing.assert_array_equal(led.target_sixd[:, 1:], now.target_sixd[ahead, 1:])
-
-
-def sixd_matrix(sixd: np.ndarray) -> np.ndarray:
-    """(N, 6) 6D rotations -> (N, 3, 3)."""
-    from egoposevr.model.rotations import sixd_to_matrix
-
-    return sixd_to_matrix(sixd.astype(np.float64))
 
 
 def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
