@@ -27,7 +27,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from ..model.runtime.frames import FIRST_FRAME_WAIT_US, LOW_HEAD_M, LOW_HEAD_WAIT_ON, LOW_HEAD_WAIT_US
+from ..model.runtime.frames import DEFAULT_LOW_HEAD_WAIT_US, FIRST_FRAME_WAIT_US, LOW_HEAD_M
 from ..protocol import DEFAULT_MAX_MESSAGE_BYTES
 
 ENV_PREFIX = "EGOPOSEVR_"
@@ -104,7 +104,7 @@ class ServerConfig(BaseSettings):
         "at once; PROTOCOL.md §first-frame)",
     )
     low_head_wait_ms: float = Field(
-        LOW_HEAD_WAIT_US / 1000 if LOW_HEAD_WAIT_ON else 0,
+        DEFAULT_LOW_HEAD_WAIT_US / 1000,
         ge=0,
         le=2000,
         description="for a model that reads the camera, a stream whose first headset sample has the head lower than "

@@ -42,9 +42,8 @@ from ..model.runtime.body import bone_lengths_m, scale_of_lengths
 from ..model.runtime.calibration import Calibration as MeasuredCalibration
 from ..model.runtime.calibration import CalibrationCollector, CalibrationFailed
 from ..model.runtime.frames import (
+    DEFAULT_LOW_HEAD_WAIT_US,
     FIRST_FRAME_WAIT_US,
-    LOW_HEAD_WAIT_ON,
-    LOW_HEAD_WAIT_US,
     EncodedFrame,
     FirstAnswerWait,
     check_frame,
@@ -162,7 +161,7 @@ class Session:
         frame_lane: bool = False,
         make_pipeline: Callable[[Any], Any] = pipeline_for,
         first_frame_wait_ns: int = FIRST_FRAME_WAIT_US * 1000,
-        low_head_wait_ns: int = LOW_HEAD_WAIT_US * 1000 if LOW_HEAD_WAIT_ON else 0,
+        low_head_wait_ns: int = DEFAULT_LOW_HEAD_WAIT_US * 1000,
     ) -> None:
         self.id = session_id
         self.model_name = model_name  # the active model as clients see it

@@ -47,11 +47,13 @@ FIRST_FRAME_WAIT_US = 150_000
 # seated stream's first answer made with one frame in its visual window folds its legs wrongly and is then
 # re-seated, a move of still legs (MODEL_CARD.md, "Waiting for more than the first frame").
 LOW_HEAD_M = 1.35
-# ... so, with LOW_HEAD_WAIT_ON (the server's and eval's default; the server's --low-head-wait-ms 0 turns it off),
-# such a stream's first answer waits for the net's visual window of frames, at most this long after its first
-# sample (MODEL_CARD.md, rule 71; rule 70's wait for the headset window too cost a late first pose's upper body).
+# ... so, where the low head's wait is on, such a stream's first answer waits for the net's visual window of
+# frames, at most this long after its first sample (MODEL_CARD.md, rule 71; rule 70's wait for the headset window
+# too cost a late first pose's upper body). LOW_HEAD_WAIT_ON says whether it is by default, in the server and in
+# eval: off, since rules 70 and 71 failed (the server's --low-head-wait-ms and eval's @low-head-wait turn it on).
 LOW_HEAD_WAIT_US = 1_000_000
 LOW_HEAD_WAIT_ON = False
+DEFAULT_LOW_HEAD_WAIT_US = LOW_HEAD_WAIT_US if LOW_HEAD_WAIT_ON else 0  # the server's wait unless configured
 
 
 @dataclasses.dataclass(frozen=True)
