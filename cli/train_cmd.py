@@ -9,6 +9,7 @@ Then `egoposevr export` turns them into the ONNX models the runtime serves.
 conversion of one capture together), so a training choice can be judged on people the nets never saw with
 `egoposevr eval --split train --fold K/N`, without looking at val or test. The checkpoint records the fold and
 the people it trained on; --resume refuses a run whose fold held other people in the data as it is now.
+--train-fold K/N is its complement: only fold K's people train (a learning curve's smaller shares).
 
 Example (the bundled weights; MODEL_CARD.md has the full recipe):
   egoposevr train --data data/dev --model all --out runs/cpu16 --preset cpu --seed 0 --fusion-steps 16000
@@ -221,6 +222,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "training choice on them with `eval --split train --fold K/N` instead of on val or test",
     )  # fmt: skip
     parser.add_argument(
+        "--train-fold", default=None, metavar="K/N",
+        help="train on the train split's subjects of fold K of N alone (the complement of --hold-out): a "
+        "learning curve's smaller shares of the people",
+    )  # fmt: skip
+    parser.add_argument(
         "--init-visual", type=Path, default=None, metavar="FILE",
         help="fine-tune: the run's encoder of this file's kind starts from the exported encoder FILE (e.g. "
         "the bundled visual-rgbd.onnx) instead of a random draw, its batch norms' statistics frozen and at a "
@@ -276,14 +282,21 @@ def run(args: argparse.Namespace) -> int:
     if refusal is not None:
         print(f"egoposevr train: {refusal}", file=sys.stderr)
         return 2
-    if args.hold_out is not None:
-        from ..model.training.dataset import Fold
+    if args.hold_out is not None and args.train_fold is not None:
+        print("egoposevr train: --hold-out and --train-fold exclude each other", file=sys.stderr)
+        return 2
+    for flag, key, text in (
+        ("--hold-out", "hold_out", args.hold_out),
+        ("--train-fold", "train_fold", args.train_fold),
+    ):
+        if text is not None:
+            from ..model.training.dataset import Fold
 
-        try:
-            overrides["hold_out"] = str(Fold.parse(args.hold_out))
-        except ValueError as error:
-            print(f"egoposevr train: --hold-out: {error}", file=sys.stderr)
-            return 2
+            try:
+                overrides[key] = str(Fold.parse(text))
+            except ValueError as error:
+                print(f"egoposevr train: {flag}: {error}", file=sys.stderr)
+                return 2
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
     try:
         initial = _initial_weights(names, args.init_from, args.init_member, config)

@@ -168,19 +168,24 @@ def load_fold(
 
 
 def load_splits(
-    data_dirs: Sequence[str | Path], split: str, limit: int | None = None, hold_out: Fold | None = None
+    data_dirs: Sequence[str | Path],
+    split: str,
+    limit: int | None = None,
+    hold_out: Fold | None = None,
+    only: Fold | None = None,
 ) -> list[dict[str, Any]]:
     """:func:`load_split` of several datasets, one after the other, at most ``limit`` in all, without the
-    subjects of ``hold_out`` (each dataset's own fold). Keys stay unique: the second and later datasets'
-    are prefixed with their folder."""
+    subjects of ``hold_out``, or with only the subjects of ``only`` (each dataset's own fold; not both).
+    Keys stay unique: the second and later datasets' are prefixed with their folder."""
+    if hold_out is not None and only is not None:
+        raise ValueError("a fold is either left out or kept alone, not both")
     seqs: list[dict[str, Any]] = []
     for k, data_dir in enumerate(data_dirs):
-        if hold_out is None:
-            more = load_split(data_dir, split, None if limit is None else limit - len(seqs))
+        left = None if limit is None else limit - len(seqs)
+        if hold_out is None and only is None:
+            more = load_split(data_dir, split, left)
         else:
-            more, _ = load_fold(
-                data_dir, split, hold_out, False, None if limit is None else limit - len(seqs)
-            )
+            more, _ = load_fold(data_dir, split, only or hold_out, only is not None, left)
         for seq in more if k else []:
             seq["key"] = f"{data_dir}:{seq['key']}"
         seqs += more

@@ -166,6 +166,8 @@ class TrainConfig:
     # "K/N": the train split's subjects of fold K of N are left out (dataset.Fold), for choices judged on
     # them (``eval --split train --fold K/N``) instead of on val or test. None: every subject trains.
     hold_out: str | None = None
+    # "K/N": only fold K's subjects train (the complement of hold_out): a learning curve's smaller shares
+    train_fold: str | None = None
     threads: int = 0  # torch intra-op threads; 0 = torch's default
     device: str = "cpu"  # where the nets train: "cpu" or "cuda" (checkpoints are always loadable on the CPU)
 
@@ -297,17 +299,21 @@ def _check_same_hold_out(
     leave the same people in (a checkpoint from before 2026-11-27 records only the fold)."""
     data = ckpt.get("data")
     data = data if isinstance(data, dict) else {}
-    held_then = data.get("held_out_fold")
-    if held_then != tc.hold_out:
-        raise CheckpointError(
-            f"{path} was trained with --hold-out {held_then or 'none'}, not {tc.hold_out or 'none'}: "
-            "its data would change under it; train into another --out"
-        )
+    for flag, key, now in (
+        ("--hold-out", "held_out_fold", tc.hold_out),
+        ("--train-fold", "trained_fold", tc.train_fold),
+    ):
+        if data.get(key) != now:
+            raise CheckpointError(
+                f"{path} was trained with {flag} {data.get(key) or 'none'}, not {now or 'none'}: "
+                "its data would change under it; train into another --out"
+            )
     people_then = data.get("trained_subjects_sha256")
-    if tc.hold_out and people_then is not None and people_then != _people_digest(seqs):
+    if (tc.hold_out or tc.train_fold) and people_then is not None and people_then != _people_digest(seqs):
+        which = f"--hold-out {tc.hold_out} leaves" if tc.hold_out else f"--train-fold {tc.train_fold} keeps"
         raise CheckpointError(
-            f"{path} was trained on other people than --hold-out {tc.hold_out} leaves in this data (its "
-            "folds fall otherwise now); train into another --out"
+            f"{path} was trained on other people than {which} in this data (its folds fall otherwise now); "
+            "train into another --out"
         )
 
 
@@ -1263,11 +1269,14 @@ def dataset_dirs(data: Path | Sequence[Path]) -> tuple[Path, ...]:
 
 
 def training_sequences(data_dirs: tuple[Path, ...], tc: TrainConfig) -> list[dict[str, Any]]:
-    """The train split of every dataset, without ``tc.hold_out``'s subjects, at most ``tc.limit_sequences``."""
+    """The train split of every dataset, without ``tc.hold_out``'s subjects or with only ``tc.train_fold``'s,
+    at most ``tc.limit_sequences``."""
     hold_out = Fold.parse(tc.hold_out) if tc.hold_out else None
-    seqs = load_splits(data_dirs, "train", tc.limit_sequences, hold_out)
+    only = Fold.parse(tc.train_fold) if tc.train_fold else None
+    seqs = load_splits(data_dirs, "train", tc.limit_sequences, hold_out, only)
     if not seqs:
-        raise DatasetError(f"no train sequence is left to train on without fold {hold_out}")
+        which = f"with only fold {only}" if only else f"without fold {hold_out}"
+        raise DatasetError(f"no train sequence is left to train on {which}")
     return seqs
 
 
@@ -1276,9 +1285,9 @@ def _data_field(
 ) -> dict[str, Any]:
     """A checkpoint's ``data`` record: the folders, the digest of their training shards' bytes, the fold left
     out and the people left in (when a fold is left out), the sequences and other counts."""
-    held = (
-        {"held_out_fold": tc.hold_out, "trained_subjects_sha256": _people_digest(seqs)} if tc.hold_out else {}
-    )
+    held = {"held_out_fold": tc.hold_out} if tc.hold_out else {}
+    held |= {"trained_fold": tc.train_fold} if tc.train_fold else {}
+    held |= {"trained_subjects_sha256": _people_digest(seqs)} if held else {}
     digests = {
         "sha256": provenance.data_digest(data_dirs),
         "folders_sha256": [provenance.folder_digest(d) for d in data_dirs],
@@ -1343,9 +1352,10 @@ def train_zoo(
         training_offsets((initial or {}).get(f), taught[f], head_offsets_m)
         _check_keeps_a_start((initial or {}).get(f), tc)
     data_dirs = dataset_dirs(data)
-    if out_of_fold and (tc.hold_out or len(data_dirs) > 1):
+    if out_of_fold and (tc.hold_out or tc.train_fold or len(data_dirs) > 1):
         raise DatasetError(
-            "out-of-fold encoders read one dataset's whole train split (no --hold-out, one --data)"
+            "out-of-fold encoders read one dataset's whole train split (no --hold-out or --train-fold, one "
+            "--data)"
         )
     seqs = training_sequences(data_dirs, tc)
     invocation = invocation_record(command, tc.device)

@@ -961,6 +961,31 @@ def test_several_datasets_train_together(tiny_data, tiny_weights, tmp_path):
     assert data["dir"] == [str(tiny_data), str(more)] and data["sequences"] == len(both)
 
 
+def test_a_train_fold_trains_on_its_subjects_alone(tiny_data, tmp_path, capsys):
+    train = load_split(tiny_data, "train")
+    kept = fold_members(train, Fold(0, 2))
+    args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--no-progress"]
+    out = tmp_path / "runs"
+    assert main([*args, "--out", str(out), "--fusion-steps", "2", "--train-fold", "0/2"]) == 0
+    data = load_checkpoint(out / "fusion-hmd.pt")["data"]
+    assert data["trained_fold"] == "0/2" and "held_out_fold" not in data
+    assert data["sequences"] == kept.sum()
+    # of two folds, keeping fold 0 alone trains the people that leaving fold 1 out does
+    assert main([*args, "--out", str(tmp_path / "h"), "--fusion-steps", "2", "--hold-out", "1/2"]) == 0
+    complement = load_checkpoint(tmp_path / "h" / "fusion-hmd.pt")["data"]
+    assert complement["trained_subjects_sha256"] == data["trained_subjects_sha256"]
+    assert complement["sequences"] == data["sequences"]
+    for other, said in ((["--hold-out", "1/2"], "--hold-out none"), ([], "--train-fold 0/2")):
+        assert main([*args, "--out", str(out), "--fusion-steps", "2", "--resume", *other]) == 2
+        assert f"trained with {said}" in capsys.readouterr().err
+    assert main([*args, "--out", str(out), "--fusion-steps", "2", "--resume", "--train-fold", "0/2"]) == 0
+    both = ["--train-fold", "0/2", "--hold-out", "1/2"]
+    assert main([*args, "--out", str(tmp_path / "x"), *both]) == 2
+    assert "exclude each other" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "x"), "--train-fold", "1/1"]) == 2
+    assert "--train-fold" in capsys.readouterr().err
+
+
 def test_a_held_out_fold_trains_without_its_subjects_and_eval_serves_only_them(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
