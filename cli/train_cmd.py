@@ -285,18 +285,17 @@ def run(args: argparse.Namespace) -> int:
     if args.hold_out is not None and args.train_fold is not None:
         print("egoposevr train: --hold-out and --train-fold exclude each other", file=sys.stderr)
         return 2
+    from ..model.training.dataset import Fold
+
     for flag, key, text in (
         ("--hold-out", "hold_out", args.hold_out),
         ("--train-fold", "train_fold", args.train_fold),
     ):
-        if text is not None:
-            from ..model.training.dataset import Fold
-
-            try:
-                overrides[key] = str(Fold.parse(text))
-            except ValueError as error:
-                print(f"egoposevr train: {flag}: {error}", file=sys.stderr)
-                return 2
+        try:
+            overrides |= {key: str(Fold.parse(text))} if text is not None else {}
+        except ValueError as error:
+            print(f"egoposevr train: {flag}: {error}", file=sys.stderr)
+            return 2
     config = dataclasses.replace(PRESETS[args.preset], **overrides)
     try:
         initial = _initial_weights(names, args.init_from, args.init_member, config)

@@ -295,8 +295,9 @@ def _check_same_data(ckpt: dict[str, Any], path: Path, data: dict[str, Any]) -> 
 def _check_same_hold_out(
     ckpt: dict[str, Any], path: Path, tc: TrainConfig, seqs: list[dict[str, Any]]
 ) -> None:
-    """A run resumes on the data it started on: its fold left out (``--hold-out``) must be this one, and
-    leave the same people in (a checkpoint from before 2026-11-27 records only the fold)."""
+    """A run resumes on the data it started on: its fold left out (``--hold-out``) or kept alone
+    (``--train-fold``) must be this one, and give the same people (a checkpoint from before 2026-11-27
+    records only the fold)."""
     data = ckpt.get("data")
     data = data if isinstance(data, dict) else {}
     for flag, key, now in (
@@ -1284,7 +1285,7 @@ def _data_field(
     data_dirs: tuple[Path, ...], tc: TrainConfig, seqs: list[dict[str, Any]], **counts: int
 ) -> dict[str, Any]:
     """A checkpoint's ``data`` record: the folders, the digest of their training shards' bytes, the fold left
-    out and the people left in (when a fold is left out), the sequences and other counts."""
+    out or kept alone and the people who trained (when a fold decides them), the sequences and other counts."""
     held = {"held_out_fold": tc.hold_out} if tc.hold_out else {}
     held |= {"trained_fold": tc.train_fold} if tc.train_fold else {}
     held |= {"trained_subjects_sha256": _people_digest(seqs)} if held else {}
