@@ -249,7 +249,7 @@ def _number(parser: argparse.ArgumentParser, flag: str, metavar: str, help_text:
 
 def run(args: argparse.Namespace) -> int:
     from ..model.runtime.loading import ModelError
-    from ..model.training.dataset import DatasetError
+    from ..model.training.dataset import DatasetError, Fold
     from ..model.training.train import PRESETS, CheckpointError, DeviceError, TeacherError, train_zoo
     from ..model.zoo import resolve
 
@@ -285,8 +285,6 @@ def run(args: argparse.Namespace) -> int:
     if args.hold_out is not None and args.train_fold is not None:
         print("egoposevr train: --hold-out and --train-fold exclude each other", file=sys.stderr)
         return 2
-    from ..model.training.dataset import Fold
-
     for flag, key, text in (
         ("--hold-out", "hold_out", args.hold_out),
         ("--train-fold", "train_fold", args.train_fold),
