@@ -220,6 +220,14 @@ def replay_until(
 
 
 # ------------------------------------------------------------------------------------------ raw and odd clients
+def stream_flowed(report: dict[str, Any]) -> bool:
+    """A ``replay --json`` report of a second-long stream that reached the server and back: the recording's
+    samples went out at its rate, answers came, and every sample was answered or reported skipped but the few
+    still in flight at the cut. Not a speed bar: a loaded machine answers fewer and skips more (PROTOCOL.md),
+    which the benchmark measures."""
+    return report["sent"] > 50 and report["answered"] > 0 and report["unanswered"] <= 5
+
+
 def hmd_messages(t_us: Any, poses: Any, valid: Any, first_seq: int = 0) -> list[Hmd]:
     """``hmd`` messages for samples at t_us (N,) with device poses (N, 3, 7) and valid (N, 3), numbered from
     ``first_seq``."""

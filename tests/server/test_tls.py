@@ -11,7 +11,7 @@ import urllib.request
 
 import pytest
 import trustme
-from loopback import RECORDINGS, Client, running_server
+from loopback import RECORDINGS, Client, running_server, stream_flowed
 
 from egoposevr.cli.main import main
 from egoposevr.protocol import Ping
@@ -50,7 +50,7 @@ def test_wss_and_https_on_one_port(certificate, monkeypatch, tmp_path):
         walk = str(RECORDINGS / "walk-0000.egrec")
         code = main(["replay", walk, "--url", f"wss://127.0.0.1:{port}", "--model", "hmd", "--seconds", "1",
                      "--json", str(report), "--quiet"])  # fmt: skip
-        assert code == 0 and json.loads(report.read_text())["answered"] > 50
+        assert code == 0 and stream_flowed(json.loads(report.read_text()))
 
 
 def test_plain_ws_to_a_tls_port_does_not_connect(certificate):
