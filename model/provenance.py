@@ -345,6 +345,8 @@ def _net_lines(record: dict[str, Any], indent: str, depth: int, ancestors: _Ance
         yield f"{pad}  each folder's shards: {', '.join(_short(d) for d in each)}"
     if held := data.get("held_out_fold"):
         yield f"{pad}people of fold {held} left out"
+    if kept := data.get("trained_fold"):
+        yield f"{pad}only the people of fold {kept}"
     if init := record.get("init"):
         member = f" member {init['member']}" if "member" in init else ""
         yield f"{pad}started from {init.get('from')}{member}, sha256 {_short(init.get('sha256'))}"

@@ -122,6 +122,17 @@ def test_ancestors_gather_at_the_root_once_and_are_described_once():
     assert text.count("started from s.onnx") == 2
 
 
+def test_a_net_trained_on_part_of_the_people_says_which():
+    for data, said in (
+        ({"held_out_fold": "0/2"}, "people of fold 0/2 left out"),
+        ({"trained_fold": "1/4"}, "only the people of fold 1/4"),
+    ):
+        text = "\n".join(provenance.describe({"steps": 2, "seed": 0, "data": {"dir": "d", **data}}))
+        assert said in text
+    whole = "\n".join(provenance.describe({"steps": 2, "seed": 0, "data": {"dir": "d"}}))
+    assert "fold" not in whole
+
+
 def test_a_recipe_runs_ancestors_first_each_command_once_and_says_what_was_not_recorded():
     start = {
         "steps": 2,
