@@ -86,6 +86,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _number(
         parser,
+        "--timing-weight",
+        "W",
+        "weight of an auxiliary, training-only target: each foot's time to its next contact change and since "
+        "its last (0, the default: no such head)",
+    )
+    _number(
+        parser,
         "--foot-weight",
         "W",
         "the fusion nets' position loss on the ankles and feet, against 1 for the other joints (default 1)",
@@ -266,7 +273,8 @@ def run(args: argparse.Namespace) -> int:
             ("window", args.window), ("batch", args.batch),
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("served_rotation_weight", args.served_rotation_weight),
-            ("contact_weight", args.contact_weight), ("dropout", args.dropout),
+            ("contact_weight", args.contact_weight), ("timing_weight", args.timing_weight),
+            ("dropout", args.dropout),
             ("foot_weight", args.foot_weight),
             ("weight_decay", args.weight_decay), ("lr", args.lr),
             ("distill_weight", args.distill_weight), ("keep_upper_weight", args.keep_upper),
@@ -354,6 +362,8 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.weight_decay is not None and not 0.0 <= args.weight_decay < 1.0, "--weight-decay D needs 0 <= D < 1"),
         (args.lr is not None and not 0.0 < args.lr <= 0.1, "--lr LR needs 0 < LR <= 0.1"),
         (args.contact_weight is not None and args.contact_weight < 0.0, "--contact-weight W needs W >= 0"),
+        (args.timing_weight is not None and not 0.0 <= args.timing_weight <= 100.0,
+         "--timing-weight W needs 0 <= W <= 100"),
         (args.keep_upper is not None and not 0.0 <= args.keep_upper <= 100.0, "--keep-upper W needs 0 <= W <= 100"),
         (args.keep_upper and args.init_from is None, "--keep-upper W needs --init-from (the net whose upper body it keeps)"),
         (args.keep_joints and not args.keep_upper, "--keep-joints needs --keep-upper W > 0 (the term it chooses joints for)"),

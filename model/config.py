@@ -40,6 +40,9 @@ class FusionConfig:
     joints: int = 22
     device_validity: bool = False  # x_t followed by each device's valid flag and time since tracked (hmd.py)
     contact_head: bool = False  # a second output: each foot's contact probability (runtime/contact.py)
+    # Training only, never exported or served: each foot's time to its next contact change and since its last
+    # (training/plausibility.contact_timing), an auxiliary target that asks the net for the step's rhythm.
+    timing_head: bool = False
 
     def __post_init__(self) -> None:
         if self.fusion not in ("cross", "concat", "none"):

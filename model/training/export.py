@@ -285,7 +285,7 @@ def export_model(
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
     nets = [build_net(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
-    cfg = nets[0].cfg
+    cfg = dataclasses.replace(nets[0].cfg, timing_head=False)  # a training-only head: the graph has none
     offsets = _rig_offsets(ckpts, paths)
     module = _served_module(nets)
     records = [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]

@@ -44,6 +44,8 @@ STILL_MIN_S: Final = 0.5
 # A session's first second: a model's windows still hold padding until then (the zoo's 40 headset samples take
 # 0.67 s at 60 Hz; its 8 camera frames 0.27 s, plus their latency), so what it serves is a first guess.
 WARM_UP_S: Final = 1.0
+# contact_timing's clip: about one step's stance or swing at a slow walk, so a still foot reads as never moving
+TIMING_HORIZON_S: Final = 1.0
 
 
 def _speeds(joints: np.ndarray, t_us: np.ndarray, horizontal: bool) -> np.ndarray:
@@ -61,6 +63,27 @@ def contacts(true_joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     height = true_joints[:, FEET, 1]
     speed = _speeds(true_joints[:, FEET], t_us, horizontal=True)
     return (height < CONTACT_HEIGHT_M) & (speed < CONTACT_SPEED_M_S)
+
+
+def contact_timing(contact: np.ndarray, t_us: np.ndarray, horizon_s: float = TIMING_HORIZON_S) -> np.ndarray:
+    """(N, 2, 2) float in [0, 1]: for each sample and foot of contact (N, 2) bool, the time until its label
+    next changes and the time since it last changed, each in units of horizon_s and at most 1. A label that
+    never changes again (or never did) is 1 on that side: a still stance reads (1, 1). With the label itself
+    they say where a foot is in its step (a stance about to end, a swing just begun)."""
+    t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
+    n = len(t_s)
+    out = np.ones((n, contact.shape[1], 2))
+    for foot in range(contact.shape[1]):
+        # change[k]: the label at sample k differs from the one before; the times of those samples
+        changed_at = t_s[1:][np.diff(contact[:, foot].astype(np.int8)) != 0]
+        nxt = np.searchsorted(changed_at, t_s, side="right")  # the first change after each sample
+        has_next = nxt < len(changed_at)
+        out[has_next, foot, 0] = changed_at[nxt[has_next]] - t_s[has_next]
+        has_last = nxt > 0
+        out[has_last, foot, 1] = t_s[has_last] - changed_at[nxt[has_last] - 1]
+        out[~has_next, foot, 0] = horizon_s
+        out[~has_last, foot, 1] = horizon_s
+    return np.minimum(out / horizon_s, 1.0)
 
 
 def _lasts(stretch: slice, t_us: np.ndarray) -> bool:

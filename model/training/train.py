@@ -77,7 +77,7 @@ from .dataset import (
 from .nets.fusion import FusionNet, SeedEnsemble, orthonormal_sixd, set_input_statistics
 from .nets.kinematics import forward_kinematics, sixd_to_matrix
 from .nets.visual import KeypointNet
-from .plausibility import FEET, contacts
+from .plausibility import FEET, contact_timing, contacts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,6 +127,10 @@ class TrainConfig:
     foot_weight: float = 1.0
     contact_head: bool = True  # the nets also predict each foot's contact (labels: plausibility.contacts)
     contact_weight: float = 1.0  # binary cross-entropy of the contact logits, against the losses above
+    # L1 of each foot's step timing (plausibility.contact_timing: time to its next contact change and since its
+    # last, in [0, 1]) from a training-only head (FusionConfig.timing_head): an auxiliary target that asks the
+    # nets for the steps' rhythm. 0: off, no such head (the bundled nets' recipe).
+    timing_weight: float = 0.0
     # L1 (m, summed over x, y, z) of how much each joint's error changes from the sample before: the served
     # body's jitter is mostly the network's own sample-to-sample noise (MODEL_CARD.md). 0: off, the batch is
     # tc.batch windows; on, each window also runs with the one a sample before it (2 x batch).
@@ -211,6 +215,7 @@ def fusion_config(name: str, tc: TrainConfig) -> FusionConfig:
         "dropout": tc.dropout,
         "device_validity": tc.device_validity,
         "contact_head": tc.contact_head,
+        "timing_head": tc.timing_weight > 0,
     }
     return FusionConfig(**{**base, **ZOO[name].fusion})
 
@@ -598,6 +603,7 @@ class FusionSequence:
     kp_world: np.ndarray  # (K, J, 3) stage-1 keypoints in the world
     confidence: np.ndarray  # (K, J) Alg. 1 confidence
     contact: np.ndarray  # (N, 2) float32: each foot (left, right) on the floor in the truth
+    timing: np.ndarray  # (N, 2, 2) float32: each foot's time to its next contact change and since its last
 
 
 class ExportedEncoder:
@@ -749,6 +755,7 @@ def prepare_fusion_sequence(
         if seq.get("arms_unseen"):  # the images show another person's arms than the truth's
             conf[:, ARM_JOINTS] = 0.0
     latency_us = rng.uniform(*tc.camera_latency_ms) * 1000
+    contact = contacts(seq["gt_joints_m"], t_us)
     ahead = led_samples(t_us, tc.target_lead_ms)
     target_local = local[ahead]  # a copy (fancy indexing)
     target_local[:, 0] = np.swapaxes(rot, -1, -2) @ target_local[:, 0]  # the later pelvis, this heading frame
@@ -772,7 +779,8 @@ def prepare_fusion_sequence(
         arrival_us=(seq["cam_t_us"] + latency_us).astype(np.int64),
         kp_world=kp_world,
         confidence=conf,
-        contact=contacts(seq["gt_joints_m"], t_us)[ahead].astype(np.float32),
+        contact=contact[ahead].astype(np.float32),
+        timing=contact_timing(contact, t_us)[ahead].astype(np.float32),
     )
 
 
@@ -856,20 +864,28 @@ def fusion_loss_fn(
         contact = torch.from_numpy(np.stack([fs.contact[i] for fs, i in items]))
         weight_t = torch.from_numpy(weight / weight.mean(1, keepdims=True))
         tensors = (hmd, vis, target, joints, anchor, offsets, weight_t, contact)
+        if cfg.timing_head:
+            tensors += (torch.from_numpy(np.stack([fs.timing[i] for fs, i in items])),)
         if tc.skate_weight > 0:  # only the skating term needs each window's frame (B, 3, 3)
             heading = np.stack([fs.head_pose[i] for fs, i in items])
             tensors += (torch.from_numpy(heading_frame(heading)[0].astype(np.float32)),)
         return tuple(t.to(dev, non_blocking=True) for t in tensors)
 
     def loss(rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        hmd, vis, target, joints, anchor, offsets, weight, contact, *world_from_heading = batch(rng)
+        hmd, vis, target, joints, anchor, offsets, weight, contact, *rest = batch(rng)
+        timing_wanted, world_from_heading = (rest[0], rest[1:]) if cfg.timing_head else (None, rest)
         visual = vis if cfg.uses_camera else None
-        if cfg.contact_head:
+        timing = None
+        if cfg.timing_head:
+            sixd, contact_logits, timing = net.forward_with_timing(hmd, visual)
+        elif cfg.contact_head:
             sixd, contact_logits = net.forward_with_contact(hmd, visual)
         else:
             sixd, contact_logits = net(hmd, visual), None
         pos = _anchored_joints(sixd, anchor, offsets)
         losses = _fit_terms(sixd, pos, contact_logits, (target, joints, contact), weight, tc)
+        if timing is not None:
+            losses["timing"] = (timing - timing_wanted).abs().mean() * tc.timing_weight
         error = pos - joints  # with pairs (2B, J, 3): each window's, then the previous sample's
         if tc.temporal_weight > 0:
             now, before = error.chunk(2)

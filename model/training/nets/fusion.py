@@ -137,6 +137,8 @@ class FusionNet(nn.Module):
         self.local_head = nn.Sequential(nn.LayerNorm(S), nn.Linear(S, 64), nn.GELU(), nn.Linear(64, 6))  # T_l
         if cfg.contact_head:  # each foot joint's token -> its contact logit
             self.contact_head = nn.Sequential(nn.LayerNorm(S), nn.Linear(S, 32), nn.GELU(), nn.Linear(32, 1))
+        if cfg.timing_head:  # each foot joint's token -> its step timing (training only)
+            self.timing_head = nn.Sequential(nn.LayerNorm(S), nn.Linear(S, 32), nn.GELU(), nn.Linear(32, 2))
         # Start at the identity rotation: 6D (1, 0, 0, 0, 1, 0).
         for head in (self.pelvis_head, self.local_head):
             nn.init.zeros_(head[-1].weight)
@@ -153,6 +155,17 @@ class FusionNet(nn.Module):
         ``cfg.contact_head``)."""
         m = self._fused(hmd, visual)
         return self._rotations(m), self.contact_head(m[:, list(FEET)])[..., 0]
+
+    def forward_with_timing(
+        self, hmd: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """-> 6D rotations (B, J, 6), each foot's contact logit (B, 2) (None without ``cfg.contact_head``) and
+        its step timing (B, 2, 2) in [0, 1]: time to the next contact change, then since the last, as
+        plausibility.contact_timing (needs ``cfg.timing_head``; training only, never exported)."""
+        m = self._fused(hmd, visual)
+        feet = m[:, list(FEET)]
+        logits = self.contact_head(feet)[..., 0] if self.cfg.contact_head else None
+        return self._rotations(m), logits, torch.sigmoid(self.timing_head(feet))
 
     def _fused(self, hmd: torch.Tensor, visual: torch.Tensor | None) -> torch.Tensor:
         m = self.hmd_stream(hmd)  # (B, J, S)

@@ -6,6 +6,7 @@ import pytest
 from egoposevr.model.skeleton import FOOT_JOINT_HEIGHT_M, LOWER_BODY, REST_JOINTS_M
 from egoposevr.model.training.plausibility import (
     WARM_UP_S,
+    contact_timing,
     contacts,
     plausibility,
     still_stretches,
@@ -21,6 +22,20 @@ def standing(seconds: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     pose = REST_JOINTS_M - [0.0, REST_JOINTS_M[[10, 11], 1].min() - FOOT_JOINT_HEIGHT_M, 0.0]
     pose[[10, 11], 1] = FOOT_JOINT_HEIGHT_M  # both feet exactly flat
     return np.repeat(pose[None], n, axis=0), (np.arange(n) * 1e6 / RATE_HZ).astype(np.int64)
+
+
+def test_step_timing_counts_to_the_next_contact_change_and_from_the_last():
+    """A foot down 0.5 s, up 0.25 s, down again to the end; the other foot down throughout. Times in units
+    of the 1 s horizon, 1 where no change lies ahead (or behind)."""
+    t_us = np.arange(0, 1_500_000, 250_000)  # 0, 0.25, ... 1.25 s
+    left = np.array([1, 1, 0, 1, 1, 1], bool)
+    timing = contact_timing(np.stack([left, np.ones(6, bool)], axis=1), t_us, horizon_s=1.0)
+    np.testing.assert_allclose(timing[:, 0, 0], [0.5, 0.25, 0.25, 1.0, 1.0, 1.0])  # until the next change
+    np.testing.assert_allclose(timing[:, 0, 1], [1.0, 1.0, 0.0, 0.0, 0.25, 0.5])  # since the last
+    assert (timing[:, 1] == 1.0).all()  # never changes: a still stance
+    half = contact_timing(left[:, None], t_us, horizon_s=0.25)  # clipped at the horizon
+    np.testing.assert_allclose(half[:, 0, 0], [1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    np.testing.assert_allclose(half[:, 0, 1], [1.0, 1.0, 0.0, 0.0, 1.0, 1.0])
 
 
 def test_a_standing_truth_is_in_contact_and_still_throughout():

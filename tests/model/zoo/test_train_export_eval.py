@@ -210,6 +210,23 @@ def test_the_skating_term_trains_on_pairs_and_is_recorded(tiny_data, tmp_path):
     assert "skate" in ckpt["history"][-1] and "temporal" not in ckpt["history"][-1]
 
 
+def test_the_timing_target_trains_a_head_the_exported_graph_leaves_out(tiny_data, tiny_weights, tmp_path):
+    args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    runs, out = tmp_path / "r", tmp_path / "w"
+    assert main([*args, "--out", str(runs), "--fusion-steps", "3", "--timing-weight", "2"]) == 0
+    assert main([*args, "--out", str(runs), "--timing-weight", "-1"]) == 2
+    ckpt = load_checkpoint(runs / "fusion-hmd-rgbd.pt")
+    assert ckpt["train_config"]["timing_weight"] == 2.0 and ckpt["config"]["timing_head"]
+    assert "timing" in ckpt["history"][-1]
+    assert main(["export", "--runs", str(runs), "--out", str(out), "--model", "egoposevr"]) == 0
+    served = LoadedModel.load(out / "egoposevr.onnx")
+    assert not served.info.metadata.config.timing_head  # the graph serves the pose and the contacts alone
+    import onnx
+
+    outputs = [o.name for o in onnx.load(out / "egoposevr.onnx").graph.output]
+    assert outputs == ["rot6d", "contact"]
+
+
 def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_path):
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
     assert main([*args, "--fusion-steps", "3", "--served-rotation-weight", "3", "--no-progress"]) == 0
