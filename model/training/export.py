@@ -477,12 +477,13 @@ def initial_fusion_state(source: Path, fusion_name: str, member: int, cfg: Fusio
     ``source/<fusion_name>.onnx`` when ``source`` is a folder, else of the model file ``source`` itself
     (e.g. ``egoposevr-lite.onnx``, one net of ``hmd-rgbd``'s kind); its ``member``-th net when it serves
     several. Raises ValueError when the file is not there or not a model, when it serves fewer nets, or
-    when its nets are configured otherwise than ``cfg`` (the flags of this run)."""
+    when its nets are configured otherwise than ``cfg`` (the flags of this run; a training-only timing head,
+    which no file holds, may differ: the fine-tune starts it afresh)."""
     path = source / f"{fusion_name}.onnx" if source.is_dir() else source
     _, metadata, nets = load_served_nets(path)
     if not 0 <= member < len(nets):
         raise ValueError(f"{path} serves {len(nets)} net(s): no member {member}")
-    if metadata.config != cfg:
+    if metadata.config != dataclasses.replace(cfg, timing_head=False):
         raise ValueError(f"{path}: its net is configured otherwise than this run's flags make it")
     return InitialWeights(
         str(path), member, nets[member].state_dict(), metadata.rig_offsets_m, metadata.training

@@ -1053,7 +1053,7 @@ def train_fusion(
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache, offsets_m) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     if initial is not None:
-        net.load_state_dict(initial.state_dict)
+        _load_start(net, initial.state_dict)
     net.to(tc.device)
     keeper = _upper_body_keeper(cfg, initial, tc)
     hmd_samples = int(sum(len(p.t_us) for p in prepared))
@@ -1094,9 +1094,20 @@ def _upper_body_keeper(
     _check_keeps_a_start(initial, tc)
     if tc.keep_upper_weight <= 0:
         return None
-    keeper = FusionNet(cfg)
+    keeper = FusionNet(dataclasses.replace(cfg, timing_head=False))  # it is only asked for the pose
     keeper.load_state_dict(initial.state_dict)
     return keeper.eval().requires_grad_(False).to(tc.device)
+
+
+def _load_start(net: FusionNet, state: dict[str, torch.Tensor]) -> None:
+    """A fine-tune's starting weights into ``net``: every weight must fit, but a training-only timing head
+    (``FusionConfig.timing_head``), which no exported file holds, keeps its fresh initialisation."""
+    missing, unexpected = net.load_state_dict(state, strict=False)
+    unfilled = [key for key in missing if not key.startswith("timing_head.")]
+    if unfilled or unexpected:
+        raise ValueError(
+            f"the starting net does not fit this one: missing {unfilled}, unexpected {unexpected}"
+        )
 
 
 def _check_keeps_a_start(initial: InitialWeights | None, tc: TrainConfig) -> None:

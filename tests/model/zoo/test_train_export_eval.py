@@ -226,6 +226,12 @@ def test_the_timing_target_trains_a_head_the_exported_graph_leaves_out(tiny_data
     outputs = [o.name for o in onnx.load(out / "egoposevr.onnx").graph.output]
     assert outputs == ["rot6d", "contact"]
 
+    # A fine-tune may add the target: its head starts afresh, every other weight from the file.
+    tuned, start = tmp_path / "t", str(out / "egoposevr.onnx")
+    init = ["--init-from", start, "--encoders", str(tiny_weights), "--fusion-steps", "1"]
+    assert main([*args, "--out", str(tuned), *init, "--timing-weight", "2"]) == 0
+    assert "timing" in load_checkpoint(tuned / "fusion-hmd-rgbd.pt")["history"][-1]
+
 
 def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_path):
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
