@@ -62,6 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--window", type=int, default=None, metavar="T", help="fusion nets' HMD window, headset samples"
     )
     parser.add_argument(
+        "--visual-window",
+        type=int,
+        default=None,
+        metavar="TV",
+        help="fusion nets' camera window, frames (default 8; frames older than 0.5 s leave it whatever its length)",
+    )
+    parser.add_argument(
         "--batch", type=int, default=None, metavar="B", help="windows (fusion) or frames (encoder) per step"
     )
     _number(
@@ -270,7 +277,7 @@ def run(args: argparse.Namespace) -> int:
         for key, value in (
             ("seed", args.seed), ("visual_steps", args.visual_steps), ("fusion_steps", args.fusion_steps),
             ("limit_sequences", args.limit), ("threads", args.threads), ("device", args.device),
-            ("window", args.window), ("batch", args.batch),
+            ("window", args.window), ("visual_window", args.visual_window), ("batch", args.batch),
             ("temporal_weight", args.temporal_weight), ("skate_weight", args.skate_weight),
             ("served_rotation_weight", args.served_rotation_weight),
             ("contact_weight", args.contact_weight), ("timing_weight", args.timing_weight),
@@ -373,6 +380,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.cold_start is not None and not 0.0 <= args.cold_start <= 1.0, "--cold-start P needs 0 <= P <= 1"),
         (args.target_lead_ms is not None and not 0.0 <= args.target_lead_ms <= 200.0, "--target-lead-ms MS needs 0 <= MS <= 200"),
         (args.window is not None and args.window < 1, "--window T needs T >= 1 headset samples"),
+        (args.visual_window is not None and args.visual_window < 1, "--visual-window TV needs TV >= 1 frames"),
         (args.batch is not None and not 1 <= args.batch <= 4096, "--batch B needs 1 <= B <= 4096"),
     )  # fmt: skip
     return next((needs for bad, needs in checks if bad), None)

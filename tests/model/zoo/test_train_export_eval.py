@@ -233,6 +233,18 @@ def test_the_timing_target_trains_a_head_the_exported_graph_leaves_out(tiny_data
     assert "timing" in load_checkpoint(tuned / "fusion-hmd-rgbd.pt")["history"][-1]
 
 
+def test_the_camera_window_is_a_flag_the_served_model_keeps(tiny_data, tiny_weights, tmp_path):
+    args = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    runs, out = tmp_path / "r", tmp_path / "w"
+    assert main([*args, "--out", str(runs), "--visual-window", "0"]) == 2
+    init = ["--encoders", str(tiny_weights), "--fusion-steps", "2", "--visual-window", "5"]
+    assert main([*args, "--out", str(runs), *init]) == 0
+    assert main(["export", "--runs", str(runs), "--out", str(out), "--model", "egoposevr", *init[:2]]) == 0
+    served = LoadedModel.load(out / "egoposevr.onnx")
+    assert served.info.metadata.config.visual_window == 5
+    assert Pipeline(served).visual_window == 5  # the runtime keeps as many frames
+
+
 def test_the_served_rotation_term_is_a_flag_the_checkpoint_keeps(tiny_data, tmp_path):
     args = ["train", "--data", str(tiny_data), "--model", "hmd", "--preset", "tiny", "--out", str(tmp_path)]
     assert main([*args, "--fusion-steps", "3", "--served-rotation-weight", "3", "--no-progress"]) == 0
