@@ -66,23 +66,18 @@ def contacts(true_joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
 
 
 def contact_timing(contact: np.ndarray, t_us: np.ndarray, horizon_s: float = TIMING_HORIZON_S) -> np.ndarray:
-    """(N, 2, 2) float in [0, 1]: for each sample and foot of contact (N, 2) bool, the time until its label
+    """(N, F, 2) float in [0, 1]: for each sample and foot of contact (N, F) bool, the time until its label
     next changes and the time since it last changed, each in units of horizon_s and at most 1. A label that
     never changes again (or never did) is 1 on that side: a still stance reads (1, 1). With the label itself
     they say where a foot is in its step (a stance about to end, a swing just begun)."""
     t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
-    n = len(t_s)
-    out = np.ones((n, contact.shape[1], 2))
+    out = np.full((len(t_s), contact.shape[1], 2), horizon_s)
     for foot in range(contact.shape[1]):
-        # change[k]: the label at sample k differs from the one before; the times of those samples
-        changed_at = t_s[1:][np.diff(contact[:, foot].astype(np.int8)) != 0]
-        nxt = np.searchsorted(changed_at, t_s, side="right")  # the first change after each sample
-        has_next = nxt < len(changed_at)
-        out[has_next, foot, 0] = changed_at[nxt[has_next]] - t_s[has_next]
-        has_last = nxt > 0
-        out[has_last, foot, 1] = t_s[has_last] - changed_at[nxt[has_last] - 1]
-        out[~has_next, foot, 0] = horizon_s
-        out[~has_last, foot, 1] = horizon_s
+        changed_at = t_s[1:][np.diff(contact[:, foot].astype(np.int8)) != 0]  # samples whose label is new
+        after = np.searchsorted(changed_at, t_s, side="right")  # each sample's next change
+        has_next, has_last = after < len(changed_at), after > 0
+        out[has_next, foot, 0] = changed_at[after[has_next]] - t_s[has_next]
+        out[has_last, foot, 1] = t_s[has_last] - changed_at[after[has_last] - 1]
     return np.minimum(out / horizon_s, 1.0)
 
 
