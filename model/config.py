@@ -52,6 +52,12 @@ class FusionConfig:
     def uses_camera(self) -> bool:
         return self.fusion != "none"
 
+    @property
+    def served(self) -> FusionConfig:
+        """This config as an exported file records it: without the training-only heads, which its graph
+        leaves out (the same net, as the runtime and a fine-tune from the file see it)."""
+        return dataclasses.replace(self, timing_head=False)
+
 
 @dataclasses.dataclass(frozen=True)
 class VisualConfig:

@@ -285,7 +285,7 @@ def export_model(
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
     nets = [build_net(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
-    cfg = dataclasses.replace(nets[0].cfg, timing_head=False)  # a training-only head: the graph has none
+    cfg = nets[0].cfg.served
     offsets = _rig_offsets(ckpts, paths)
     module = _served_module(nets)
     records = [training_record(ckpt, path) for ckpt, path in zip(ckpts, paths, strict=True)]
@@ -483,7 +483,7 @@ def initial_fusion_state(source: Path, fusion_name: str, member: int, cfg: Fusio
     _, metadata, nets = load_served_nets(path)
     if not 0 <= member < len(nets):
         raise ValueError(f"{path} serves {len(nets)} net(s): no member {member}")
-    if metadata.config != dataclasses.replace(cfg, timing_head=False):
+    if metadata.config != cfg.served:
         raise ValueError(f"{path}: its net is configured otherwise than this run's flags make it")
     return InitialWeights(
         str(path), member, nets[member].state_dict(), metadata.rig_offsets_m, metadata.training

@@ -1094,7 +1094,7 @@ def _upper_body_keeper(
     _check_keeps_a_start(initial, tc)
     if tc.keep_upper_weight <= 0:
         return None
-    keeper = FusionNet(dataclasses.replace(cfg, timing_head=False))  # it is only asked for the pose
+    keeper = FusionNet(cfg.served)  # the file's net: it is only asked for the pose
     keeper.load_state_dict(initial.state_dict)
     return keeper.eval().requires_grad_(False).to(tc.device)
 
