@@ -2,7 +2,11 @@
 still while only the arms move. Measured against the truth of a dataset sequence (numpy, no torch).
 
 - **Contact** (from the truth): a foot touches the floor while its foot joint (the ball of the foot) is
-  below ``CONTACT_HEIGHT_M`` and moves slower than ``CONTACT_SPEED_M_S`` over the floor.
+  below ``CONTACT_HEIGHT_M`` and moves slower than ``CONTACT_SPEED_M_S`` over the floor, its speed taken over
+  ``CONTACT_SPAN_S`` centred on the sample; then every contact, and every gap between two contacts, shorter
+  than ``CONTACT_MIN_S`` is dropped (gaps first). A captured planted foot moves by millimetres from sample
+  to sample and the headset's sample times vary by a few percent: read sample by sample, its label flickered
+  3-7 times a second on data/v3h's training split (MODEL_CARD, "Contact labels that hold through a stance").
 - **Foot skating** (cm/s): the served foot joint's speed over the floor while the true foot is in contact;
   **settled skating** the same after a session's first ``WARM_UP_S`` (see settled leakage below).
 - **Floor error** (cm): the served sole's height while the true foot is in contact (sole = foot joint minus
@@ -39,6 +43,8 @@ from ..skeleton import FOOT_JOINT_HEIGHT_M, LOWER_BODY
 FEET: Final = (10, 11)  # left, right foot joints (the balls of the feet)
 CONTACT_HEIGHT_M: Final = FOOT_JOINT_HEIGHT_M + 0.03
 CONTACT_SPEED_M_S: Final = 0.2
+CONTACT_SPAN_S: Final = 0.1  # a contact's speed: the displacement over this span (6-12 samples at 60-120 Hz)
+CONTACT_MIN_S: Final = 0.1  # no stance or swing is shorter: such a run is the threshold's noise, not a step
 STILL_SPEED_M_S: Final = 0.08
 STILL_MIN_S: Final = 0.5
 # A session's first second: a model's windows still hold padding until then (the zoo's 40 headset samples take
@@ -60,9 +66,37 @@ def _speeds(joints: np.ndarray, t_us: np.ndarray, horizontal: bool) -> np.ndarra
 
 def contacts(true_joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     """(N, 2) bool: each foot (left, right) touching the floor, from the true joints (N, J, 3)."""
+    t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
     height = true_joints[:, FEET, 1]
-    speed = _speeds(true_joints[:, FEET], t_us, horizontal=True)
-    return (height < CONTACT_HEIGHT_M) & (speed < CONTACT_SPEED_M_S)
+    speed = _span_speeds(true_joints[:, FEET][..., [0, 2]], t_s, CONTACT_SPAN_S)
+    touch = (height < CONTACT_HEIGHT_M) & (speed < CONTACT_SPEED_M_S)
+    for foot in range(touch.shape[1]):
+        touch[:, foot] = _without_short_runs(touch[:, foot], t_s, CONTACT_MIN_S, of=False)
+        touch[:, foot] = _without_short_runs(touch[:, foot], t_s, CONTACT_MIN_S, of=True)
+    return touch
+
+
+def _span_speeds(points: np.ndarray, t_s: np.ndarray, span_s: float) -> np.ndarray:
+    """(N, ...) speed of points (N, ..., D) over span_s centred on each sample (shorter at the ends): the
+    displacement between the samples half a span before and after, over the time between them."""
+    if len(t_s) < 2:
+        return np.zeros(points.shape[:-1])
+    half = max(1, round(0.5 * span_s / np.median(np.diff(t_s))))
+    index = np.arange(len(t_s))
+    before, after = np.maximum(index - half, 0), np.minimum(index + half, len(t_s) - 1)
+    elapsed_s = (t_s[after] - t_s[before]).reshape(-1, *[1] * (points.ndim - 2))
+    return np.linalg.norm(points[after] - points[before], axis=-1) / elapsed_s
+
+
+def _without_short_runs(labels: np.ndarray, t_s: np.ndarray, min_s: float, of: bool) -> np.ndarray:
+    """labels (N,) bool with every run of the value ``of`` that lasts less than min_s (its first sample to the
+    sample after its last) flipped, except runs at either end, whose length the sequence cuts."""
+    out = labels.copy()
+    edges = np.flatnonzero(np.diff(np.r_[False, labels == of, False].astype(np.int8)))  # run starts, stops
+    for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        if start > 0 and stop < len(labels) and t_s[stop] - t_s[start] < min_s:
+            out[start:stop] = not of
+    return out
 
 
 def contact_timing(contact: np.ndarray, t_us: np.ndarray, horizon_s: float = TIMING_HORIZON_S) -> np.ndarray:

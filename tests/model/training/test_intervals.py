@@ -97,7 +97,7 @@ def test_summarize_pools_every_metric_as_its_sequences_totals_say():
     for n in (40, 70):
         t_us = np.arange(n) * 11_111
         truth = rng.normal(0, 0.3, (n, 22, 3))
-        truth[:, [10, 11], 1] = 0.04  # feet on the floor for the skating and floor metrics
+        truth[:, [10, 11]] = [[-0.1, 0.04, 0.0], [0.1, 0.04, 0.0]]  # feet planted: skating and floor metrics
         served = truth + rng.normal(0, 0.02, (n, 22, 3))
         lost = np.zeros((n, 2), bool)
         lost[n // 2 :, 0] = True

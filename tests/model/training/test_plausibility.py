@@ -44,6 +44,34 @@ def test_a_standing_truth_is_in_contact_and_still_throughout():
     assert still_stretches(truth, t_us) == [slice(0, len(t_us))]
 
 
+def test_a_planted_foot_that_jitters_by_millimetres_at_uneven_sample_times_stays_in_contact():
+    """A captured planted foot moves a few millimetres from sample to sample and the headset's samples come a
+    few percent early or late: read from one sample to the next, that is over the contact speed."""
+    rng = np.random.default_rng(0)
+    truth, t_us = standing()
+    truth[:, [10, 11]] += rng.normal(0.0, 0.003, (len(t_us), 2, 3)) * [1.0, 0.0, 1.0]
+    t_us = t_us + rng.integers(-400, 400, len(t_us))
+    assert contacts(truth, t_us).all()
+
+
+def test_a_stance_broken_for_a_few_samples_stays_one_stance_and_a_swing_that_grazes_the_floor_stays_a_swing():
+    """One foot down 0.5 s (lifted over the contact height for 3 samples in its middle), up 0.4 s (down for 3
+    samples in its middle), down 0.5 s; 3 samples are 33 ms at 90 Hz. A stream that begins with a foot just
+    before it lifts keeps that short contact: the stream cut it, not its noise."""
+    truth, t_us = standing(seconds=1.4)
+    up = np.zeros(len(t_us), bool)
+    up[45:81] = True  # the swing: 0.5 s to 0.9 s
+    up[21:24] = True  # a blip in the first stance
+    up[62:65] = False  # the swing touches down for 3 samples
+    truth[up, 10, 1] = FOOT_JOINT_HEIGHT_M + 0.08
+    expected = np.ones(len(t_us), bool)
+    expected[45:81] = False
+    np.testing.assert_array_equal(contacts(truth, t_us)[:, 0], expected)
+    assert contacts(truth, t_us)[:, 1].all()
+    truth[3:, 11, 1] = FOOT_JOINT_HEIGHT_M + 0.08  # the right foot lifts after its stream's third sample
+    assert contacts(truth, t_us)[:, 1].tolist() == [True] * 3 + [False] * (len(t_us) - 3)
+
+
 def test_a_served_foot_sliding_at_10_cm_s_skates_10_cm_s_and_served_feet_2_cm_up_float_2_cm():
     truth, t_us = standing()
     served = truth.copy()
