@@ -41,6 +41,8 @@ crouched) wait for the net's visual window of frames instead (at most 1 s), as t
 the headset stream alone, as PROTOCOL.md's `camera: false`). --truth-body (or @truth-body) serves each
 sequence the truth's body, its bone lengths, from the first sample instead of the session's running
 estimate (model/runtime/body.py): what a perfect body estimate would buy, a diagnosis no user can have.
+--truth-contact (or @truth-contact) gives every net with a contact head the truth's contact labels in place of its
+contact output (model/training/plausibility.py): what a perfect contact head would buy, a diagnosis too.
 --returning (or @returning) serves each sequence with the body an earlier session ended with given from its
 first sample: another sequence of the same body where the split has one (a synthetic set's bodies come from a
 bank), else the same sequence served once before; a returning wearer whose client kept their body
@@ -89,6 +91,7 @@ SWITCHES = {
     "low-head-wait": ("low_head_wait", True),
     "no-low-head-wait": ("low_head_wait", False),
     "truth-body": ("truth_body", True),
+    "truth-contact": ("truth_contact", True),
     "returning": ("returning", True),
     "seat": ("seat", True),
     "no-seat": ("seat", False),
@@ -107,7 +110,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "@seated-yaw), its first samples answered before the first camera frame (@no-first-frame-wait; by "
         "default they wait for it, @first-frame-wait), a low head's first answer made once the net's visual window "
         "is full (@low-head-wait, @no-low-head-wait), without the camera (@no-camera), with the truth's body "
-        "(@truth-body), or as a returning wearer whose body the client kept (@returning); "
+        "(@truth-body) or contact labels (@truth-contact), or as a returning wearer whose body the client kept (@returning); "
         "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
@@ -182,6 +185,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="a diagnosis: every model serves each sequence the truth's body (its bone lengths) from the first "
         "sample instead of the session's running estimate (model/runtime/body.py)",
+    )
+    parser.add_argument(
+        "--truth-contact",
+        action="store_true",
+        help="a diagnosis: every net with a contact head is given the truth's contact labels in place of its "
+        "contact output at every sample it answers (what a contact head right at every sample would buy)",
     )
     parser.add_argument(
         "--returning",
@@ -271,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
             reseat=args.reseat,
             send_frames=not args.no_camera,
             truth_body=args.truth_body,
+            truth_contact=args.truth_contact,
             returning=args.returning,
             runtime=runtime,
             fold=fold,

@@ -41,12 +41,12 @@ from ..runtime.frames import (
     first_answer_wait,
 )
 from ..runtime.loading import DEFAULT_PROVIDERS, LoadedModel
-from ..runtime.pipeline import Pipeline
+from ..runtime.pipeline import Pipeline, PoseResult, run_fusion
 from ..runtime.procedural import ProceduralModel, pipeline_for
 from ..skeleton import JOINT_INDEX, LOWER_BODY, NUM_JOINTS, UPPER_BODY, forward_kinematics, pelvis_over_legs
 from . import intervals
 from .dataset import DatasetError, Fold, load_fold, load_split, sequence_subject
-from .plausibility import add_totals, plausibility, plausibility_totals, pooled_means, total
+from .plausibility import add_totals, contacts, plausibility, plausibility_totals, pooled_means, total
 
 CAMERA_LATENCY_US = 25_000  # capture -> arrival, as in the recorded sessions
 FPS_SAMPLES = 200
@@ -69,6 +69,7 @@ def replay_sequence(
     send_frames: bool = True,
     first_frame_wait: bool = True,
     low_head_wait: bool = LOW_HEAD_WAIT_ON,
+    truth_contact: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Served joints (N, J, 3) and local rotations (N, J, 3, 3) for one dataset sequence, its frames sent with
     its own camera (or ``camera``); with ``send_frames`` False none is sent, as from a headset without the
@@ -77,13 +78,17 @@ def replay_sequence(
     ``low_head_wait``, a stream that begins with the head low waits for the net's visual window of frames, up to
     ``LOW_HEAD_WAIT_US``: frames.first_answer_wait); then the newest is answered and the older ones feed its
     history, each scored with that first pose; ``first_frame_wait`` and ``low_head_wait`` False answer every
-    sample at once (the server's ``--first-frame-wait-ms 0 --low-head-wait-ms 0``)."""
+    sample at once (the server's ``--first-frame-wait-ms 0 --low-head-wait-ms 0``). With ``truth_contact``, a
+    net with a contact head is given, at every sample it answers, the truth's contact labels
+    (plausibility.contacts) in place of its contact output: what a contact head right at every sample would
+    buy, a diagnosis no user can have."""
     camera = camera or seq["camera"]
     pipeline.reset()
     intrinsics, cam_from_head = camera["intrinsics"], np.asarray(camera["cam_from_head"]).reshape(4, 4)
     uses_camera = send_frames and pipeline.model.visual is not None
     t_all = np.asarray(seq["hmd_t_us"])
     wait = _first_answer_wait(pipeline, seq, first_frame_wait, low_head_wait) if uses_camera else None
+    touch = contacts(np.asarray(seq["gt_joints_m"]), t_all).astype(np.float32) if truth_contact else None
     joints, rots, k, held = [], [], 0, []
     for i, t_us in enumerate(t_all):
         while uses_camera and k < len(seq["cam_t_us"]) and seq["cam_t_us"][k] + CAMERA_LATENCY_US <= t_us:
@@ -95,7 +100,7 @@ def replay_sequence(
         waiting = first and wait is not None and not wait.met(k, int(t_us - t_all[0]))
         if waiting and i < len(t_all) - 1:  # (a stream shorter than the wait ends)
             continue
-        pose = _answer_newest(pipeline, seq, held)
+        pose = _answer_newest(pipeline, seq, held, touch)
         joints += [pose.joints] * len(held)
         rots += [pose.local_rot] * len(held)
         held = []
@@ -115,14 +120,21 @@ def _first_answer_wait(
     )
 
 
-def _answer_newest(pipeline: Pipeline, seq: dict[str, Any], samples: list[int]) -> Any:
+def _answer_newest(
+    pipeline: Pipeline, seq: dict[str, Any], samples: list[int], touch: np.ndarray | None = None
+) -> PoseResult:
     """The server's newest-wins for ``samples`` (indices, in order): all but the last feed the history, the
     last is answered. A sample answered by no pose is scored with the first pose served after it, the one its
-    user sees first."""
+    user sees first. touch (N, 2), if given: each sample's contact probabilities, served in place of the
+    net's contact output (where it has one)."""
     for j in samples[:-1]:
         pipeline.observe_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
     j = samples[-1]
-    return pipeline.push_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
+    pending = pipeline.begin_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
+    sixd = run_fusion([pending])[0]
+    if touch is not None and pending.contact_p is not None:
+        pending.contact_p = touch[j]
+    return pipeline.finish_hmd(pending, sixd)
 
 
 def procrustes_aligned(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -328,6 +340,7 @@ def evaluate(
     first_frame_wait: bool = True,
     low_head_wait: bool = LOW_HEAD_WAIT_ON,
     truth_body: bool = False,
+    truth_contact: bool = False,
     returning: bool = False,
     runtime: dict[str, dict[str, bool]] | None = None,
     fold: Fold | None = None,
@@ -363,13 +376,16 @@ def evaluate(
     (frames.first_answer_wait; MODEL_CARD.md, rules 70 and 71);
     ``truth_body`` True serves each sequence the truth's body (its bone lengths) from its first sample instead
     of the session's running estimate (runtime/body.py): what a perfect body estimate would buy, a diagnosis.
+    ``truth_contact`` True gives a net with a contact head the truth's contact labels in place of its contact
+    output (:func:`replay_sequence`): what a perfect contact head would buy, a diagnosis.
     ``returning`` True serves each sequence after learning the wearer's body from an earlier session (the
     estimate the end of another sequence of the same body gives, or of the same sequence where the split has no
     other: :func:`earlier_sessions`; what ``get_body`` answers), given from the first sample (``set_body``,
     PROTOCOL.md §4.2): a returning wearer whose client kept their body.
-    ``runtime`` {label: {option: bool}} serves a label with some of those thirteen (as ``contacts``,
+    ``runtime`` {label: {option: bool}} serves a label with some of those fourteen (as ``contacts``,
     ``steady_stance``, ``leg_hold``, ``lean_gate``, ``reseat``, ``body_hold``, ``sure_plant``,
-    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``low_head_wait``, ``truth_body``, ``returning``) set
+    ``warm_reseat``, ``send_frames``, ``first_frame_wait``, ``low_head_wait``, ``truth_body``,
+    ``truth_contact``, ``returning``) set
     otherwise, or with the network pipeline's ``seated_yaw`` (a folded pelvis keeps its heading while no camera frame
     is in the window; Pipeline's, off by default: MODEL_CARD.md, rule 65), or the procedural baseline's ``seat``
     (ProceduralPipeline's; the network pipeline ignores it): one file served twice, with and without a runtime
@@ -406,6 +422,7 @@ def evaluate(
             "first_frame_wait": options.pop("first_frame_wait", first_frame_wait),
             "low_head_wait": options.pop("low_head_wait", low_head_wait),
         }
+        replay = {**waits, "truth_contact": options.pop("truth_contact", truth_contact)}
         known_body = options.pop("truth_body", truth_body)  # a pipeline per sequence, made with its body
         returns = options.pop("returning", returning)
         pipeline = pipeline_for(model, **options)
@@ -418,7 +435,7 @@ def evaluate(
                 calibrate_like_a_user(pipeline, seq, rigs[i])
             if returns:
                 learn_the_wearer(pipeline, seqs[earlier[i]], frames, **waits)
-            served = replay_sequence(pipeline, seq, send_frames=frames, **waits)
+            served = replay_sequence(pipeline, seq, send_frames=frames, **replay)
             errors.append(sequence_errors(*served, seq))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))

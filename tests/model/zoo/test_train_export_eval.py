@@ -30,6 +30,7 @@ from egoposevr.model.training.dataset import (
     split_camera,
 )
 from egoposevr.model.training.evaluate import METRIC_KEYS, replay_sequence
+from egoposevr.model.training.plausibility import contacts
 from egoposevr.model.training.train import (
     PRESETS,
     build_net,
@@ -1552,6 +1553,38 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
     )
     assert max(e.max() for e in served_bones["truth"]) < 1e-4  # metres, every bone of every sample
     assert max(e.max() for e in served_bones["estimate"]) > 5e-3
+
+
+def test_eval_gives_a_net_the_truths_contact_labels_on_request(
+    tiny_data, tiny_weights, tmp_path, monkeypatch
+):
+    """--truth-contact (or NAME@truth-contact beside NAME) gives a net with a contact head, at every sample it
+    answers, the truth's contact labels in place of its contact output; without it the runtime reads the
+    net's own."""
+    given: dict[bool, list[tuple[np.ndarray, np.ndarray]]] = {True: [], False: []}  # (served p, the truth's)
+    replaying: dict[str, object] = {}
+    replay, finish = evaluate_module.replay_sequence, Pipeline.finish_hmd
+
+    def recording_replay(pipeline, seq, *args, **kwargs):
+        t_us = list(seq["hmd_t_us"])
+        replaying.update(t_us=t_us, truth=kwargs.get("truth_contact", False))
+        replaying["labels"] = contacts(np.asarray(seq["gt_joints_m"]), np.asarray(t_us))
+        try:
+            return replay(pipeline, seq, *args, **kwargs)
+        finally:
+            replaying.clear()  # (eval's FPS run afterwards is no replay)
+
+    def recording_finish(self, pending, sixd):
+        if replaying and pending.contact_p is not None:
+            truth = replaying["labels"][replaying["t_us"].index(pending.t_us)]
+            given[replaying["truth"]].append((np.array(pending.contact_p), truth))
+        return finish(self, pending, sixd)
+
+    monkeypatch.setattr(evaluate_module, "replay_sequence", recording_replay)
+    monkeypatch.setattr(Pipeline, "finish_hmd", recording_finish)
+    _switch_and_flag(tiny_data, tiny_weights, tmp_path, "truth-contact")
+    assert given[True] and all(np.array_equal(p, truth) for p, truth in given[True])
+    assert given[False] and not all(np.array_equal(p, truth) for p, truth in given[False])
 
 
 def test_eval_serves_a_returning_wearer_the_body_their_first_pass_ended_with(
