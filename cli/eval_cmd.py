@@ -110,7 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "@seated-yaw), its first samples answered before the first camera frame (@no-first-frame-wait; by "
         "default they wait for it, @first-frame-wait), a low head's first answer made once the net's visual window "
         "is full (@low-head-wait, @no-low-head-wait), without the camera (@no-camera), with the truth's body "
-        "(@truth-body) or contact labels (@truth-contact), or as a returning wearer whose body the client kept (@returning); "
+        "(@truth-body) or contact labels (@truth-contact), or as a returning wearer whose body the client kept "
+        "(@returning); "
         "procedural@seat: the baseline with a seat for a stream that begins seated",
     )  # fmt: skip
     parser.add_argument("--models-dir", type=Path, default=None, metavar="DIR", help="default: bundled")
