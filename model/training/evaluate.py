@@ -130,9 +130,11 @@ def _answer_newest(
     for j in samples[:-1]:
         pipeline.observe_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
     j = samples[-1]
+    if touch is None:
+        return pipeline.push_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
     pending = pipeline.begin_hmd(int(seq["hmd_t_us"][j]), seq["hmd_poses"][j], seq["hmd_valid"][j])
-    sixd = run_fusion([pending])[0]
-    if touch is not None and pending.contact_p is not None:
+    sixd = run_fusion([pending])[0]  # push_hmd's own steps, the contact output replaced in between
+    if pending.contact_p is not None:
         pending.contact_p = touch[j]
     return pipeline.finish_hmd(pending, sixd)
 
