@@ -54,9 +54,14 @@ WARM_UP_S: Final = 1.0
 TIMING_HORIZON_S: Final = 1.0
 
 
+def _seconds(t_us: np.ndarray) -> np.ndarray:
+    """(N,) float64 seconds since the first of the sample times t_us (N,)."""
+    return (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
+
+
 def _speeds(joints: np.ndarray, t_us: np.ndarray, horizontal: bool) -> np.ndarray:
     """(N, J) speed of each joint (m/s) by central differences over the samples' own times."""
-    t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
+    t_s = _seconds(t_us)
     points = joints[..., [0, 2]] if horizontal else joints
     if len(t_s) < 2:
         return np.zeros(joints.shape[:2])
@@ -66,7 +71,7 @@ def _speeds(joints: np.ndarray, t_us: np.ndarray, horizontal: bool) -> np.ndarra
 
 def contacts(true_joints: np.ndarray, t_us: np.ndarray) -> np.ndarray:
     """(N, 2) bool: each foot (left, right) touching the floor, from the true joints (N, J, 3)."""
-    t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
+    t_s = _seconds(t_us)
     height = true_joints[:, FEET, 1]
     speed = _span_speeds(true_joints[:, FEET][..., [0, 2]], t_s, CONTACT_SPAN_S)
     touch = (height < CONTACT_HEIGHT_M) & (speed < CONTACT_SPEED_M_S)
@@ -104,7 +109,7 @@ def contact_timing(contact: np.ndarray, t_us: np.ndarray, horizon_s: float = TIM
     next changes and the time since it last changed, each in units of horizon_s and at most 1. A label that
     never changes again (or never did) is 1 on that side: a still stance reads (1, 1). With the label itself
     they say where a foot is in its step (a stance about to end, a swing just begun)."""
-    t_s = (np.asarray(t_us, dtype=np.float64) - t_us[0]) * 1e-6
+    t_s = _seconds(t_us)
     out = np.full((len(t_s), contact.shape[1], 2), horizon_s)
     for foot in range(contact.shape[1]):
         changed_at = t_s[1:][np.diff(contact[:, foot].astype(np.int8)) != 0]  # samples whose label is new
