@@ -218,6 +218,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default); arms, the collars, shoulders, elbows and wrists in the chest's frame, the trunk's lean free",
     )
     parser.add_argument(
+        "--reanchor", action="store_true",
+        help="with --init-from: train at today's default head offsets (or --head-offsets-from's) although the "
+        "net it starts from was trained at others: the fine-tune learns the body under the new head joint "
+        "(e.g. the bundled hmd-rgbd.onnx's legacy offsets, MODEL_CARD rule 76)",
+    )  # fmt: skip
+    parser.add_argument(
         "--init-member",
         type=int,
         default=0,
@@ -290,6 +296,7 @@ def run(args: argparse.Namespace) -> int:
             ("hanging_loss_m", args.hanging_loss), ("keypoint_error_gain", args.keypoint_error_gain),
             ("arm_swap_p", args.arm_swap), ("drop_camera_p", args.drop_camera),
             ("cold_start_p", args.cold_start), ("target_lead_ms", args.target_lead_ms),
+            ("reanchor", args.reanchor or None),
         )
         if value is not None
     }  # fmt: skip
@@ -374,6 +381,8 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.keep_upper is not None and not 0.0 <= args.keep_upper <= 100.0, "--keep-upper W needs 0 <= W <= 100"),
         (args.keep_upper and args.init_from is None, "--keep-upper W needs --init-from (the net whose upper body it keeps)"),
         (args.keep_joints and not args.keep_upper, "--keep-joints needs --keep-upper W > 0 (the term it chooses joints for)"),
+        (args.reanchor and args.init_from is None, "--reanchor needs --init-from (the net it moves to another head joint)"),
+        (args.reanchor and args.keep_upper and args.keep_joints != "arms", "--reanchor keeps no more than the arms (--keep-joints arms): the trunk under the head is what it moves"),
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.drop_camera is not None and not 0.0 <= args.drop_camera <= 1.0, "--drop-camera P needs 0 <= P <= 1"),

@@ -150,6 +150,11 @@ class TrainConfig:
     # head); "arms", ARM_JOINTS' 8 (their rotations, their joints in the chest's frame), so the spine, the neck
     # and the trunk's lean over the hips stay free (MODEL_CARD.md, rule 42).
     keep_joints: str = "upper"
+    # With a fine-tune: train at today's default head offsets (or ``--head-offsets-from``'s) although the net
+    # it starts from was trained at others, so the fine-tune learns the body under the new head joint instead
+    # of keeping the one its start compensated for (MODEL_CARD.md, rule 76). False: a fine-tune keeps its
+    # start's offsets.
+    reanchor: bool = False
     mirror_p: float = 0.5  # stage 1: frames mirrored; stage 2: every sequence also trains mirrored
     crop_p: float = 0.5  # stage 1: frames cropped to other aspect ratios and fields of view (augment.py)
     speed_range: tuple[float, float] = (0.8, 1.25)  # stage 2: the mirrored copies play at a random speed
@@ -1049,7 +1054,7 @@ def train_fusion(
     cfg = fusion_config(name, tc)
     net = FusionNet(cfg)
     rng = np.random.default_rng([tc.seed, 7])
-    offsets_m = training_offsets(initial, teacher, head_offsets_m)
+    offsets_m = training_offsets(initial, teacher, head_offsets_m, tc.reanchor)
     prepared = [prepare_fusion_sequence(s, rng, tc, visual, cache, offsets_m) for s in augmented(seqs, tc)]
     _set_statistics(net, prepared, tc, rng)
     if initial is not None:
@@ -1073,6 +1078,8 @@ def train_fusion(
     if initial is not None:
         digest = provenance.file_digest(initial.source)
         meta["init"] = {"from": initial.source, "member": initial.member, "sha256": digest}
+        if tc.reanchor:  # the head joint its start hung the body from, which this net was moved away from
+            meta["init"]["rig_offsets_m"] = [list(row) for row in initial.rig_offsets_m]
         ancestors |= provenance.ancestry(digest, initial.training)
     if ancestors:
         meta["ancestors"] = ancestors
@@ -1197,15 +1204,19 @@ def load_teacher(
 
 
 def training_offsets(
-    initial: InitialWeights | None, teacher: Teacher | None, chosen_m: np.ndarray | None = None
+    initial: InitialWeights | None,
+    teacher: Teacher | None,
+    chosen_m: np.ndarray | None = None,
+    reanchor: bool = False,
 ) -> np.ndarray:
     """(3, 3) the head offsets a fusion net trains at (its anchor, recorded in its checkpoint and export): the
     offsets ``chosen_m`` (``--head-offsets-from``) where given; a net has learnt the body under its own head
     joint, so a fine-tune keeps the offsets of the net it starts from, and a student takes its teachers'
-    (their joints, which it learns, hang from their head joint); otherwise today's default. TeacherError when
-    two of them are given and disagree."""
+    (their joints, which it learns, hang from their head joint); otherwise today's default. With ``reanchor``
+    a fine-tune's start does not choose: it moves to ``chosen_m``, its teachers' or the default. TeacherError when two of
+    them are given and disagree."""
     theirs = None if teacher is None or teacher.rig_offsets_m is None else np.asarray(teacher.rig_offsets_m)
-    mine = None if initial is None else np.asarray(initial.rig_offsets_m, dtype=np.float64)
+    mine = None if initial is None or reanchor else np.asarray(initial.rig_offsets_m, dtype=np.float64)
     if mine is not None and theirs is not None and not np.allclose(mine, theirs):
         raise TeacherError(
             f"{initial.source} was trained at other head offsets than the teachers "
@@ -1377,7 +1388,7 @@ def train_zoo(
     # Loaded first: teachers that cannot teach are an error now, not after the encoders have trained.
     taught = {f: load_teacher(f, teachers, fusion_config(f, tc), tc.device) for f in fusions}
     for f in fusions:  # refused now, too: a fine-tune and teachers at different head offsets, nothing to keep
-        training_offsets((initial or {}).get(f), taught[f], head_offsets_m)
+        training_offsets((initial or {}).get(f), taught[f], head_offsets_m, tc.reanchor)
         _check_keeps_a_start((initial or {}).get(f), tc)
     data_dirs = dataset_dirs(data)
     if out_of_fold and (tc.hold_out or tc.train_fold or len(data_dirs) > 1):

@@ -690,6 +690,36 @@ def test_a_fine_tune_keeps_the_head_offset_of_the_net_it_starts_from(tiny_data, 
     np.testing.assert_allclose(gap_m, np.linalg.norm(other[0] - DEFAULT_OFFSETS_M[0]), atol=1e-5)
 
 
+def test_a_reanchored_fine_tune_moves_its_start_to_todays_head_offsets(
+    tiny_data, tiny_weights, tmp_path, capsys
+):
+    """`--reanchor`: a fine-tune of a file trained at the legacy head offset trains anchored at today's
+    default instead, from the file's weights, and its export says so; without --init-from, or with a kept
+    trunk (--keep-joints upper), it is refused before any training."""
+    from egoposevr.model.rig import DEFAULT_OFFSETS_M
+
+    start, other = _weights_at_the_bundled_head_offset(tiny_weights, tmp_path / "start")
+    train = ["train", "--data", str(tiny_data), "--model", "hmd-rgbd", "--preset", "tiny", "--no-progress"]
+    train += ["--encoders", str(tiny_weights), "--fusion-steps", "1"]
+    moved = ["--init-from", str(start), "--reanchor", "--keep-upper", "1", "--keep-joints", "arms"]
+    assert main([*train, "--out", str(tmp_path / "moved"), *moved]) == 0
+    ckpt = load_checkpoint(tmp_path / "moved" / "fusion-hmd-rgbd.pt")
+    assert ckpt["rig_offsets_m"] == DEFAULT_OFFSETS_M.tolist() != other.tolist()
+    assert ckpt["init"]["from"].endswith("hmd-rgbd.onnx") and ckpt["init"]["rig_offsets_m"] == other.tolist()
+    out = tmp_path / "moved-weights"
+    export = ["export", "--runs", str(tmp_path / "moved"), "--out", str(out), "--model", "hmd-rgbd"]
+    assert main([*export, "--encoders", str(tiny_weights)]) == 0
+    np.testing.assert_array_equal(LoadedModel.load(out / "hmd-rgbd.onnx").info.rig_offsets_m, DEFAULT_OFFSETS_M)
+
+    capsys.readouterr()
+    assert main([*train, "--out", str(tmp_path / "x"), "--reanchor"]) == 2
+    assert "--reanchor needs --init-from" in capsys.readouterr().err
+    trunk = ["--init-from", str(start), "--reanchor", "--keep-upper", "1"]
+    assert main([*train, "--out", str(tmp_path / "y"), *trunk]) == 2
+    assert "--keep-joints arms" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
 def test_a_net_trains_from_scratch_at_the_head_offsets_a_model_file_records(
     tiny_data, tiny_weights, tmp_path, capsys
 ):
