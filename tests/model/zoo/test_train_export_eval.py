@@ -709,7 +709,9 @@ def test_a_reanchored_fine_tune_moves_its_start_to_todays_head_offsets(
     out = tmp_path / "moved-weights"
     export = ["export", "--runs", str(tmp_path / "moved"), "--out", str(out), "--model", "hmd-rgbd"]
     assert main([*export, "--encoders", str(tiny_weights)]) == 0
-    np.testing.assert_array_equal(LoadedModel.load(out / "hmd-rgbd.onnx").info.rig_offsets_m, DEFAULT_OFFSETS_M)
+    np.testing.assert_array_equal(
+        LoadedModel.load(out / "hmd-rgbd.onnx").info.rig_offsets_m, DEFAULT_OFFSETS_M
+    )
 
     capsys.readouterr()
     assert main([*train, "--out", str(tmp_path / "x"), "--reanchor"]) == 2
