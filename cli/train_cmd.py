@@ -233,8 +233,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--head-offsets-from", type=Path, default=None, metavar="FILE",
         help="train the fusion nets at the head offsets the model file FILE records instead of today's "
-        "default; --init-from and --teachers must agree. The offset must be where the data puts the headset: "
-        "on today's renders the default is (the bundled hmd-rgbd.onnx's legacy ones cost 1-2 cm, MODEL_CARD)",
+        "default; --init-from (unless --reanchor) and --teachers must agree. The offset must be where the data "
+        "puts the headset: on today's renders the default is (the bundled hmd-rgbd.onnx's legacy ones cost 1-2 "
+        "cm, MODEL_CARD)",
     )  # fmt: skip
     parser.add_argument(
         "--hold-out", default=None, metavar="K/N",

@@ -1213,8 +1213,8 @@ def training_offsets(
     offsets ``chosen_m`` (``--head-offsets-from``) where given; a net has learnt the body under its own head
     joint, so a fine-tune keeps the offsets of the net it starts from, and a student takes its teachers'
     (their joints, which it learns, hang from their head joint); otherwise today's default. With ``reanchor``
-    a fine-tune's start does not choose: it moves to ``chosen_m``, its teachers' or the default. TeacherError when two of
-    them are given and disagree."""
+    a fine-tune's start does not choose: it moves to ``chosen_m``, its teachers' or the default. TeacherError
+    when two of them are given and disagree."""
     theirs = None if teacher is None or teacher.rig_offsets_m is None else np.asarray(teacher.rig_offsets_m)
     mine = None if initial is None or reanchor else np.asarray(initial.rig_offsets_m, dtype=np.float64)
     if mine is not None and theirs is not None and not np.allclose(mine, theirs):
