@@ -1118,12 +1118,17 @@ def _load_start(net: FusionNet, state: dict[str, torch.Tensor]) -> None:
 
 
 def _check_keeps_a_start(initial: InitialWeights | None, tc: TrainConfig) -> None:
-    """TeacherError when ``tc.keep_upper_weight`` asks to keep the upper body of a start there is not;
-    ValueError when ``tc.keep_joints`` names no joints of KEPT_JOINTS."""
+    """TeacherError when ``tc.keep_upper_weight`` asks to keep the upper body of a start there is not, or
+    the trunk under the head of a start ``tc.reanchor`` moves to another head joint; ValueError when
+    ``tc.keep_joints`` names no joints of KEPT_JOINTS."""
     if tc.keep_joints not in KEPT_JOINTS:
         raise ValueError(f"keep_joints must be one of {sorted(KEPT_JOINTS)}, got {tc.keep_joints!r}")
     if tc.keep_upper_weight > 0 and initial is None:
         raise TeacherError("keeping the upper body (--keep-upper) needs the net it starts from (--init-from)")
+    if tc.keep_upper_weight > 0 and tc.reanchor and tc.keep_joints != "arms":
+        raise TeacherError(
+            "--reanchor keeps no more than the arms (--keep-joints arms): the trunk under the head is what it moves"
+        )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """End to end on data the test synthesizes: train -> checkpoints -> export (parity) -> runtime -> eval."""
 
+import dataclasses
 import itertools
 import json
 import shlex
@@ -720,6 +721,24 @@ def test_a_reanchored_fine_tune_moves_its_start_to_todays_head_offsets(
     assert main([*train, "--out", str(tmp_path / "y"), *trunk]) == 2
     assert "--keep-joints arms" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+    # the library refuses that recipe too, before any step, whoever calls it
+    from egoposevr.model.training.export import initial_fusion_state
+    from egoposevr.model.training.train import TeacherError, fusion_config, train_zoo
+
+    tc = dataclasses.replace(PRESETS["tiny"], reanchor=True, keep_upper_weight=1.0, fusion_steps=1)
+    initial = {"hmd-rgbd": initial_fusion_state(start, "hmd-rgbd", 0, fusion_config("hmd-rgbd", tc))}
+    with pytest.raises(TeacherError, match="--keep-joints arms"):
+        train_zoo(
+            ["hmd-rgbd"],
+            tiny_data,
+            tmp_path / "z",
+            tc,
+            progress=False,
+            encoders_dir=tiny_weights,
+            initial=initial,
+        )
+    assert not (tmp_path / "z" / "fusion-hmd-rgbd.pt").exists()
 
 
 def test_a_net_trains_from_scratch_at_the_head_offsets_a_model_file_records(
