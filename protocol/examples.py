@@ -119,6 +119,8 @@ def example_messages() -> dict[str, Message]:
             transl=[0.0, 0.875, 0.0],
             joints=joints,
             timing_us={"features": 40, "fusion": 900, "fk_filter": 30, "kpo": 250, "total": 1300},
+            planted=[True, False],
+            floor_y_m=0.0,
         ),
         "models": Models(
             active="egoposevr",

@@ -268,6 +268,9 @@ class Pose(Message):
     ``skipped`` (optional): headset samples of this session that got no pose since the previous pose, because
     the server was behind and the newest sample won. ``truth`` (optional): the ground-truth joints the
     answered ``hmd`` sample carried (recorded sessions), so that viewers can draw them beside the pose.
+    ``planted`` (optional): (left, right), whether the server holds each foot planted on the floor (it does not
+    slide while true), for models that plant feet; ``floor_y_m`` (optional): the height of the floor the served
+    soles were held to, where there was one (0 in a floor-level space, the session's estimate in a LOCAL one).
     """
 
     TYPE: ClassVar[str] = "pose"
@@ -283,6 +286,8 @@ class Pose(Message):
     camera: Annotated[bool, Strict()] | None = None
     skipped: Seq | None = None
     truth: vec(66) | None = None  # the answered hmd sample's ground-truth joints, when it carried them
+    planted: vec(2, Bool) | None = None  # (left, right) feet held planted; absent: the model plants none
+    floor_y_m: Coord | None = None  # the floor's height the served soles were held to (m), when one was
 
 
 class ModelInfo(BaseModel):

@@ -601,5 +601,7 @@ def encode_pose(pose: PoseResult, sample: Hmd, model: str, timing_us: dict[str, 
         camera=pose.camera,
         skipped=skipped,
         truth=sample.truth,
+        planted=None if pose.planted is None else list(pose.planted),
+        floor_y_m=pose.floor_y_m,
     )
     return encode(message)

@@ -95,6 +95,8 @@ struct Pose {
     std::map<std::string, int64_t> timing_us;
     std::optional<bool> camera;
     std::optional<int64_t> skipped;
+    std::optional<std::array<bool, 2>> planted;  // left, right foot held planted on the floor (§planted-feet)
+    std::optional<float> floor_y_m;              // world y (m) of the floor the served soles were held to
 };
 
 struct Error {
@@ -288,6 +290,18 @@ class Fields {
         return floats<N>(name);
     }
 
+    template <size_t N>
+    std::optional<std::array<bool, N>> optional_flags(const char* name) const {
+        if (optional(name) == nullptr) return std::nullopt;
+        const msgpack::object& value = array(name);
+        if (value.via.array.size != N)
+            throw ProtocolError(path(name) + ": expected " + std::to_string(N) + " flags, got " +
+                                std::to_string(value.via.array.size));
+        std::array<bool, N> out{};
+        for (size_t i = 0; i < N; ++i) out[i] = as<bool>(value.via.array.ptr[i], path(name) + "[" + std::to_string(i) + "]");
+        return out;
+    }
+
     const msgpack::object& array(const char* name) const {
         const msgpack::object& value = required(name);
         if (value.type != msgpack::type::ARRAY) throw ProtocolError(path(name) + ": expected an array");
@@ -414,6 +428,8 @@ inline Pose read_pose(const msgpack::object_handle& handle) {
     pose.timing_us = f.get<std::map<std::string, int64_t>>("timing_us");
     pose.camera = f.get_optional<bool>("camera");
     pose.skipped = f.get_optional<int64_t>("skipped");
+    pose.planted = f.optional_flags<2>("planted");
+    pose.floor_y_m = f.get_optional<float>("floor_y_m");
     return pose;
 }
 

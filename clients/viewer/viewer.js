@@ -25,7 +25,7 @@ const DEVICE_FROM_JOINT = new THREE.Quaternion().setFromAxisAngle(new THREE.Vect
 
 const state = (window.viewerState = {
   connected: false, session: null, model: null, models: [], poses: 0, lastSeq: null, fps: 0,
-  serverMs: null, camera: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
+  serverMs: null, camera: null, planted: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
   headset: null, // from `session` messages: is an input client connected (null: not told yet)
   calibration: null, // the newest `calibration` message: {status, message, ...}
   body: null, // the newest `body` message: {bone_lengths_m, given, measured} (PROTOCOL.md §4.2)
@@ -86,6 +86,7 @@ function onPose(pose) {
   state.poses += 1; state.lastSeq = pose.seq; state.model = pose.model; state.fps = arrivals.length;
   state.serverMs = pose.timing_us && pose.timing_us.total !== undefined ? pose.timing_us.total / 1000 : null;
   state.camera = pose.camera === undefined ? null : pose.camera;
+  state.planted = Array.isArray(pose.planted) ? pose.planted : null; // PROTOCOL.md §planted-feet
   state.skipped += pose.skipped || 0;
   state.truthSeen = state.truthSeen || Boolean(pose.truth);
 }
@@ -333,6 +334,11 @@ function makeView(stage) {
 const view = makeView($("stage"));
 state.renderer = view.name;
 
+// Which feet the server holds planted: "L down R up", or "n/a" for a model that plants none.
+function feetText(planted) {
+  return planted ? planted.map((down, k) => `${k ? "R" : "L"} ${down ? "down" : "up"}`).join(" ") : "n/a";
+}
+
 function frame() {
   if (latest) { view.show(latest); latest = null; }
   view.draw();
@@ -342,7 +348,7 @@ function frame() {
   const body = s.bodyNote ? ` · ${s.bodyNote}` : s.body ? ` · body ${s.body.given ? "given" : "estimated"}` : "";
   $("status").textContent = s.connected ? `${s.session} · ${s.model || "?"}${headset}${calibration}${body}` : "connecting…";
   $("hud").textContent = s.poses
-    ? `poses ${s.poses}  ·  ${s.fps} FPS  ·  server ${s.serverMs?.toFixed(1) ?? "?"} ms  ·  camera ${s.camera === null ? "n/a" : s.camera ? "on" : "off"}  ·  skipped ${s.skipped}` +
+    ? `poses ${s.poses}  ·  ${s.fps} FPS  ·  server ${s.serverMs?.toFixed(1) ?? "?"} ms  ·  camera ${s.camera === null ? "n/a" : s.camera ? "on" : "off"}  ·  feet ${feetText(s.planted)}  ·  skipped ${s.skipped}` +
       (s.errors.length ? `  ·  last error ${s.errors[s.errors.length - 1]}` : "")
     : "waiting for poses…";
   requestAnimationFrame(frame);

@@ -138,6 +138,8 @@ class FootContacts:
         self.sure_plant = sure_plant  # a foot the contact head is sure of is not let go by its lift
         self._estimate = FloorEstimate()  # the session's own, from the network's feet
         self._floor_now_m = floor_y_m
+        # whether the last sample held a foot to the floor (one foot within FLOOR_TRUST_M of it)
+        self._floor_held = False
         self._feet = (_Foot(), _Foot())
         self._last_us: int | None = None
         self._rebase_until_us: int | None = None  # a rebase's end (:meth:`rebase`)
@@ -151,6 +153,12 @@ class FootContacts:
     def floor_now_m(self) -> float:
         """The floor's height that the feet are held to now, m."""
         return self._floor_now_m
+
+    @property
+    def floor_held_m(self) -> float | None:
+        """The floor's height (m) if the last sample held a foot to it, else None: no foot came within
+        FLOOR_TRUST_M of it (a LOCAL space's first second, before the session's own estimate is the floor)."""
+        return self._floor_now_m if self._floor_held else None
 
     def rebase(self, t_us: int) -> None:
         """The network's inputs have just filled (Pipeline's ``warm_reseat``): each planted foot's mean
@@ -184,6 +192,9 @@ class FootContacts:
             self._feet = (_Foot(), _Foot())
         self._last_us = t_us
         floor_y_m = self._floor(t_us, joints)
+        rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
+        # as _step decides: a foot further below the floor is left alone
+        self._floor_held = bool((joints[_FOOT_JOINTS, 1] - rest_y >= -FLOOR_TRUST_M).any())
         for side, (foot, (ankle_j, foot_j)) in enumerate(zip(self._feet, FEET, strict=True)):
             predicted = joints[[ankle_j, foot_j]]
             p = None if contact_p is None else float(contact_p[side])

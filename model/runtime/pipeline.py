@@ -73,6 +73,9 @@ class PoseResult:
     local_rot: np.ndarray  # (J, 3, 3)
     camera: bool | None  # None: the model reads no camera; False: it had no usable frame
     timing_us: dict[str, int]
+    # (left, right): each foot held planted on the floor by the runtime; None: the model plants no feet
+    planted: tuple[bool, bool] | None = None
+    floor_y_m: float | None = None  # the floor the soles were held to; None: none (no planted feet, no floor)
 
 
 class Pipeline(GivenBody):
@@ -361,6 +364,12 @@ class Pipeline(GivenBody):
             t_us, valid, tracked_pos, rot, camera, timing, self.model, inputs, tracked_rot=tracked_rot
         )
 
+    def _feet_state(self) -> dict[str, Any]:
+        """The answer's ``planted`` and ``floor_y_m`` (PoseResult's): only where the runtime plants feet."""
+        if not (self.model.info.kpo and self.contacts):
+            return {}
+        return {"planted": self.feet.planted, "floor_y_m": self.feet.floor_held_m}
+
     def _stillness_point(self, pending: PendingPose) -> np.ndarray:
         """Where the stillness gates watch the head (rig.STILLNESS_OFFSET_M), (3,)."""
         if pending.tracked_rot is None:
@@ -435,6 +444,7 @@ class Pipeline(GivenBody):
             local_rot=local,
             camera=pending.camera,
             timing_us=timing,
+            **self._feet_state(),
         )
 
 

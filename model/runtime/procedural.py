@@ -283,7 +283,14 @@ class ProceduralPipeline(GivenBody):
             t_us=t_us, model=NAME, global_orient=axis_angle[0], body_pose=axis_angle[1:].reshape(-1),
             transl=joints[0].copy(), joints=joints, local_rot=local, camera=None,
             timing_us={"procedural": int((time.perf_counter() - started) * 1e6)},
+            planted=self._planted(), floor_y_m=0.0,
         )  # fmt: skip
+
+    def _planted(self) -> tuple[bool, bool]:
+        """(left, right): each foot standing where it was put, not in a step."""
+        if self.feet is None:
+            return False, False
+        return self.feet[0].step_to is None, self.feet[1].step_to is None
 
     def _set_offsets(self, offsets: np.ndarray) -> None:
         """The body's bone offsets (J, 3) and its upright rest pose (J, 3) at the pelvis, kept together."""

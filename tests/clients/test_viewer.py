@@ -131,6 +131,8 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             assert state["truthSeen"] and state["serverMs"] > 0 and state["fps"] > 10
             assert "walk" in state["sessions"] and "egoposevr" in state["models"]
             assert state["headset"] is True  # told by the session status messages
+            assert state["planted"] is None  # hmd plants no feet (§planted-feet) ...
+            browser.wait_for_text("hud", "feet n/a")  # ... and the HUD says so
             title = browser.evaluate('document.querySelector("#model option[value=egoposevr]").title')
             assert title.endswith(
                 f"sha256 {file_digest(WEIGHTS_DIR / 'egoposevr.onnx')[:12]}"
@@ -143,9 +145,11 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             xs = np.nonzero(moved)[1]
             assert len(xs) > 300, "the avatar did not move between screenshots"
             assert first.shape[1] * 0.2 < np.median(xs) < first.shape[1] * 0.8  # where the avatar stands
-            browser.evaluate('(() => { const s = document.getElementById("model"); s.value = "hmd-rgbd";'
+            browser.evaluate('(() => { const s = document.getElementById("model"); s.value = "egoposevr";'
                              ' s.dispatchEvent(new Event("change")); })()')  # fmt: skip
-            browser.wait_for(lambda s: s.get("model") == "hmd-rgbd")
+            state = browser.wait_for(lambda s: s.get("model") == "egoposevr" and s.get("planted") is not None)
+            assert len(state["planted"]) == 2  # egoposevr says which feet it holds down
+            browser.wait_for_text("hud", "feet L ")
             # The calibrate button asks for a T-pose; a walking recording is not one, and the page says so.
             browser.evaluate('document.getElementById("calibrate").click()')
             state = browser.wait_for(

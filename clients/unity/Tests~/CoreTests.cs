@@ -87,6 +87,8 @@ static class CoreTests
             "an unknown message type is ignored (null)");
         var pose = (Pose)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "pose.msgpack")));
         Check(pose.Seq == 42 && pose.BodyPose[9] == 0.5f && pose.GlobalOrient[1] == 3.125f, "pose fields");
+        Check(pose.Planted != null && pose.Planted[0] && !pose.Planted[1] && pose.FloorYM == 0f,
+            "pose: which feet are planted and the floor (§planted-feet)");
         var error = (Error)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "error.msgpack")));
         Check(error.Code == "wrong_length" && !error.Fatal && error.RefType == "hmd" && error.RefSeq == 43, "error fields");
         var models = (Models)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "models.msgpack")));

@@ -98,6 +98,7 @@ static void server_messages(const std::string& dir) {
     refuses_field(bytes, "joints", msgpack::object(), read_pose, "pose.joints: missing");
     refuses_field(bytes, "seq", msgpack::object(1.5), read_pose, "pose.seq: wrong type");
     refuses_field(bytes, "model", msgpack::object(3), read_pose, "pose.model: expected a string");
+    refuses_field(bytes, "planted", msgpack::object(1), read_pose, "pose.planted: expected an array");
 }
 
 static void golden(const std::string& dir) {
@@ -155,6 +156,8 @@ static void golden(const std::string& dir) {
     check(pose.seq == 42 && pose.t_us == 1000000 && pose.model == "egoposevr", "pose header fields");
     check(pose.body_pose[9] == 0.5f && pose.global_orient[1] == 3.125f && pose.transl[1] == 0.875f, "pose numbers");
     check(pose.timing_us.at("fusion") == 900 && !pose.camera.has_value(), "pose timing and optionals");
+    check(pose.planted.has_value() && (*pose.planted)[0] && !(*pose.planted)[1] && pose.floor_y_m == 0.0f,
+          "pose: which feet are planted and the floor (§planted-feet)");
 
     bytes = read_file(dir + "/error.msgpack");
     auto error_handle = unpack(bytes.data(), bytes.size());

@@ -251,9 +251,11 @@ def test_without_a_floor_at_y_zero_the_feet_are_left_to_the_network_until_the_se
     out = run(contacts, frames)
     assert contacts.planted == (False, False)
     assert not any(observed.any() for _, observed in out)
+    assert contacts.floor_held_m is None  # what a pose then says of the floor: none is holding a foot
 
     out = run(contacts, [standing_joints(rng) - np.array([0.0, 1.6, 0.0]) for _ in range(150)], 40 * STEP_US)
     assert contacts.floor_now_m == pytest.approx(-1.6, abs=0.01)  # the lower sole, a low percentile
+    assert contacts.floor_held_m == contacts.floor_now_m
     assert contacts.planted == (True, True)
     targets, observed = out[-1]
     assert observed[LEFT_FOOT]
@@ -267,6 +269,7 @@ def test_the_floor_of_a_floor_level_space_stays_where_it_is():
     for lift_m in (0.04, -0.05):
         run(contacts, [standing_joints(rng) + np.array([0.0, lift_m, 0.0]) for _ in range(200)])
         assert contacts.floor_now_m == 0.0
+        assert contacts.floor_held_m == 0.0
 
 
 def served_feet(contacts: FootContacts, frames: list[np.ndarray], contact_p: list[np.ndarray]) -> np.ndarray:

@@ -84,6 +84,13 @@ def test_walking_makes_it_step_after_the_body(model):
     assert pelvis_travel > 1.0 and (travelled > 0.6 * pelvis_travel).all()
     final_gap = np.linalg.norm((poses[-1].joints[0] - track.joints_m[-1, 0])[[0, 2]])
     assert final_gap < 0.25  # the body keeps up with the walker
+    # what each pose tells a client (PROTOCOL.md §planted-feet)
+    planted = np.array([p.planted for p in poses])
+    assert (~planted).any(axis=0).all() and planted.any(axis=1).all()  # each foot steps, one at a time
+    assert all(p.floor_y_m == 0.0 for p in poses)
+    stepping = ~planted[1:, 0] & ~planted[:-1, 0]
+    moved_m = np.linalg.norm(np.diff(feet[:, 0], axis=0), axis=1)
+    assert moved_m[planted[1:, 0] & planted[:-1, 0]].mean() < 0.1 * moved_m[stepping].mean()  # down is still
 
 
 def turning_stander(yaw_deg: np.ndarray, rate_hz: float = 90.0) -> tuple[np.ndarray, np.ndarray]:

@@ -230,6 +230,8 @@ namespace EgoPose.Protocol
         public bool? Camera;
         public long? Skipped;
         public float[] Truth;
+        public bool[] Planted; // optional (§planted-feet): left, right foot held planted on the floor; null: none planted by the model
+        public float? FloorYM; // optional: world y (m) of the floor the served soles were held to
 
         public override string Type { get { return "pose"; } }
 
@@ -241,6 +243,12 @@ namespace EgoPose.Protocol
             if (Camera.HasValue) map.Add("camera", Camera.Value);
             if (Skipped.HasValue) map.Add("skipped", Skipped.Value);
             if (Truth != null) map.Add("truth", Truth);
+            if (Planted != null)
+            {
+                if (Planted.Length != 2) throw new ArgumentException("pose.planted must hold 2 flags");
+                map.Add("planted", new List<object> { Planted[0], Planted[1] });
+            }
+            if (FloorYM.HasValue) map.Add("floor_y_m", FloorYM.Value);
         }
 
         internal static Pose Read(MsgMap map)
@@ -260,6 +268,8 @@ namespace EgoPose.Protocol
                 Camera = Fields.OptionalBool(map, "camera"),
                 Skipped = Fields.OptionalInt(map, "skipped"),
                 Truth = map.Get("truth") == null ? null : Fields.Floats(map, "truth", 66),
+                Planted = map.Get("planted") == null ? null : Fields.Bools(map, "planted", 2),
+                FloorYM = Fields.OptionalFloat(map, "floor_y_m"),
             };
         }
     }
@@ -572,6 +582,20 @@ namespace EgoPose.Protocol
             object value = map.Get(key);
             if (!(value is bool)) throw new ProtocolException(key + ": expected a bool");
             return (bool)value;
+        }
+
+        internal static bool[] Bools(MsgMap map, string key, int length)
+        {
+            var items = Get<List<object>>(map, key);
+            if (items.Count != length)
+                throw new ProtocolException(key + ": expected exactly " + length + " items, got " + items.Count);
+            var result = new bool[length];
+            for (int i = 0; i < length; i++)
+            {
+                if (!(items[i] is bool)) throw new ProtocolException(key + "[" + i + "]: expected a bool");
+                result[i] = (bool)items[i];
+            }
+            return result;
         }
 
         internal static bool? OptionalBool(MsgMap map, string key)
