@@ -273,15 +273,21 @@ class Fields {
         return out;
     }
 
-    template <size_t N>
-    std::array<float, N> floats(const char* name) const {
+    // An array of exactly N items of type T (`what` names them in the error: "numbers", "flags").
+    template <typename T, size_t N>
+    std::array<T, N> items(const char* name, const char* what) const {
         const msgpack::object& value = array(name);
         if (value.via.array.size != N)
-            throw ProtocolError(path(name) + ": expected " + std::to_string(N) + " numbers, got " +
+            throw ProtocolError(path(name) + ": expected " + std::to_string(N) + " " + what + ", got " +
                                 std::to_string(value.via.array.size));
-        std::array<float, N> out{};
-        for (size_t i = 0; i < N; ++i) out[i] = as<float>(value.via.array.ptr[i], path(name) + "[" + std::to_string(i) + "]");
+        std::array<T, N> out{};
+        for (size_t i = 0; i < N; ++i) out[i] = as<T>(value.via.array.ptr[i], path(name) + "[" + std::to_string(i) + "]");
         return out;
+    }
+
+    template <size_t N>
+    std::array<float, N> floats(const char* name) const {
+        return items<float, N>(name, "numbers");
     }
 
     template <size_t N>
@@ -293,13 +299,7 @@ class Fields {
     template <size_t N>
     std::optional<std::array<bool, N>> optional_flags(const char* name) const {
         if (optional(name) == nullptr) return std::nullopt;
-        const msgpack::object& value = array(name);
-        if (value.via.array.size != N)
-            throw ProtocolError(path(name) + ": expected " + std::to_string(N) + " flags, got " +
-                                std::to_string(value.via.array.size));
-        std::array<bool, N> out{};
-        for (size_t i = 0; i < N; ++i) out[i] = as<bool>(value.via.array.ptr[i], path(name) + "[" + std::to_string(i) + "]");
-        return out;
+        return items<bool, N>(name, "flags");
     }
 
     const msgpack::object& array(const char* name) const {
