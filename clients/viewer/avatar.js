@@ -5,6 +5,9 @@
 // rotation of its nearest present ancestor, inverted, times its own: missing optional bones (upperChest, toes,
 // shoulders) are skipped without bending the chain. The hips go to `transl`, their height scaled by the avatar's
 // leg length over the served one so that feet of any avatar meet the floor. World: right-handed, y up, metres.
+// A foot the server holds planted (`pose.planted`, PROTOCOL.md §planted-feet) is pinned where the avatar's foot
+// stood when it landed, by two-bone IK on the thigh and shin: the avatar's proportions differ from the served
+// body's, so copied rotations alone would slide its feet whenever the hips move over them.
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { VRMLoaderPlugin } from "./vendor/three-vrm/three-vrm.module.min.js";
@@ -17,6 +20,9 @@ export const VRM_BONES = [
   "leftUpperArm", "rightUpperArm", "leftLowerArm", "rightLowerArm", "leftHand", "rightHand",
 ];
 const YAW_180 = new THREE.Quaternion(0, 1, 0, 0);
+const LEGS = [["leftUpperLeg", "leftLowerLeg", "leftFoot"], ["rightUpperLeg", "rightLowerLeg", "rightFoot"]];
+const PIN_SLACK = 1.2; // a pin farther than this many leg lengths from its hip is dropped (a recentred space)
+const PIN_GAP_US = 500000; // pins are dropped after a pause this long between shown poses
 
 function axisAngle(x, y, z) {
   const angle = Math.hypot(x, y, z);
@@ -34,6 +40,36 @@ export function globalRotations(pose) {
 }
 
 function legLength(a, b, c) { return a.distanceTo(b) + b.distanceTo(c); }
+
+/** Turn `node` by the world rotation `turn` (its children go with it); world matrices kept current. */
+function turnInWorld(node, turn) {
+  const parent = node.parent.getWorldQuaternion(new THREE.Quaternion());
+  const world = turn.clone().multiply(node.getWorldQuaternion(new THREE.Quaternion()));
+  node.quaternion.copy(parent.invert().multiply(world));
+  node.updateMatrixWorld(true);
+}
+
+/**
+ * Two-bone IK: bend the knee (`lower`) so that hip to foot spans the hip's distance to `target` (as far as the
+ * bones reach), then swing the thigh (`upper`) to point the chain at it; the knee bends in the plane it already
+ * bends in, and the foot keeps its world rotation.
+ */
+function reach(upper, lower, foot, target) {
+  const at = (node) => node.getWorldPosition(new THREE.Vector3());
+  const footTurn = foot.getWorldQuaternion(new THREE.Quaternion());
+  const [hip, knee, ankle] = [at(upper), at(lower), at(foot)];
+  const thigh = hip.distanceTo(knee), shin = knee.distanceTo(ankle);
+  const span = THREE.MathUtils.clamp(hip.distanceTo(target), Math.abs(thigh - shin) + 1e-4, thigh + shin - 1e-4);
+  const toHip = hip.clone().sub(knee), toAnkle = ankle.clone().sub(knee);
+  const axis = toHip.clone().cross(toAnkle);
+  if (axis.lengthSq() < 1e-12) axis.set(1, 0, 0).applyQuaternion(upper.getWorldQuaternion(new THREE.Quaternion()));
+  const wanted = Math.acos(THREE.MathUtils.clamp((thigh * thigh + shin * shin - span * span) / (2 * thigh * shin), -1, 1));
+  turnInWorld(lower, new THREE.Quaternion().setFromAxisAngle(axis.normalize(), wanted - toHip.angleTo(toAnkle)));
+  const reached = at(foot).sub(hip).normalize();
+  turnInWorld(upper, new THREE.Quaternion().setFromUnitVectors(reached, target.clone().sub(hip).normalize()));
+  foot.quaternion.copy(foot.parent.getWorldQuaternion(new THREE.Quaternion()).invert().multiply(footTurn));
+  foot.updateMatrixWorld(true);
+}
 
 /** The 22 joints of a flat [66] array (`pose.joints`, `pose.truth`) as vectors. */
 export function jointsOf(flat) {
@@ -65,6 +101,9 @@ export class Avatar {
     vrm.scene.updateMatrixWorld(true);
     const at = (bone) => humanoid.getRawBoneNode(bone).getWorldPosition(new THREE.Vector3());
     this.legM = legLength(at("leftUpperLeg"), at("leftLowerLeg"), at("leftFoot"));
+    this.legNodes = LEGS.map((chain) => chain.map((bone) => humanoid.getNormalizedBoneNode(bone)));
+    this.pins = [null, null]; // each planted foot's spot in the world, where the avatar's foot stood at landing
+    this.shownUs = undefined; // t_us of the last pose shown
     vrm.scene.traverse((o) => { o.frustumCulled = false; }); // skinned bounds lag behind the pose
   }
 
@@ -86,8 +125,24 @@ export class Avatar {
     const served = legLength(joints[1], joints[4], joints[7]);
     const scale = served > 0.1 ? this.legM / served : 1;
     this.nodes[0].position.set(pose.transl[0], pose.transl[1] * scale, pose.transl[2]);
+    this.vrm.scene.updateMatrixWorld(true);
+    const gap = pose.t_us - this.shownUs; // a pose after a pause (or from another stream) lands anew
+    if (gap < 0 || gap > PIN_GAP_US) this.pins = [null, null];
+    this.shownUs = pose.t_us;
+    this.pinFeet(pose.planted);
     this.vrm.update(0);
     this.vrm.scene.updateMatrixWorld(true);
+  }
+
+  /** Keep each planted foot on its spot (`planted`: the pose's [left, right], or undefined: none planted). */
+  pinFeet(planted) {
+    this.legNodes.forEach(([upper, lower, foot], k) => {
+      if (!upper || !lower || !foot || !(planted && planted[k])) { this.pins[k] = null; return; }
+      const hip = upper.getWorldPosition(new THREE.Vector3());
+      const now = foot.getWorldPosition(new THREE.Vector3());
+      if (!this.pins[k] || this.pins[k].distanceTo(hip) > PIN_SLACK * this.legM) { this.pins[k] = now; return; }
+      reach(upper, lower, foot, this.pins[k]);
+    });
   }
 
   /** {bone: [x, y, z]} world positions of the avatar's own (raw) bones: what the skin follows. */

@@ -202,6 +202,7 @@ def test_the_avatar_follows_a_known_pose_and_a_dropped_vrm_replaces_it(tmp_path)
             )  # the mannequin's skeleton is SMPL's rest
             for j, bone in enumerate(VRM_BONES):
                 np.testing.assert_allclose(bones[bone], expected[j], atol=2e-3, err_msg=bone)
+            _planted_feet_stay(browser, pose, expected)
             vrm = (Path(VIEWER_DIR) / "avatar" / "mannequin.vrm").read_bytes()
             as_js = f"new Uint8Array({json.dumps(list(vrm))})"
             browser.evaluate(f'{DROP_FILE}("mine.vrm", {as_js})')
@@ -211,6 +212,28 @@ def test_the_avatar_follows_a_known_pose_and_a_dropped_vrm_replaces_it(tmp_path)
             assert state["avatar"]["name"] == "mine.vrm" and state["avatar"]["error"].startswith("broken.vrm")
         finally:
             browser.close()
+
+
+def _planted_feet_stay(browser: Browser, pose: dict, unpinned: np.ndarray) -> None:
+    """The avatar's planted feet (PROTOCOL.md §planted-feet) stay where they landed while the hips move over
+    them, whatever the avatar's proportions; a foot let go follows the pose again. ``unpinned``: the avatar's
+    joints (J, 3) for ``pose`` as the rotations alone place them."""
+
+    def posed(**change: object) -> dict[str, np.ndarray]:
+        bones = browser.evaluate(f"JSON.stringify(window.viewerAvatar.pose({json.dumps(pose | change)}))")
+        return {bone: np.array(at) for bone, at in json.loads(bones).items()}
+
+    landed = posed(planted=[True, True])
+    np.testing.assert_allclose(landed["leftFoot"], unpinned[7], atol=2e-3)  # pinned where it stood
+    moved = np.add(pose["transl"], [0.06, 0.0, -0.04]).tolist()  # the hips move, the rotations stay
+    pinned = posed(transl=moved, planted=[True, True])
+    np.testing.assert_allclose(pinned["hips"] - landed["hips"], [0.06, 0.0, -0.04], atol=2e-3)
+    for foot in ("leftFoot", "rightFoot"):  # the legs bend instead
+        np.testing.assert_allclose(pinned[foot], landed[foot], atol=5e-3, err_msg=foot)
+    left_free = posed(transl=moved, planted=[False, True])
+    np.testing.assert_allclose(left_free["leftFoot"], unpinned[7] + [0.06, 0.0, -0.04], atol=2e-3)
+    np.testing.assert_allclose(left_free["rightFoot"], landed["rightFoot"], atol=5e-3)
+    posed(planted=None)  # no planted feet: every pin let go
 
 
 def test_the_viewer_is_served_offline_with_its_vendored_libraries():
