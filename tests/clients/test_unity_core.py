@@ -83,6 +83,12 @@ def test_body_keeper_asks_keeps_forgets_and_stores(program: Path) -> None:
     assert run(program, "keeper").startswith("ok: ")
 
 
+def test_planted_feet_are_pinned_by_a_two_bone_reach(program: Path) -> None:
+    """FootPins (PROTOCOL.md §planted-feet): the reach puts a foot on a target within reach, bones kept, and
+    straightens the leg towards one beyond; pins follow `planted`, a pause and a hip out of reach."""
+    assert run(program, "pins").startswith("ok: ")
+
+
 def _unity_device(pose: list[float], flags: int) -> dict[str, object]:
     """What Unity's XR input reports for an OpenXR location: the pose mirrored, and InputTrackingState bits."""
     state = (1 if flags & POSITION_VALID else 0) | (2 if flags & ORIENTATION_VALID else 0)

@@ -33,6 +33,7 @@ static class CoreTests
             {
                 case "golden": Golden(args[1], args[2]); break;
                 case "keeper": Keeper(); break;
+                case "pins": Pins(); break;
                 case "convert": Convert(args[1], args[2]); break;
                 case "live": Live(args[1], args[2], args[3], args[4]); break;
                 case "reconnect": Reconnect(args[1], args[2]); break;
@@ -208,6 +209,77 @@ static class CoreTests
     }
 
     // ------------------------------------------------------------------------------------------------ keeper
+    // FootPins (PROTOCOL.md §planted-feet): the two-bone reach puts the foot on a target within reach with the bones'
+    // lengths kept and the knee bent on its own side, straightens towards one out of reach, and the pins follow
+    // `planted`, a pause and a far hip.
+    static void Pins()
+    {
+        var rng = new Random(3);
+        Func<double, float> noise = scale => (float)((rng.NextDouble() * 2 - 1) * scale);
+        for (int trial = 0; trial < 200; trial++)
+        {
+            var hip = new[] { noise(1), 1f + noise(0.1), noise(1) };
+            var knee = new[] { hip[0] + noise(0.15), hip[1] - 0.42f + noise(0.05), hip[2] + noise(0.15) };
+            var ankle = new[] { knee[0] + noise(0.2), knee[1] - 0.4f + noise(0.05), knee[2] + 0.1f + noise(0.1) };
+            float thigh = Length(Minus(knee, hip)), shin = Length(Minus(ankle, knee));
+            bool far = trial % 4 == 3;
+            var way = Minus(ankle, hip);
+            way = new[] { way[0] + noise(0.2), way[1], way[2] + noise(0.2) };
+            float span = far ? thigh + shin + 0.3f : (float)(0.6 + 0.38 * rng.NextDouble()) * (thigh + shin);
+            var target = Plus(hip, Times(way, span / Length(way))); // beyond thigh + shin, or within their reach
+            float[] kneeTurn, thighTurn;
+            FootPins.Reach(hip, knee, ankle, target, out kneeTurn, out thighTurn);
+            var newKnee = Plus(hip, FootPins.Rotate(thighTurn, Minus(knee, hip)));
+            var shinNow = FootPins.Rotate(thighTurn, FootPins.Rotate(kneeTurn, Minus(ankle, knee)));
+            var newAnkle = Plus(newKnee, shinNow);
+            Check(Math.Abs(Length(Minus(newKnee, hip)) - thigh) < 1e-4 && Math.Abs(Length(shinNow) - shin) < 1e-4,
+                "the reach keeps the bones' lengths");
+            var bendBefore = Bend(hip, knee, ankle);
+            var bendAfter = Bend(hip, newKnee, newAnkle);
+            if (Length(bendBefore) > 0.02f && Length(bendAfter) > 0.02f)
+                Check(Dot(bendBefore, FootPins.Rotate(thighTurn, bendBefore)) > 0 && Dot(FootPins.Rotate(thighTurn, bendBefore), bendAfter) > 0,
+                    "the knee bends on the side it bent");
+            if (!far)
+                Check(Length(Minus(newAnkle, target)) < 1e-3, "a target within reach is reached (trial " + trial + ")");
+            else
+            {
+                var along = Minus(target, hip);
+                var reached = Minus(newAnkle, hip);
+                Check(Math.Abs(Length(reached) - (thigh + shin)) < 2e-3
+                      && Dot(reached, along) / (Length(reached) * Length(along)) > 0.9999f,
+                    "a target out of reach straightens the leg towards it");
+            }
+        }
+
+        var pins = new FootPins();
+        float[] at = { 0.1f, 0.03f, 0.2f }, hip0 = { 0.1f, 0.9f, 0.1f };
+        Check(pins.Target(0, true, 0, hip0, at, 0.85f) == null, "a foot that lands stays where the pose put it");
+        Check(pins.Target(1, false, 0, hip0, at, 0.85f) == null, "a free foot has no pin");
+        var moved = new[] { 0.3f, 0.03f, 0.2f };
+        var pin = pins.Target(0, true, 11111, hip0, moved, 0.85f);
+        Check(pin != null && pin.SequenceEqual(at), "while planted, the foot is held where it landed");
+        Check(pins.Target(0, true, 22222, new[] { 5f, 0.9f, 0f }, moved, 0.85f) == null,
+            "a pin out of the leg's reach (a recentred space) is dropped and the foot lands anew");
+        Check(pins.Target(0, false, 33333, hip0, moved, 0.85f) == null, "a foot let go is free");
+        pins.Target(0, true, 44444, hip0, at, 0.85f);
+        Check(pins.Target(0, true, 44444 + FootPins.GapUs + 1, hip0, moved, 0.85f) == null,
+            "after a pause the foot lands anew");
+    }
+
+    static float[] Minus(float[] a, float[] b) { return new[] { a[0] - b[0], a[1] - b[1], a[2] - b[2] }; }
+
+    // Where the knee sits off the hip-to-ankle line: the way the leg bends.
+    static float[] Bend(float[] hip, float[] knee, float[] ankle)
+    {
+        var line = Minus(ankle, hip);
+        var off = Minus(knee, hip);
+        return Minus(off, Times(line, Dot(off, line) / Dot(line, line)));
+    }
+    static float[] Plus(float[] a, float[] b) { return new[] { a[0] + b[0], a[1] + b[1], a[2] + b[2] }; }
+    static float[] Times(float[] a, float s) { return new[] { a[0] * s, a[1] * s, a[2] * s }; }
+    static float Dot(float[] a, float[] b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+    static float Length(float[] a) { return (float)Math.Sqrt(Dot(a, a)); }
+
     static void Keeper()
     {
         var lengths = ExampleBoneLengths();

@@ -1,7 +1,9 @@
 // Drives any Humanoid avatar (Mixamo, VRM, Ready Player Me, ...) with the served SMPL rotations: each mapped bone
 // gets its world rotation from Core/SmplRetarget.cs, which accounts for how that rig rests its bones, and the
 // hips go where the pose's `transl` says. The avatar must stand in its T-pose when the driver starts (most
-// humanoids import so; otherwise use "Enforce T-Pose" in the avatar's configuration).
+// humanoids import so; otherwise use "Enforce T-Pose" in the avatar's configuration). A foot the server holds
+// planted (PROTOCOL.md §planted-feet) stays where the avatar's foot landed (Core/FootPins.cs: two-bone IK on the
+// thigh and shin), so an avatar of other proportions does not slide its feet as the hips move over them.
 //
 // Needs UnityEngine: not compiled by the project's tests (the retargeting math it calls is, against Python).
 using EgoPose.Protocol;
@@ -24,6 +26,11 @@ namespace EgoPose
         [Tooltip("Scale the hips' height by the avatar's leg length over the wearer's, so a smaller avatar stands on the floor")]
         public bool matchAvatarHeight = true;
 
+        [Tooltip("Keep each foot the server holds planted where the avatar's foot landed (two-bone IK on the leg)")]
+        public bool pinPlantedFeet = true;
+
+        static readonly int[][] Legs = { new[] { 1, 4, 7 }, new[] { 2, 5, 8 } }; // hip, knee, ankle: left, right
+        readonly FootPins pins = new FootPins();
         Transform[] bones;
         float[] tposeWorld; // 22 × xyzw, relative to the avatar's root rotation
         float avatarLegLength;
@@ -68,6 +75,25 @@ namespace EgoPose
             var hips = SmplRetarget.HipsPosition(pose.Transl, scale);
             var position = new Vector3(hips[0], hips[1], hips[2]);
             bones[0].position = trackingSpace == null ? position : trackingSpace.TransformPoint(position);
+            for (int side = 0; side < 2; side++) PinFoot(pose, side);
         }
+
+        void PinFoot(Pose pose, int side)
+        {
+            Transform upper = bones[Legs[side][0]], lower = bones[Legs[side][1]], foot = bones[Legs[side][2]];
+            bool planted = pinPlantedFeet && pose.Planted != null && pose.Planted[side];
+            var target = pins.Target(side, planted, pose.TUs, Xyz(upper.position), Xyz(foot.position), avatarLegLength);
+            if (target == null) return;
+            var footRotation = foot.rotation; // the foot keeps its world rotation while the leg bends to reach
+            float[] kneeTurn, thighTurn;
+            FootPins.Reach(Xyz(upper.position), Xyz(lower.position), Xyz(foot.position), target, out kneeTurn, out thighTurn);
+            lower.rotation = Rotation(kneeTurn) * lower.rotation;
+            upper.rotation = Rotation(thighTurn) * upper.rotation;
+            foot.rotation = footRotation;
+        }
+
+        static float[] Xyz(Vector3 v) { return new[] { v.x, v.y, v.z }; }
+
+        static Quaternion Rotation(float[] q) { return new Quaternion(q[0], q[1], q[2], q[3]); }
     }
 }
