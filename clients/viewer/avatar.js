@@ -23,6 +23,7 @@ const YAW_180 = new THREE.Quaternion(0, 1, 0, 0);
 const LEGS = [["leftUpperLeg", "leftLowerLeg", "leftFoot"], ["rightUpperLeg", "rightLowerLeg", "rightFoot"]];
 const PIN_SLACK = 1.2; // a pin farther than this many leg lengths from its hip is dropped (a recentred space)
 const PIN_GAP_US = 500000; // pins are dropped after a pause this long between shown poses
+const FRONT_PULL_M = 0.1; // the knee's way off the hip-to-ankle line gets this much of the body's front added
 
 function axisAngle(x, y, z) {
   const angle = Math.hypot(x, y, z);
@@ -51,20 +52,26 @@ function turnInWorld(node, turn) {
 
 /**
  * Two-bone IK: bend the knee (`lower`) so that hip to foot spans the hip's distance to `target` (as far as the
- * bones reach), then swing the thigh (`upper`) to point the chain at it; the knee bends in the plane it already
- * bends in, and the foot keeps its world rotation.
+ * bones reach), then swing the thigh (`upper`) to point the chain at it. The knee goes the way it sits off the
+ * hip-to-ankle line, pulled towards `forward` (the body's front); the foot keeps its world rotation.
  */
-function reach(upper, lower, foot, target) {
+function reach(upper, lower, foot, target, forward) {
   const at = (node) => node.getWorldPosition(new THREE.Vector3());
   const footTurn = foot.getWorldQuaternion(new THREE.Quaternion());
   const [hip, knee, ankle] = [at(upper), at(lower), at(foot)];
   const thigh = hip.distanceTo(knee), shin = knee.distanceTo(ankle);
   const span = THREE.MathUtils.clamp(hip.distanceTo(target), Math.abs(thigh - shin) + 1e-4, thigh + shin - 1e-4);
   const toHip = hip.clone().sub(knee), toAnkle = ankle.clone().sub(knee);
-  const axis = toHip.clone().cross(toAnkle);
-  if (axis.lengthSq() < 1e-12) axis.set(1, 0, 0).applyQuaternion(upper.getWorldQuaternion(new THREE.Quaternion()));
+  // The way the knee goes: where it is off the hip-to-ankle line, pulled to the body's front (a leg about straight,
+  // or one whose rest knee sits off the line sideways, bends forward, not out)
+  const line = ankle.clone().sub(hip).normalize();
+  const off = knee.clone().sub(hip).projectOnPlane(line);
+  const way = off.add(forward.clone().normalize().projectOnPlane(line).multiplyScalar(FRONT_PULL_M));
+  const axis = way.cross(toHip);
   const wanted = Math.acos(THREE.MathUtils.clamp((thigh * thigh + shin * shin - span * span) / (2 * thigh * shin), -1, 1));
-  turnInWorld(lower, new THREE.Quaternion().setFromAxisAngle(axis.normalize(), wanted - toHip.angleTo(toAnkle)));
+  // the shin's new way: the thigh's (knee to hip) turned by the knee angle wanted, in the bend plane
+  const shinWay = toHip.clone().normalize().applyQuaternion(new THREE.Quaternion().setFromAxisAngle(axis.normalize(), wanted));
+  turnInWorld(lower, new THREE.Quaternion().setFromUnitVectors(toAnkle.clone().normalize(), shinWay));
   const reached = at(foot).sub(hip).normalize();
   turnInWorld(upper, new THREE.Quaternion().setFromUnitVectors(reached, target.clone().sub(hip).normalize()));
   foot.quaternion.copy(foot.parent.getWorldQuaternion(new THREE.Quaternion()).invert().multiply(footTurn));
@@ -136,12 +143,14 @@ export class Avatar {
 
   /** Keep each planted foot on its spot (`planted`: the pose's [left, right], or undefined: none planted). */
   pinFeet(planted) {
+    const [left, right] = this.legNodes.map(([upper]) => upper?.getWorldPosition(new THREE.Vector3()));
+    const forward = left && right ? left.sub(right).cross(new THREE.Vector3(0, 1, 0)) : new THREE.Vector3(0, 0, 1);
     this.legNodes.forEach(([upper, lower, foot], k) => {
       if (!upper || !lower || !foot || !(planted && planted[k])) { this.pins[k] = null; return; }
       const hip = upper.getWorldPosition(new THREE.Vector3());
       const now = foot.getWorldPosition(new THREE.Vector3());
       if (!this.pins[k] || this.pins[k].distanceTo(hip) > PIN_SLACK * this.legM) { this.pins[k] = now; return; }
-      reach(upper, lower, foot, this.pins[k]);
+      reach(upper, lower, foot, this.pins[k], forward);
     });
   }
 

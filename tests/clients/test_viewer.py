@@ -235,6 +235,20 @@ def _planted_feet_stay(browser: Browser, pose: dict, unpinned: np.ndarray) -> No
     np.testing.assert_allclose(left_free["rightFoot"], landed["rightFoot"], atol=5e-3)
     posed(planted=None)  # no planted feet: every pin let go
 
+    # Standing straight, the hips come down over planted feet: the knees bend to the body's front (+z here).
+    rest, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.array([0.0, 0.95, 0.0]), rest_offsets()
+    )
+    straight = {"global_orient": [0.0] * 3, "body_pose": [0.0] * 63, "transl": [0.0, 0.95, 0.0],
+                "joints": rest.ravel().tolist(), "planted": [True, True]}  # fmt: skip
+    stood = posed(**straight)
+    crouched = posed(**(straight | {"transl": [0.0, 0.9, 0.0]}))
+    for knee, foot in (("leftLowerLeg", "leftFoot"), ("rightLowerLeg", "rightFoot")):
+        assert crouched[knee][2] - stood[knee][2] > 0.05, knee  # forward ...
+        assert abs(crouched[knee][0] - stood[knee][0]) < 0.03, knee  # ... not out
+        np.testing.assert_allclose(crouched[foot], stood[foot], atol=5e-3, err_msg=foot)
+    posed(planted=None)
+
 
 def test_the_viewer_is_served_offline_with_its_vendored_libraries():
     with running_server() as server:

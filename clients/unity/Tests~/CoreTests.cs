@@ -228,7 +228,7 @@ static class CoreTests
             float span = far ? thigh + shin + 0.3f : (float)(0.6 + 0.38 * rng.NextDouble()) * (thigh + shin);
             var target = Plus(hip, Times(way, span / Length(way))); // beyond thigh + shin, or within their reach
             float[] kneeTurn, thighTurn;
-            FootPins.Reach(hip, knee, ankle, target, out kneeTurn, out thighTurn);
+            FootPins.Reach(hip, knee, ankle, target, new[] { 0f, 0f, 1f }, out kneeTurn, out thighTurn);
             var newKnee = Plus(hip, FootPins.Rotate(thighTurn, Minus(knee, hip)));
             var shinNow = FootPins.Rotate(thighTurn, FootPins.Rotate(kneeTurn, Minus(ankle, knee)));
             var newAnkle = Plus(newKnee, shinNow);
@@ -236,7 +236,7 @@ static class CoreTests
                 "the reach keeps the bones' lengths");
             var bendBefore = Bend(hip, knee, ankle);
             var bendAfter = Bend(hip, newKnee, newAnkle);
-            if (Length(bendBefore) > 0.02f && Length(bendAfter) > 0.02f)
+            if (Length(bendBefore) > 0.12f && Length(bendAfter) > 0.02f) // farther off than the front's pull
                 Check(Dot(bendBefore, FootPins.Rotate(thighTurn, bendBefore)) > 0 && Dot(FootPins.Rotate(thighTurn, bendBefore), bendAfter) > 0,
                     "the knee bends on the side it bent");
             if (!far)
@@ -249,6 +249,15 @@ static class CoreTests
                       && Dot(reached, along) / (Length(reached) * Length(along)) > 0.9999f,
                     "a target out of reach straightens the leg towards it");
             }
+        }
+
+        foreach (float front in new[] { 1f, -1f })
+        {
+            float[] hip = { 0f, 1f, 0f }, knee = { 0f, 0.55f, 0.001f }, ankle = { 0f, 0.1f, 0f }, lower = { 0f, 0.25f, 0f };
+            float[] kneeTurn, thighTurn;
+            FootPins.Reach(hip, knee, ankle, lower, new[] { 0f, 0f, front }, out kneeTurn, out thighTurn);
+            var bentKnee = Plus(hip, FootPins.Rotate(thighTurn, Minus(knee, hip)));
+            Check(bentKnee[2] * front > 0.1f, "a straight leg whose hips come down bends its knee to the body's front");
         }
 
         var pins = new FootPins();

@@ -19,6 +19,9 @@ namespace EgoPose.Protocol
         /// <summary>Pins are dropped after a pause this long between poses (µs): the next pose lands anew.</summary>
         public const long GapUs = 500000;
 
+        /// <summary>The knee's way off its hip-to-ankle line gets this much (m) of the body's front added.</summary>
+        public const double FrontPullM = 0.1;
+
         readonly float[][] pins = new float[2][];
         long lastTUs = -1;
 
@@ -52,19 +55,25 @@ namespace EgoPose.Protocol
         /// as far as the thigh and shin reach. <paramref name="kneeTurn"/> turns the shin about the knee, in the
         /// plane the leg already bends in, so that hip to foot spans the hip's distance to the target;
         /// <paramref name="thighTurn"/>, applied after it, swings the thigh (and the shin with it) about the hip to
-        /// point the chain at the target. Both as a new world rotation = turn · old world rotation.
+        /// point the chain at the target. Both as a new world rotation = turn · old world rotation. The knee goes
+        /// the way it sits off the hip-to-ankle line, pulled towards <paramref name="forward"/> (the body's front).
         /// </summary>
-        public static void Reach(float[] hip, float[] knee, float[] ankle, float[] target,
+        public static void Reach(float[] hip, float[] knee, float[] ankle, float[] target, float[] forward,
                                  out float[] kneeTurn, out float[] thighTurn)
         {
             double[] toHip = Sub(hip, knee), toAnkle = Sub(ankle, knee);
             double thigh = Norm(toHip), shin = Norm(toAnkle);
             double span = Math.Max(Math.Abs(thigh - shin) + 1e-4, Math.Min(thigh + shin - 1e-4, Norm(Sub(target, hip))));
-            double[] axis = Cross(toHip, toAnkle);
-            if (Norm(axis) < 1e-9) axis = Cross(toHip, Perpendicular(toHip)); // straight: any bend plane
+            // The way the knee goes: where it is off the hip-to-ankle line, pulled to the body's front (a leg about
+            // straight, or one whose rest knee sits off the line sideways, bends forward, not out).
+            double[] line = Normalised(Sub(ankle, hip));
+            double[] front = Normalised(new double[] { forward[0], forward[1], forward[2] });
+            double[] way = Add(Across(Sub(knee, hip), line), Scale(Across(front, line), FrontPullM));
+            double[] axis = Cross(way, toHip);
             double wanted = Math.Acos(Clamp((thigh * thigh + shin * shin - span * span) / (2 * thigh * shin)));
-            double now = Math.Acos(Clamp(Dot(toHip, toAnkle) / (thigh * shin)));
-            var knee64 = AxisAngle(Normalised(axis), wanted - now);
+            // the shin's new way: the thigh's (knee to hip) turned by the knee angle wanted, in the bend plane
+            double[] shinWay = Rotate(AxisAngle(Normalised(axis), wanted), Normalised(toHip));
+            var knee64 = FromTo(Normalised(toAnkle), shinWay);
             double[] reached = Add(Sub(knee, hip), Rotate(knee64, toAnkle)); // hip to the turned ankle
             var thigh64 = FromTo(Normalised(reached), Normalised(Sub(target, hip)));
             kneeTurn = ToFloat(knee64);
@@ -100,6 +109,8 @@ namespace EgoPose.Protocol
             return new[] { c[0] / n, c[1] / n, c[2] / n, w / n };
         }
 
+        static double[] Across(double[] v, double[] unitLine) { return Sub(v, Scale(unitLine, Dot(v, unitLine))); }
+
         static double[] Perpendicular(double[] v)
         {
             return Math.Abs(v[0]) < 0.9 ? Cross(v, new double[] { 1, 0, 0 }) : Cross(v, new double[] { 0, 1, 0 });
@@ -107,6 +118,7 @@ namespace EgoPose.Protocol
 
         static double Clamp(double c) { return Math.Max(-1.0, Math.Min(1.0, c)); }
         static double[] Sub(float[] a, float[] b) { return new double[] { a[0] - b[0], a[1] - b[1], a[2] - b[2] }; }
+        static double[] Sub(double[] a, double[] b) { return new[] { a[0] - b[0], a[1] - b[1], a[2] - b[2] }; }
         static double[] Add(double[] a, double[] b) { return new[] { a[0] + b[0], a[1] + b[1], a[2] + b[2] }; }
         static double[] Scale(double[] a, double s) { return new[] { a[0] * s, a[1] * s, a[2] * s }; }
         static double Dot(double[] a, double[] b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }

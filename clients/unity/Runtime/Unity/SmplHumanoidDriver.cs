@@ -75,10 +75,13 @@ namespace EgoPose
             var hips = SmplRetarget.HipsPosition(pose.Transl, scale);
             var position = new Vector3(hips[0], hips[1], hips[2]);
             bones[0].position = trackingSpace == null ? position : trackingSpace.TransformPoint(position);
-            for (int side = 0; side < 2; side++) PinFoot(pose, side);
+            // The body's front, for a straight knee to bend towards: up × (left hip − right hip), in Unity's frame.
+            Vector3 left = bones[1].position, right = bones[2].position;
+            var forward = new[] { left.z - right.z, 0f, right.x - left.x };
+            for (int side = 0; side < 2; side++) PinFoot(pose, side, forward);
         }
 
-        void PinFoot(Pose pose, int side)
+        void PinFoot(Pose pose, int side, float[] forward)
         {
             Transform upper = bones[Legs[side][0]], lower = bones[Legs[side][1]], foot = bones[Legs[side][2]];
             bool planted = pinPlantedFeet && pose.Planted != null && pose.Planted[side];
@@ -86,7 +89,8 @@ namespace EgoPose
             if (target == null) return;
             var footRotation = foot.rotation; // the foot keeps its world rotation while the leg bends to reach
             float[] kneeTurn, thighTurn;
-            FootPins.Reach(Xyz(upper.position), Xyz(lower.position), Xyz(foot.position), target, out kneeTurn, out thighTurn);
+            FootPins.Reach(Xyz(upper.position), Xyz(lower.position), Xyz(foot.position), target, forward,
+                           out kneeTurn, out thighTurn);
             lower.rotation = Rotation(kneeTurn) * lower.rotation;
             upper.rotation = Rotation(thighTurn) * upper.rotation;
             foot.rotation = footRotation;
