@@ -143,11 +143,13 @@ export class Avatar {
 
   /** Keep each planted foot on its spot (`planted`: the pose's [left, right], or undefined: none planted). */
   pinFeet(planted) {
-    const [left, right] = this.legNodes.map(([upper]) => upper?.getWorldPosition(new THREE.Vector3()));
-    const forward = left && right ? left.sub(right).cross(new THREE.Vector3(0, 1, 0)) : new THREE.Vector3(0, 0, 1);
+    const hips = this.legNodes.map(([upper]) => upper?.getWorldPosition(new THREE.Vector3()));
+    const forward = hips[0] && hips[1]
+      ? hips[0].clone().sub(hips[1]).cross(new THREE.Vector3(0, 1, 0))
+      : new THREE.Vector3(0, 0, 1);
     this.legNodes.forEach(([upper, lower, foot], k) => {
       if (!upper || !lower || !foot || !(planted && planted[k])) { this.pins[k] = null; return; }
-      const hip = upper.getWorldPosition(new THREE.Vector3());
+      const hip = hips[k];
       const now = foot.getWorldPosition(new THREE.Vector3());
       if (!this.pins[k] || this.pins[k].distanceTo(hip) > PIN_SLACK * this.legM) { this.pins[k] = now; return; }
       reach(upper, lower, foot, this.pins[k], forward);

@@ -103,6 +103,12 @@ class _Foot:
     )  # foot joint's
 
 
+def _off_this_floor(lift_m: float) -> bool:
+    """Whether a foot lift_m (m) over the floor is so far below it that the floor is not there (a LOCAL space):
+    such a foot is left to the network, and the floor holds no foot."""
+    return lift_m < -FLOOR_TRUST_M
+
+
 class FloorEstimate:
     """The floor of a reference space that has none at y = 0: where the network puts the lower sole, the
     ``FLOOR_PERCENTILE`` of the last ``FLOOR_WINDOW_S``, re-taken every ``FLOOR_EVERY_S``."""
@@ -193,8 +199,7 @@ class FootContacts:
         self._last_us = t_us
         floor_y_m = self._floor(t_us, joints)
         rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
-        # as _step decides: a foot further below the floor is left alone
-        self._floor_held = bool((joints[_FOOT_JOINTS, 1] - rest_y >= -FLOOR_TRUST_M).any())
+        self._floor_held = not all(_off_this_floor(foot_y - rest_y) for foot_y in joints[_FOOT_JOINTS, 1])
         for side, (foot, (ankle_j, foot_j)) in enumerate(zip(self._feet, FEET, strict=True)):
             predicted = joints[[ankle_j, foot_j]]
             p = None if contact_p is None else float(contact_p[side])
@@ -227,7 +232,7 @@ class FootContacts:
         """One foot's state for one sample -> its (2, 3) ankle and foot targets, or None (the network's)."""
         rest_y = floor_y_m + FOOT_JOINT_HEIGHT_M
         lift_m = predicted[1, 1] - rest_y
-        if lift_m < -FLOOR_TRUST_M:
+        if _off_this_floor(lift_m):
             foot.planted, foot.served, foot.blend_m = False, None, None
             return None
         speed_m_s = foot.speed.push(t_us, predicted[1])

@@ -52,8 +52,8 @@ namespace EgoPose.Protocol
 
         /// <summary>
         /// Two-bone IK: the world turns that bring the foot from <paramref name="ankle"/> to <paramref name="target"/>
-        /// as far as the thigh and shin reach. <paramref name="kneeTurn"/> turns the shin about the knee, in the
-        /// plane the leg already bends in, so that hip to foot spans the hip's distance to the target;
+        /// as far as the thigh and shin reach. <paramref name="kneeTurn"/> turns the shin about the knee so that hip
+        /// to foot spans the hip's distance to the target;
         /// <paramref name="thighTurn"/>, applied after it, swings the thigh (and the shin with it) about the hip to
         /// point the chain at the target. Both as a new world rotation = turn · old world rotation. The knee goes
         /// the way it sits off the hip-to-ankle line, pulled towards <paramref name="forward"/> (the body's front).

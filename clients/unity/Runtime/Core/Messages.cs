@@ -586,9 +586,7 @@ namespace EgoPose.Protocol
 
         internal static bool[] Bools(MsgMap map, string key, int length)
         {
-            var items = Get<List<object>>(map, key);
-            if (items.Count != length)
-                throw new ProtocolException(key + ": expected exactly " + length + " items, got " + items.Count);
+            var items = Items(map, key, length);
             var result = new bool[length];
             for (int i = 0; i < length; i++)
             {
@@ -596,6 +594,15 @@ namespace EgoPose.Protocol
                 result[i] = (bool)items[i];
             }
             return result;
+        }
+
+        /// <summary>An array field of exactly <paramref name="length"/> items.</summary>
+        static List<object> Items(MsgMap map, string key, int length)
+        {
+            var items = Get<List<object>>(map, key);
+            if (items.Count != length)
+                throw new ProtocolException(key + ": expected exactly " + length + " items, got " + items.Count);
+            return items;
         }
 
         internal static bool? OptionalBool(MsgMap map, string key)
@@ -632,9 +639,7 @@ namespace EgoPose.Protocol
 
         internal static float[] Floats(MsgMap map, string key, int length)
         {
-            var items = Get<List<object>>(map, key);
-            if (items.Count != length)
-                throw new ProtocolException(key + ": expected exactly " + length + " items, got " + items.Count);
+            var items = Items(map, key, length);
             var result = new float[length];
             for (int i = 0; i < length; i++) result[i] = Float(items[i], key + "[" + i + "]");
             return result;

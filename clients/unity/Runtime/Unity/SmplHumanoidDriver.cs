@@ -85,12 +85,12 @@ namespace EgoPose
         {
             Transform upper = bones[Legs[side][0]], lower = bones[Legs[side][1]], foot = bones[Legs[side][2]];
             bool planted = pinPlantedFeet && pose.Planted != null && pose.Planted[side];
-            var target = pins.Target(side, planted, pose.TUs, Xyz(upper.position), Xyz(foot.position), avatarLegLength);
+            float[] hip = Xyz(upper.position), ankle = Xyz(foot.position);
+            var target = pins.Target(side, planted, pose.TUs, hip, ankle, avatarLegLength);
             if (target == null) return;
             var footRotation = foot.rotation; // the foot keeps its world rotation while the leg bends to reach
             float[] kneeTurn, thighTurn;
-            FootPins.Reach(Xyz(upper.position), Xyz(lower.position), Xyz(foot.position), target, forward,
-                           out kneeTurn, out thighTurn);
+            FootPins.Reach(hip, Xyz(lower.position), ankle, target, forward, out kneeTurn, out thighTurn);
             lower.rotation = Rotation(kneeTurn) * lower.rotation;
             upper.rotation = Rotation(thighTurn) * upper.rotation;
             foot.rotation = footRotation;
