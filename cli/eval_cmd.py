@@ -30,7 +30,8 @@ planted foot the contact head is sure of kept down however high the net lifts it
 default), or held legs and a still stance's planted feet re-seated once the net's windows fill where it
 folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MODEL_CARD.md, rule 62), or a
 folded pelvis that keeps its heading while no camera frame is in the window on or off (@seated-yaw,
-@no-seated-yaw; off by default: MODEL_CARD.md, rule 65), so --models egoposevr@no-leg-hold,egoposevr says,
+@no-seated-yaw; off by default: MODEL_CARD.md, rule 65), or a body estimate never shorter than the highest quiet
+head says on or off (@quiet-lift, @no-quiet-lift; off by default: MODEL_CARD.md, rule 77), so --models egoposevr@no-leg-hold,egoposevr says,
 paired, what one stage of the runtime changes.
 @no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
 (at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
@@ -85,6 +86,8 @@ SWITCHES = {
     "no-warm-reseat": ("warm_reseat", False),
     "seated-yaw": ("seated_yaw", True),
     "no-seated-yaw": ("seated_yaw", False),
+    "quiet-lift": ("quiet_lift", True),
+    "no-quiet-lift": ("quiet_lift", False),
     "no-camera": ("send_frames", False),
     "first-frame-wait": ("first_frame_wait", True),
     "no-first-frame-wait": ("first_frame_wait", False),
@@ -106,8 +109,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
-        "@no-warm-reseat, @no-seated-yaw) or on (@lean-gate, @reseat, @body-hold, @sure-plant, @warm-reseat, "
-        "@seated-yaw), its first samples answered before the first camera frame (@no-first-frame-wait; by "
+        "@no-warm-reseat, @no-seated-yaw, @no-quiet-lift) or on (@lean-gate, @reseat, @body-hold, @sure-plant, "
+        "@warm-reseat, @seated-yaw, @quiet-lift), its first samples answered before the first camera frame "
+        "(@no-first-frame-wait; by "
         "default they wait for it, @first-frame-wait), a low head's first answer made once the net's visual window "
         "is full (@low-head-wait, @no-low-head-wait), without the camera (@no-camera), with the truth's body "
         "(@truth-body) or contact labels (@truth-contact), or as a returning wearer whose body the client kept "

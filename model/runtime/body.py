@@ -22,6 +22,13 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sour
 4. **A calibration** (:meth:`BodyCalibrator.calibrate`, runtime/calibration.py), when the session asked for
    one: its standing head height replaces the running one and its arms replace the estimated ones.
 
+With ``lift_to_quiet_head``, the estimate is never shorter than a quiet head says the wearer is: the highest
+head joint seen while the head was quiet (:class:`QuietHead`: within ``QUIET_HEAD_RANGE_M`` on every axis over
+``QUIET_HEAD_WINDOW_S``) is a standing height's lower bound that no jump reaches, and a body whose standing
+head joint (:func:`standing_head_height_m`) is lower is scaled up, every bone alike, until it reaches it. The
+camera can measure a wearer's legs short, and the regressor follows it (MODEL_CARD.md, "Where the eyes' anchor
+loses the folds"): a served skeleton too short to reach the floor from its head floats its planted feet.
+
 The served skeleton (:class:`ServedScale`) follows the estimate at a bounded rate, so the body grows or
 shrinks over a few samples, never in one.
 
@@ -98,6 +105,10 @@ SERVED_SCALE_MAX_STEP_S: Final = 0.1  # a longer pause between samples counts as
 # off (MODEL_CARD.md, rule 56); the legs alone cost it nothing (rule 57).
 HELD_LEG_BONES: Final = (1, 2, *LEG_BONES)
 BODY_HOLD_AFTER_S: Final = 1.0
+# A quiet head: within QUIET_HEAD_RANGE_M on each axis over QUIET_HEAD_WINDOW_S (:class:`QuietHead`); the
+# probe behind rule 77 (MODEL_CARD.md) read these, its first values, and no other.
+QUIET_HEAD_WINDOW_S: Final = 0.5
+QUIET_HEAD_RANGE_M: Final = 0.02
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
 REGRESSOR_SUFFIX: Final = ".body.json"  # beside its encoder: visual-rgbd.onnx -> visual-rgbd.body.json
 # The head offset's height (rig.HEAD_OFFSET_M[1]) of the head joints a regressor file without one was fitted
@@ -107,6 +118,59 @@ _REST_BONE_M: Final = bone_lengths(rest_offsets())
 _SIGHTED: Final = np.array(SIGHTED_BONES)
 _SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
 _HELD_LEGS: Final = np.array(HELD_LEG_BONES)
+
+
+def _path_to_root(joint: int) -> np.ndarray:
+    path = [joint]
+    while PARENTS[path[-1]] > 0:
+        path.append(int(PARENTS[path[-1]]))
+    return np.array(path)
+
+
+_HEAD_PATH: Final = _path_to_root(HEAD)
+_FOOT_PATHS: Final = (_path_to_root(10), _path_to_root(11))
+_REST_OFFSET_Y_M: Final = rest_offsets()[:, 1]
+
+
+def standing_head_height_m(bone_scale: np.ndarray) -> float:
+    """The head joint's height above the floor (m) of a body with this bone scale (J,) standing straight: the
+    rest pose with its lower foot joint FOOT_JOINT_HEIGHT_M up (STANDING_HEAD_HEIGHT_M for the mean body)."""
+    y = _REST_OFFSET_Y_M * np.asarray(bone_scale, dtype=np.float64)
+    lowest_foot_y = min(float(y[path].sum()) for path in _FOOT_PATHS)
+    return float(y[_HEAD_PATH].sum()) - lowest_foot_y + FOOT_JOINT_HEIGHT_M
+
+
+class QuietHead:
+    """The highest head joint (world y, m) seen while the head was quiet: every sample of the last
+    QUIET_HEAD_WINDOW_S (the window spanned in full) within QUIET_HEAD_RANGE_M of each other on each axis. A
+    person's head is at most their standing height while both feet are on the floor, and a jump, a step or a
+    rise never keeps it that still. A lost head or a pause longer than the window starts the window again."""
+
+    def __init__(self) -> None:
+        self.highest_m: float | None = None
+        self._t_us: deque[int] = deque()
+        self._head_m: deque[np.ndarray] = deque()
+
+    def push(self, t_us: int, head_m: np.ndarray, valid: bool) -> bool:
+        """One headset sample's head joint (3,) m -> whether ``highest_m`` rose (by UPDATE_STEP_M or more)."""
+        window_us = int(QUIET_HEAD_WINDOW_S * 1e6)
+        if not valid or (self._t_us and not 0 <= t_us - self._t_us[-1] <= window_us):
+            self._t_us.clear()
+            self._head_m.clear()
+        if not valid:
+            return False
+        self._t_us.append(t_us)
+        self._head_m.append(np.array(head_m, dtype=np.float64))
+        while len(self._t_us) > 1 and t_us - self._t_us[1] >= window_us:  # keep one sample at the edge
+            self._t_us.popleft()
+            self._head_m.popleft()
+        higher = self.highest_m is None or head_m[1] >= self.highest_m + UPDATE_STEP_M
+        if not higher or t_us - self._t_us[0] < window_us:
+            return False
+        if np.ptp(np.array(self._head_m), axis=0).max() > QUIET_HEAD_RANGE_M:
+            return False
+        self.highest_m = float(head_m[1])
+        return True
 
 
 def height_scale(highest_head_m: float) -> float:
@@ -307,10 +371,17 @@ class BodyCalibrator:
     """Running body-scale estimate: ``push`` per headset sample, ``push_visual`` per camera frame;
     ``bone_scale`` (J,) changes only when one of them returns True."""
 
-    def __init__(self, regressor: BodyRegressor | None = None, head_offset_y_m: float | None = None) -> None:
+    def __init__(
+        self,
+        regressor: BodyRegressor | None = None,
+        head_offset_y_m: float | None = None,
+        lift_to_quiet_head: bool = False,
+    ) -> None:
         """head_offset_y_m: how far under the view pose the pushed head joints are (the model's rig offset);
-        None when it is the regressor's own."""
+        None when it is the regressor's own. lift_to_quiet_head: the estimate is never shorter than the highest
+        quiet head (:class:`QuietHead`; ignored once a calibration measured the height)."""
         self.regressor = regressor
+        self.quiet_head = QuietHead() if lift_to_quiet_head else None
         # What the regressor's height scale needs added to the heights pushed here to mean what it did when
         # it was fitted: the head joint is the offset's height under the view pose.
         self._regressor_lift_m = (
@@ -368,12 +439,16 @@ class BodyCalibrator:
         self.arm_scale = arm_scale
         self._rebuild()
 
-    def push(self, joints_m: np.ndarray, valid: np.ndarray) -> bool:
-        """joints_m (3, 3) tracked head / wrist joint positions, valid (3,) -> whether the scale changed."""
+    def push(self, joints_m: np.ndarray, valid: np.ndarray, t_us: int = 0) -> bool:
+        """joints_m (3, 3) tracked head / wrist joint positions, valid (3,), the sample's time t_us (read only
+        with ``lift_to_quiet_head``) -> whether the scale changed."""
+        quieter = self.quiet_head is not None and self.quiet_head.push(t_us, joints_m[0], bool(valid[0]))
         head_y = float(joints_m[0, 1])
-        if self.height_locked or not valid[0] or head_y < self.highest_head_m + UPDATE_STEP_M:
+        higher = not self.height_locked and valid[0] and head_y >= self.highest_head_m + UPDATE_STEP_M
+        if higher:
+            self.highest_head_m = head_y
+        if not (higher or (quieter and not self.height_locked)):
             return False
-        self.highest_head_m = head_y
         self._rebuild()
         return True
 
@@ -406,9 +481,23 @@ class BodyCalibrator:
             scale = self.regressor.predict(self._regressor_height_scale(), self.measured)
         else:
             scale = self._height_and_legs(self.height_scale)
+        scale = self._lifted(scale)
         if self.arm_scale is not None:
             scale[list(ARM_BONES)] = self.arm_scale
         self.bone_scale = scale
+
+    def _lifted(self, scale: np.ndarray) -> np.ndarray:
+        """scale (J,), or with ``lift_to_quiet_head`` every bone of it scaled up just enough for its standing
+        head joint to reach the highest quiet head (never above SCALE_RANGE's tallest body: a head that high
+        stands on something); as it is once a calibration measured the height."""
+        if self.quiet_head is None or self.quiet_head.highest_m is None or self.height_locked:
+            return scale
+        reach_m = min(self.quiet_head.highest_m, SCALE_RANGE[1] * STANDING_HEAD_HEIGHT_M)
+        standing_m = standing_head_height_m(scale)
+        if reach_m <= standing_m:
+            return scale
+        # the foot joint's height over the floor is the sole's, not a bone's: it does not scale
+        return scale * ((reach_m - FOOT_JOINT_HEIGHT_M) / (standing_m - FOOT_JOINT_HEIGHT_M))
 
     def _regressor_height_scale(self) -> float:
         """The height scale as the regressor's fitting model would have measured it."""

@@ -102,6 +102,7 @@ class Pipeline(GivenBody):
         sure_plant: bool = False,
         warm_reseat: bool = True,
         seated_yaw: bool = False,
+        quiet_lift: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -130,6 +131,9 @@ class Pipeline(GivenBody):
         # world inside a dead zone (seated_yaw.py): without the camera the nets turn a seated person's legs
         # with the head; off by default (MODEL_CARD.md, rule 65)
         self.seated_yaw = seated_yaw
+        # the body estimate is never shorter than the highest quiet head says (body.QuietHead): a body the
+        # camera measured short floats its planted feet; off by default (MODEL_CARD.md, rule 77)
+        self.quiet_lift = quiet_lift
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -165,7 +169,9 @@ class Pipeline(GivenBody):
         """Forget the stream (a new session, a model switch, a long pause); a calibration stays."""
         self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
-        self.body = BodyCalibrator(self.model.info.body_regressor, float(self.model.info.rig_offsets_m[0, 1]))
+        self.body = BodyCalibrator(
+            self.model.info.body_regressor, float(self.model.info.rig_offsets_m[0, 1]), self.quiet_lift
+        )
         self.served_scale = ServedScale()
         # body_hold's clock: the sample when the camera first measured a bone this session, or the first after
         # the last calibration (None until then)
@@ -286,7 +292,7 @@ class Pipeline(GivenBody):
         device_poses[0] = self.last_head_pose  # the newest tracked headset pose
         tracked_pos, tracked_rot = joints_from_devices(device_poses, self.model.info.rig_offsets_m)
         if not self.fixed_body:
-            self.body.push(tracked_pos, valid)
+            self.body.push(tracked_pos, valid, t_us)
             if self.served_scale.follow(t_us, self._body_target(t_us)):
                 self.offsets = rest_offsets(self.served_scale.scale)
         return poses, valid, tracked_pos, tracked_rot
