@@ -11,6 +11,8 @@ from egoposevr.model.runtime.body import (
     BODY_HOLD_AFTER_S,
     HELD_LEG_BONES,
     MIN_VISUAL_SAMPLES,
+    QUIET_HEAD_RANGE_M,
+    QUIET_HEAD_WINDOW_S,
     SCALE_RANGE,
     SERVED_SCALE_RATE_PER_S,
     STANDING_HEAD_HEIGHT_M,
@@ -18,9 +20,11 @@ from egoposevr.model.runtime.body import (
     VISUAL_WINDOW,
     BodyCalibrator,
     BodyRegressor,
+    QuietHead,
     ServedScale,
     height_scale,
     held_target,
+    standing_head_height_m,
 )
 from egoposevr.model.skeleton import forward_kinematics, rest_offsets
 
@@ -445,3 +449,94 @@ def test_a_body_is_worth_keeping_once_the_wearer_has_stood():
     assert standing.stood
     seated.calibrate(STANDING_HEAD_HEIGHT_M, None)
     assert seated.stood
+
+
+SAMPLE_US = 11_111  # 90 Hz
+
+
+def _stand(body: BodyCalibrator, head_y_m: float, seconds: float, t0_us: int = 0, sway_m: float = 0.0) -> int:
+    """The head held at head_y_m (swaying sway_m up and down at 1 Hz) for some seconds -> the next sample's time."""
+    n = int(seconds * 1e6 / SAMPLE_US)
+    for i in range(n):
+        body.push(
+            head_at(head_y_m + sway_m * np.sin(2 * np.pi * i * SAMPLE_US * 1e-6)), ALL, t0_us + i * SAMPLE_US
+        )
+    return t0_us + n * SAMPLE_US
+
+
+def test_a_quiet_head_is_one_held_within_its_range_for_the_whole_window():
+    quiet = QuietHead()
+    window_samples = int(QUIET_HEAD_WINDOW_S * 1e6 / SAMPLE_US)
+    head = np.array([0.1, 1.5, -0.2])
+    highest = []
+    for i in range(60):
+        if quiet.push(i * SAMPLE_US, head + np.array([0.0, 0.4 * QUIET_HEAD_RANGE_M * (i % 2), 0.0]), True):
+            highest.append((i, quiet.highest_m))
+    assert highest[0] == (window_samples + 1, pytest.approx(1.5))  # not before the window is spanned in full
+    assert highest[-1][1] == pytest.approx(1.5 + 0.4 * QUIET_HEAD_RANGE_M)  # the highest quiet one
+    # a head that rises faster than the range allows over the window (a jump, a rise) is never quiet
+    t_us = 60 * SAMPLE_US
+    for i in range(90):
+        assert not quiet.push(t_us + i * SAMPLE_US, head + np.array([0.0, 0.3 + 0.01 * i, 0.0]), True)
+    assert quiet.highest_m < 1.51
+
+
+def test_a_lost_head_or_a_pause_starts_the_quiet_window_again():
+    quiet = QuietHead()
+    head = np.array([0.0, 1.6, 0.0])
+    for i in range(30):
+        quiet.push(i * SAMPLE_US, head, True)
+    quiet.push(30 * SAMPLE_US, head, False)  # lost: the window starts again
+    assert not any(quiet.push((31 + i) * SAMPLE_US, head, True) for i in range(40))
+    assert quiet.highest_m is None
+    later_us = (71 + 60) * SAMPLE_US  # a pause longer than the window: again
+    assert not any(quiet.push(later_us + i * SAMPLE_US, head, True) for i in range(40))
+    assert quiet.push(later_us + 46 * SAMPLE_US, head, True)
+
+
+def test_a_body_measured_short_is_lifted_to_reach_its_quiet_head_and_only_with_the_lift():
+    """The camera measures the legs 10 % short: the body's standing head joint would sit under the head the
+    wearer holds still, and its planted feet could not reach the floor."""
+    head_y_m = 1.05 * STANDING_HEAD_HEIGHT_M
+    for lift in (False, True):
+        body = BodyCalibrator(lift_to_quiet_head=lift)
+        t_us = _stand(body, head_y_m, 1.0)
+        _legs_seen(body, 0.95)  # 0.95 against the head's 1.05: legs 10 % short
+        _stand(body, head_y_m, 1.0, t_us)
+        standing_m = standing_head_height_m(body.bone_scale)
+        if lift:
+            assert standing_m == pytest.approx(head_y_m, abs=1e-6)
+            # one factor for every bone: the proportions the estimate had are kept
+            assert body.bone_scale[4] / body.bone_scale[15] == pytest.approx(0.95 / 1.05, rel=2e-3)
+        else:
+            assert standing_m < head_y_m - 0.02
+
+
+def test_a_jumps_height_or_a_tall_estimate_is_not_lifted_and_a_calibrated_height_wins():
+    # a head that is never quiet at its highest (a jump) lifts nothing past what the height scale gives
+    body = BodyCalibrator(lift_to_quiet_head=True)
+    t_us = _stand(body, STANDING_HEAD_HEIGHT_M, 1.0)
+    _legs_seen(body, 0.9)
+    short_m = standing_head_height_m(body.bone_scale)
+    _stand(body, STANDING_HEAD_HEIGHT_M - 0.2, 2.0, t_us, sway_m=0.25)  # jumping up to 5 cm over standing
+    assert standing_head_height_m(body.bone_scale) == pytest.approx(
+        max(short_m, STANDING_HEAD_HEIGHT_M), abs=1e-6
+    )
+    # an estimate already taller than the quiet head keeps its size
+    body = BodyCalibrator(lift_to_quiet_head=True)
+    _stand(body, STANDING_HEAD_HEIGHT_M, 1.0)
+    _legs_seen(body, 1.2)
+    assert body.quiet_head.highest_m == pytest.approx(STANDING_HEAD_HEIGHT_M)
+    assert standing_head_height_m(body.bone_scale) > STANDING_HEAD_HEIGHT_M + 0.05
+    assert body.bone_scale[15] == 1.0  # the height's scale, unlifted
+    # a calibration measured the height: the quiet head no longer lifts
+    body = BodyCalibrator(lift_to_quiet_head=True)
+    body.calibrate(STANDING_HEAD_HEIGHT_M, None)
+    _legs_seen(body, 0.8)
+    _stand(body, 1.1 * STANDING_HEAD_HEIGHT_M, 1.0)
+    assert standing_head_height_m(body.bone_scale) < STANDING_HEAD_HEIGHT_M
+
+
+def test_standing_head_height_is_the_mean_bodys_for_the_mean_body_and_grows_with_the_bones():
+    assert standing_head_height_m(np.ones(22)) == pytest.approx(STANDING_HEAD_HEIGHT_M, abs=1e-3)
+    assert standing_head_height_m(np.full(22, 1.1)) > standing_head_height_m(np.ones(22))

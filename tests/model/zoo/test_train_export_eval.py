@@ -1898,7 +1898,9 @@ def test_the_served_head_and_hands_face_as_their_devices(tiny_weights, val, mode
     )
     pipeline = pipeline_for(model)
     # each pipeline drops the other's options: the procedural one's seat, the network one's stages
-    assert type(pipeline_for(model, seat=True, warm_reseat=True, seated_yaw=True)) is type(pipeline)
+    assert type(pipeline_for(model, seat=True, warm_reseat=True, seated_yaw=True, quiet_lift=True)) is type(
+        pipeline
+    )
     poses = seq["hmd_poses"][0].copy()
     _, device_rot = joints_from_devices(poses, model.info.rig_offsets_m)
     t0, valid = int(seq["hmd_t_us"][0]), np.ones(3, dtype=bool)
