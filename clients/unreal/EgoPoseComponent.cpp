@@ -104,6 +104,9 @@ void UEgoPoseComponent::OnRawMessage(const void* Data, SIZE_T Size, SIZE_T Bytes
                                                                     Pose.joints[3 * J + 2]);
                 Joints[J] = TrackingToWorld.TransformPosition(FVector(P.x, P.y, P.z));
             }
+            const std::array<bool, 2> Planted = Pose.planted.value_or(std::array<bool, 2>{false, false});
+            bLeftFootPlanted = Planted[0];
+            bRightFootPlanted = Planted[1];
         } else if (Type == "error") {
             const egopose::Error Error = egopose::read_error(Handle);
             UE_LOG(LogTemp, Warning, TEXT("EgoPose: %hs: %hs"), Error.code.c_str(), Error.message.c_str());
@@ -124,6 +127,10 @@ void UEgoPoseComponent::TickComponent(float DeltaTime, ELevelTick TickType, FAct
     if (bDrawSkeleton && Joints.Num() == 22)
         for (int32 J = 1; J < 22; ++J)
             DrawDebugLine(GetWorld(), Joints[kParents[J]], Joints[J], FColor::Cyan, false, -1, 0, 1.5f);
+    if (bDrawSkeleton && Joints.Num() == 22) {  // the foot joints (10 left, 11 right) the server holds planted
+        if (bLeftFootPlanted) DrawDebugPoint(GetWorld(), Joints[10], 12.f, FColor::Orange, false, -1);
+        if (bRightFootPlanted) DrawDebugPoint(GetWorld(), Joints[11], 12.f, FColor::Orange, false, -1);
+    }
 }
 
 void UEgoPoseComponent::SendHmd() {

@@ -47,6 +47,11 @@ class UEgoPoseComponent : public UActorComponent {
     // The newest served joints (22, SMPL order of PROTOCOL.md §3), Unreal world space, cm.
     UPROPERTY(BlueprintReadOnly, Category = "EgoPose") TArray<FVector> Joints;
 
+    // Which feet the server holds planted in the newest pose (left, right; both false for a model that plants no
+    // feet): a retargeted mesh pins them with egopose::FootPins (PROTOCOL.md §planted-feet), drawn as a dot here.
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") bool bLeftFootPlanted = false;
+    UPROPERTY(BlueprintReadOnly, Category = "EgoPose") bool bRightFootPlanted = false;
+
     UFUNCTION(BlueprintCallable, Category = "EgoPose") void SelectModel(const FString& Name);
 
     // Ask the server for the wearer's body (get_body); a measured answer lands in MeasuredBoneLengths.

@@ -10,6 +10,7 @@
 // left-handed, +Z up, +X forward, +Y right, centimetres.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
@@ -520,5 +521,102 @@ inline Pose7 pose_from_unreal(const Vec3& position_cm, const Quat& rotation) {
     Quat q = from_unreal_rotation(rotation);
     return {float(p.x), float(p.y), float(p.z), float(q.x), float(q.y), float(q.z), float(q.w)};
 }
+
+// ------------------------------------------------------------------------- planted feet (PROTOCOL.md §planted-feet)
+// An avatar of other proportions that copies the served rotations moves its feet whenever its hips move over
+// them, even while the server holds them planted. FootPins remembers where each planted foot landed, and reach()
+// gives the two-bone IK turns (knee, then thigh) that put the foot back there as far as the leg reaches: the
+// Unity package's FootPins, the same math. Positions and quaternions in any one frame (pin the avatar's joints
+// in the protocol's frame, then convert them to Unreal's with to_unreal_position and to_unreal_rotation).
+
+// The vector v turned by the unit quaternion q (v' = q v q*).
+inline Vec3 rotate(const Quat& q, const Vec3& v) {
+    const Vec3 t{2 * (q.y * v.z - q.z * v.y), 2 * (q.z * v.x - q.x * v.z), 2 * (q.x * v.y - q.y * v.x)};
+    return {v.x + q.w * t.x + q.y * t.z - q.z * t.y, v.y + q.w * t.y + q.z * t.x - q.x * t.z,
+            v.z + q.w * t.z + q.x * t.y - q.y * t.x};
+}
+
+namespace detail {
+constexpr double kPi = 3.14159265358979323846;
+inline Vec3 add(const Vec3& a, const Vec3& b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+inline Vec3 sub(const Vec3& a, const Vec3& b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+inline Vec3 scaled(const Vec3& a, double s) { return {a.x * s, a.y * s, a.z * s}; }
+inline double dot(const Vec3& a, const Vec3& b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline double norm(const Vec3& a) { return std::sqrt(dot(a, a)); }
+inline Vec3 unit(const Vec3& a) { return scaled(a, 1 / norm(a)); }
+inline Vec3 cross(const Vec3& a, const Vec3& b) {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+inline Vec3 across(const Vec3& v, const Vec3& unit_line) { return sub(v, scaled(unit_line, dot(v, unit_line))); }
+inline Quat axis_angle(const Vec3& unit_axis, double angle) {
+    const double s = std::sin(angle / 2);
+    return {unit_axis.x * s, unit_axis.y * s, unit_axis.z * s, std::cos(angle / 2)};
+}
+// The shortest turn from unit a to unit b (half a turn about any perpendicular where they are opposite).
+inline Quat from_to(const Vec3& a, const Vec3& b) {
+    const double w = 1 + dot(a, b);
+    if (w < 1e-9) return axis_angle(unit(std::abs(a.x) < 0.9 ? cross(a, {1, 0, 0}) : cross(a, {0, 1, 0})), kPi);
+    const Vec3 c = cross(a, b);
+    const double n = std::sqrt(dot(c, c) + w * w);
+    return {c.x / n, c.y / n, c.z / n, w / n};
+}
+}  // namespace detail
+
+class FootPins {
+public:
+    static constexpr double kSlack = 1.2;          // a pin farther than this many leg lengths from its hip is dropped
+    static constexpr int64_t kGapUs = 500000;      // after a pause this long between poses (µs) feet land anew
+    static constexpr double kFrontPullM = 0.1;     // the knee's way off its hip-to-ankle line gets this much front
+
+    // Where foot `side` (0 left, 1 right) should be for the pose at t_us: nothing while it is not planted, or in
+    // the pose where it lands (it stays where the pose put it, `foot`, which becomes its pin); afterwards, that
+    // pin. Call once per side and pose, the left first.
+    std::optional<Vec3> target(int side, bool planted, int64_t t_us, const Vec3& hip, const Vec3& foot,
+                               double leg_length_m) {
+        if (side == 0) {
+            if (last_t_us_ >= 0 && (t_us < last_t_us_ || t_us - last_t_us_ > kGapUs)) pins_[0] = pins_[1] = {};
+            last_t_us_ = t_us;
+        }
+        std::optional<Vec3>& pin = pins_[side & 1];
+        if (!planted) {
+            pin.reset();
+            return {};
+        }
+        if (!pin || detail::norm(detail::sub(*pin, hip)) > kSlack * leg_length_m) {
+            pin = foot;
+            return {};
+        }
+        return pin;
+    }
+
+    struct Turns {
+        Quat knee;   // turns the shin about the knee: new world rotation = knee * old
+        Quat thigh;  // then swings thigh and shin about the hip: new world rotation = thigh * (after the knee's)
+    };
+
+    // Two-bone IK: the world turns that bring the foot from `ankle` to `target` as far as the thigh and shin
+    // reach. The knee bends the way it sits off the hip-to-ankle line, pulled towards `forward` (the body's
+    // front), so a straight leg, or a rest knee that sits off the line sideways, bends forward and not out.
+    static Turns reach(const Vec3& hip, const Vec3& knee, const Vec3& ankle, const Vec3& target, const Vec3& forward) {
+        using namespace detail;
+        const Vec3 to_hip = sub(hip, knee), to_ankle = sub(ankle, knee);
+        const double thigh = norm(to_hip), shin = norm(to_ankle);
+        const double span =
+            std::max(std::abs(thigh - shin) + 1e-4, std::min(thigh + shin - 1e-4, norm(sub(target, hip))));
+        const Vec3 line = unit(sub(ankle, hip));
+        const Vec3 way = add(across(sub(knee, hip), line), scaled(across(unit(forward), line), kFrontPullM));
+        const double cosine = (thigh * thigh + shin * shin - span * span) / (2 * thigh * shin);
+        const double wanted = std::acos(std::max(-1.0, std::min(1.0, cosine)));
+        // the shin's new way: the thigh's (knee to hip) turned by the knee angle wanted, in the bend plane
+        const Vec3 shin_way = rotate(axis_angle(unit(cross(way, to_hip)), wanted), unit(to_hip));
+        const Quat knee_turn = from_to(unit(to_ankle), shin_way);
+        const Vec3 reached = add(sub(knee, hip), rotate(knee_turn, to_ankle));  // hip to the turned ankle
+        return {knee_turn, from_to(unit(reached), unit(sub(target, hip)))};
+    }
+
+private:
+    std::array<std::optional<Vec3>, 2> pins_{};
+    int64_t last_t_us_ = -1;
+};
 
 }  // namespace egopose

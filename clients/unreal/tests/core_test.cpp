@@ -256,6 +256,70 @@ static void damaged_messages(const std::string& dir) {
                                             std::to_string(read) + " still read");
 }
 
+// FootPins (PROTOCOL.md §planted-feet), as the Unity package's tests check its own: the two-bone reach puts the foot
+// on a target within reach with the bones' lengths kept and the knee bent on its own side, straightens towards one
+// out of reach, bends a straight leg to the body's front, and the pins follow `planted`, a pause and a far hip.
+static Vec3 bend_of(const Vec3& hip, const Vec3& knee, const Vec3& ankle) {  // the knee's way off the hip-ankle line
+    return detail::across(detail::sub(knee, hip), detail::unit(detail::sub(ankle, hip)));
+}
+
+static void foot_pins() {
+    using namespace detail;
+    uint64_t state = 3;
+    auto noise = [&state](double scale) {
+        state = state * 6364136223846793005ULL + 1442695040888963407ULL;
+        return ((state >> 11) * (1.0 / 9007199254740992.0) * 2 - 1) * scale;
+    };
+    for (int trial = 0; trial < 200; ++trial) {
+        const Vec3 hip{noise(1), 1 + noise(0.1), noise(1)};
+        const Vec3 knee{hip.x + noise(0.15), hip.y - 0.42 + noise(0.05), hip.z + noise(0.15)};
+        const Vec3 ankle{knee.x + noise(0.2), knee.y - 0.4 + noise(0.05), knee.z + 0.1 + noise(0.1)};
+        const double thigh = norm(sub(knee, hip)), shin = norm(sub(ankle, knee));
+        const bool far = trial % 4 == 3;
+        Vec3 way = sub(ankle, hip);
+        way = {way.x + noise(0.2), way.y, way.z + noise(0.2)};
+        const double span = far ? thigh + shin + 0.3 : (0.6 + 0.38 * (noise(0.5) + 0.5)) * (thigh + shin);
+        const Vec3 target = add(hip, scaled(way, span / norm(way)));
+        const auto turns = FootPins::reach(hip, knee, ankle, target, {0, 0, 1});
+        const Vec3 new_knee = add(hip, rotate(turns.thigh, sub(knee, hip)));
+        const Vec3 shin_now = rotate(turns.thigh, rotate(turns.knee, sub(ankle, knee)));
+        const Vec3 new_ankle = add(new_knee, shin_now);
+        const std::string at = " (trial " + std::to_string(trial) + ")";
+        check(std::abs(norm(sub(new_knee, hip)) - thigh) < 1e-9 && std::abs(norm(shin_now) - shin) < 1e-9,
+              "the reach keeps the bones' lengths" + at);
+        const Vec3 before = bend_of(hip, knee, ankle), after = bend_of(hip, new_knee, new_ankle);
+        if (norm(before) > 0.12 && norm(after) > 0.02)  // farther off the line than the front's pull
+            check(dot(before, rotate(turns.thigh, before)) > 0 && dot(rotate(turns.thigh, before), after) > 0,
+                  "the knee bends on the side it bent" + at);
+        if (!far) {
+            check(norm(sub(new_ankle, target)) < 1e-6, "a target within reach is reached" + at);
+        } else {
+            const Vec3 along = sub(target, hip), reached = sub(new_ankle, hip);
+            check(std::abs(norm(reached) - (thigh + shin)) < 2e-3 &&
+                      dot(reached, along) / (norm(reached) * norm(along)) > 0.9999,
+                  "a target out of reach straightens the leg towards it" + at);
+        }
+    }
+    for (double front : {1.0, -1.0}) {
+        const Vec3 hip{0, 1, 0}, knee{0, 0.55, 0.001}, ankle{0, 0.1, 0}, lower{0, 0.25, 0};
+        const auto turns = FootPins::reach(hip, knee, ankle, lower, {0, 0, front});
+        const Vec3 bent_knee = add(hip, rotate(turns.thigh, sub(knee, hip)));
+        check(bent_knee.z * front > 0.1, "a straight leg whose hips come down bends its knee to the body's front");
+    }
+    FootPins pins;
+    const Vec3 landed{0.1, 0.03, 0.2}, hip{0.1, 0.9, 0.1}, moved{0.3, 0.03, 0.2};
+    check(!pins.target(0, true, 0, hip, landed, 0.85), "a foot that lands stays where the pose put it");
+    check(!pins.target(1, false, 0, hip, landed, 0.85), "a free foot has no pin");
+    const auto pin = pins.target(0, true, 11111, hip, moved, 0.85);
+    check(pin && pin->x == landed.x && pin->y == landed.y && pin->z == landed.z,
+          "while planted, the foot is held where it landed");
+    check(!pins.target(0, true, 22222, {5, 0.9, 0}, moved, 0.85),
+          "a pin out of the leg's reach (a recentred space) is dropped and the foot lands anew");
+    check(!pins.target(0, false, 33333, hip, moved, 0.85), "a foot let go is free");
+    pins.target(0, true, 44444, hip, landed, 0.85);
+    check(!pins.target(0, true, 44444 + FootPins::kGapUs + 1, hip, moved, 0.85), "after a pause the foot lands anew");
+}
+
 int main(int argc, char** argv) {
     if (argc != 3) {
         std::fprintf(stderr, "usage: core_test GOLDEN_DIR OPENXR_DIR\n");
@@ -266,6 +330,7 @@ int main(int argc, char** argv) {
         server_messages(argv[1]);
         damaged_messages(argv[1]);
         openxr_from_unreal(argv[2]);
+        foot_pins();
     } catch (const std::exception& exc) {
         std::printf("FAILED: %s\n", exc.what());
         return 1;
