@@ -105,8 +105,8 @@ SERVED_SCALE_MAX_STEP_S: Final = 0.1  # a longer pause between samples counts as
 # off (MODEL_CARD.md, rule 56); the legs alone cost it nothing (rule 57).
 HELD_LEG_BONES: Final = (1, 2, *LEG_BONES)
 BODY_HOLD_AFTER_S: Final = 1.0
-# A quiet head: within QUIET_HEAD_RANGE_M on each axis over QUIET_HEAD_WINDOW_S (:class:`QuietHead`); the
-# probe behind rule 77 (MODEL_CARD.md) read these, its first values, and no other.
+# A quiet head: within QUIET_HEAD_RANGE_M on each axis over QUIET_HEAD_WINDOW_S (:class:`QuietHead`): the
+# first values the probe behind rule 77 read (MODEL_CARD.md), not chosen on any number.
 QUIET_HEAD_WINDOW_S: Final = 0.5
 QUIET_HEAD_RANGE_M: Final = 0.02
 REGRESSOR_KIND: Final = "egoposevr.body_regressor"
@@ -121,6 +121,7 @@ _HELD_LEGS: Final = np.array(HELD_LEG_BONES)
 
 
 def _path_to_root(joint: int) -> np.ndarray:
+    """The joints from this one up to the pelvis's child (P,): the bones whose offsets sum to its rest place."""
     path = [joint]
     while PARENTS[path[-1]] > 0:
         path.append(int(PARENTS[path[-1]]))
