@@ -306,7 +306,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         "\nDoes the body behave (foot skating and floor error while the true foot is planted, leg leakage while"
     )
-    print("the true legs are still):\n")
+    print("the true legs are still; how far the standing height of the body a session ends with is from the")
+    print("wearer's):\n")
     print(plausibility_table(results))
     if args.by_category:
         print("\nMPJPE per motion category (upper / lower body, cm):\n")

@@ -11,6 +11,10 @@ asks for a pose. Metrics, per the paper's Tables 2-3:
   sample (``lost_share``: how often that is);  Jitter (m/s³): mean norm of the third time derivative of positions;
 - Facing (deg): geodesic angle between the served and true GLOBAL rotations of the head and of the wrists
   (which way the face looks and the hands point: what a viewer sees, which MPJRE's local angles do not say);
+- Body height (%): how far the standing head height (runtime.body.standing_head_height_m) of the wearer's body
+  as the session knows it at a sequence's end (``served_body``: the running estimate the served skeleton
+  follows, or a body given) is from the truth's, a mean over sequences: the body estimate's error (0 with
+  ``truth_body``);
 - FPS: one stream, batch 1, a NEW RGB-D frame before every headset sample (decode + visual encoder
   included), wall clock, median of ``FPS_REPEATS`` runs.
 
@@ -31,6 +35,7 @@ import numpy as np
 from ..inputs import decode_rgbd
 from ..rig import TRACKED_JOINTS, joints_from_devices
 from ..rotations import geodesic_angle, quat_xyzw_to_matrix
+from ..runtime.body import standing_head_height_m
 from ..runtime.calibration import DEFAULT_SECONDS, Calibration, CalibrationCollector
 from ..runtime.frames import (
     FIRST_FRAME_WAIT_US,
@@ -55,7 +60,8 @@ METRIC_KEYS = (
     "mpjpe_u_cm", "mpjpe_l_cm", "pa_mpjpe_u_cm", "pa_mpjpe_l_cm", "mpjre_u_deg", "mpjre_l_deg", "hpe_cm",
     "hpe_lost_cm", "lost_share", "facing_head_deg", "facing_hands_deg",
     "jitter", "foot_skate_cm_s", "foot_skate_settled_cm_s", "floor_float_cm", "floor_penetration_cm",
-    "leg_leakage_cm", "leg_leakage_settled_cm", "leg_wander_cm", "jerk", "jerk_true", "jerk_devices", "fps",
+    "leg_leakage_cm", "leg_leakage_settled_cm", "leg_wander_cm", "jerk", "jerk_true", "jerk_devices",
+    "body_height_err_pct", "fps",
 )  # fmt: skip
 WRISTS = np.array([20, 21])
 # Head, left wrist, right wrist: the joints whose global rotation "facing" measures.
@@ -157,9 +163,12 @@ def _global_rot(local_rot: np.ndarray) -> np.ndarray:
     return forward_kinematics(local_rot, np.zeros(3))[1]
 
 
-def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -> dict[str, np.ndarray]:
+def sequence_errors(
+    joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any], served_scale: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """Per-sample, per-joint errors of one sequence: position (N, J) m, aligned (N, J) m, rotation (N, J) deg,
-    and the jitter of the served joints (N-3,) m/s³."""
+    and the jitter of the served joints (N-3,) m/s³; given the bone scale (J,) served at its end, the body
+    height's error (1,) % (none without it)."""
     gt = seq["gt_joints_m"].astype(np.float64)
     gt_rot = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))
     dt_s = np.diff(seq["hmd_t_us"]).mean() * 1e-6 if len(joints) > 1 else 1.0
@@ -172,7 +181,16 @@ def sequence_errors(joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any]) -
         "jitter": np.linalg.norm(third, axis=-1).mean(-1),
         "plausibility": plausibility(joints, gt, np.asarray(seq["hmd_t_us"]), truth_on_devices(gt, seq)),
         "lost": ~np.asarray(seq["hmd_valid"], dtype=bool)[:, 1:],  # (N, 2) left, right controller lost
+        "body_height": np.zeros(0)
+        if served_scale is None
+        else np.array([body_height_error_pct(served_scale, seq)]),
     }
+
+
+def body_height_error_pct(served_scale: np.ndarray, seq: dict[str, Any]) -> float:
+    """|standing head height of the served bone scale (J,) / the truth's - 1| × 100."""
+    true_m = standing_head_height_m(np.asarray(seq["bone_scale"], dtype=np.float64))
+    return abs(standing_head_height_m(served_scale) / true_m - 1.0) * 100.0
 
 
 def truth_on_devices(gt: np.ndarray, seq: dict[str, Any]) -> np.ndarray:
@@ -206,6 +224,7 @@ def sequence_totals(errors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         "facing_head_deg": total(facing[:, 0]),
         "facing_hands_deg": total(facing[:, 1:]),
         "jitter": total(errors["jitter"]),
+        "body_height_err_pct": total(errors.get("body_height", np.zeros(0))),
         **plausibility_totals(errors["plausibility"]),
     }
 
@@ -438,7 +457,7 @@ def evaluate(
             if returns:
                 learn_the_wearer(pipeline, seqs[earlier[i]], frames, **waits)
             served = replay_sequence(pipeline, seq, send_frames=frames, **replay)
-            errors.append(sequence_errors(*served, seq))
+            errors.append(sequence_errors(*served, seq, pipeline.served_body()[0]))
             if on_sequence:
                 on_sequence(name, i + 1, len(seqs))
         totals[name] = [sequence_totals(e) for e in errors]  # each view below pools these
@@ -706,14 +725,15 @@ def plausibility_table(results: dict[str, dict[str, Any]]) -> str:
     """Does the served body behave like one (plausibility.py): one row per model; NaN where the split has no
     foot contact or no still legs."""
     rows = ["| model | foot skating cm/s (after 1 s) | floating cm | penetration cm | leg leakage cm (after 1 s; wander) "
-            "| jerk m/s³ (truth; truth on the devices) |",
-            "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+            "| jerk m/s³ (truth; truth on the devices) | body height error % |",
+            "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for name, m in results.items():
         skating = f"{m['foot_skate_cm_s']:.1f} ({m['foot_skate_settled_cm_s']:.1f})"
         leakage = f"{m['leg_leakage_cm']:.1f} ({m['leg_leakage_settled_cm']:.1f}; {m['leg_wander_cm']:.1f})"
         jerk = f"{m['jerk']:.0f} ({m['jerk_true']:.0f}; {m['jerk_devices']:.0f})"
         rows.append(
-            f"| {name} | {skating} | {m['floor_float_cm']:.1f} | {m['floor_penetration_cm']:.1f} | {leakage} | {jerk} |"
+            f"| {name} | {skating} | {m['floor_float_cm']:.1f} | {m['floor_penetration_cm']:.1f} | {leakage} | {jerk} "
+            f"| {m['body_height_err_pct']:.1f} |"
         )
     return "\n".join(rows)
 

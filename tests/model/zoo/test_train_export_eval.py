@@ -1604,6 +1604,9 @@ def test_eval_serves_the_truths_body_on_request(tiny_data, tiny_weights, tmp_pat
     )
     assert max(e.max() for e in served_bones["truth"]) < 1e-4  # metres, every bone of every sample
     assert max(e.max() for e in served_bones["estimate"]) > 5e-3
+    # the body height's error reads the body each session ends with: none for the truth's, some for the estimate
+    assert served["switch"]["hmd-rgbd@truth-body"]["body_height_err_pct"] == pytest.approx(0.0, abs=1e-9)
+    assert served["switch"]["hmd-rgbd"]["body_height_err_pct"] > 0.1
 
 
 def test_eval_gives_a_net_the_truths_contact_labels_on_request(
