@@ -124,10 +124,10 @@ void UEgoPoseComponent::TickComponent(float DeltaTime, ELevelTick TickType, FAct
         Connect();
     }
     if (bWelcomed) SendHmd();
-    if (bDrawSkeleton && Joints.Num() == 22)
+    if (bDrawSkeleton && Joints.Num() == 22) {
         for (int32 J = 1; J < 22; ++J)
             DrawDebugLine(GetWorld(), Joints[kParents[J]], Joints[J], FColor::Cyan, false, -1, 0, 1.5f);
-    if (bDrawSkeleton && Joints.Num() == 22) {  // the foot joints (10 left, 11 right) the server holds planted
+        // the foot joints (10 left, 11 right) the server holds planted
         if (bLeftFootPlanted) DrawDebugPoint(GetWorld(), Joints[10], 12.f, FColor::Orange, false, -1);
         if (bRightFootPlanted) DrawDebugPoint(GetWorld(), Joints[11], 12.f, FColor::Orange, false, -1);
     }

@@ -62,6 +62,7 @@ from ..skeleton import (
     REST_JOINTS_M,
     bone_lengths,
     bone_scale_of,
+    forward_kinematics,
     rest_offsets,
 )
 
@@ -118,27 +119,16 @@ _REST_BONE_M: Final = bone_lengths(rest_offsets())
 _SIGHTED: Final = np.array(SIGHTED_BONES)
 _SIGHTED_PARENTS: Final = PARENTS[_SIGHTED]
 _HELD_LEGS: Final = np.array(HELD_LEG_BONES)
-
-
-def _path_to_root(joint: int) -> np.ndarray:
-    """The joints from this one up to the pelvis's child (P,): the bones whose offsets sum to its rest place."""
-    path = [joint]
-    while PARENTS[path[-1]] > 0:
-        path.append(int(PARENTS[path[-1]]))
-    return np.array(path)
-
-
-_HEAD_PATH: Final = _path_to_root(HEAD)
-_FOOT_PATHS: Final = (_path_to_root(10), _path_to_root(11))
-_REST_OFFSET_Y_M: Final = rest_offsets()[:, 1]
+_REST_POSE: Final = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3))  # every joint's local rotation at rest
+_FEET: Final = np.array([10, 11])  # the foot joints, left and right
+_QUIET_HEAD_WINDOW_US: Final = int(QUIET_HEAD_WINDOW_S * 1e6)
 
 
 def standing_head_height_m(bone_scale: np.ndarray) -> float:
     """The head joint's height above the floor (m) of a body with this bone scale (J,) standing straight: the
     rest pose with its lower foot joint FOOT_JOINT_HEIGHT_M up (STANDING_HEAD_HEIGHT_M for the mean body)."""
-    y = _REST_OFFSET_Y_M * np.asarray(bone_scale, dtype=np.float64)
-    lowest_foot_y = min(float(y[path].sum()) for path in _FOOT_PATHS)
-    return float(y[_HEAD_PATH].sum()) - lowest_foot_y + FOOT_JOINT_HEIGHT_M
+    rest_m, _ = forward_kinematics(_REST_POSE, np.zeros(3), rest_offsets(bone_scale))
+    return float(rest_m[HEAD, 1] - rest_m[_FEET, 1].min()) + FOOT_JOINT_HEIGHT_M
 
 
 class QuietHead:
@@ -154,7 +144,7 @@ class QuietHead:
 
     def push(self, t_us: int, head_m: np.ndarray, valid: bool) -> bool:
         """One headset sample's head joint (3,) m -> whether ``highest_m`` rose (by UPDATE_STEP_M or more)."""
-        window_us = int(QUIET_HEAD_WINDOW_S * 1e6)
+        window_us = _QUIET_HEAD_WINDOW_US
         if not valid or (self._t_us and not 0 <= t_us - self._t_us[-1] <= window_us):
             self._t_us.clear()
             self._head_m.clear()

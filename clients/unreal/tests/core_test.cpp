@@ -1,6 +1,7 @@
 // Checks EgoPoseProtocol.h against the protocol's golden fixtures and PROTOCOL.md's worked examples.
 // Built and run by tests/clients/test_unreal_core.py: core_test GOLDEN_DIR OPENXR_DIR; exit 0 when all pass.
 #include <cstdio>
+#include <random>
 #include <string>
 #include <typeinfo>
 #include <vector>
@@ -265,11 +266,9 @@ static Vec3 bend_of(const Vec3& hip, const Vec3& knee, const Vec3& ankle) {  // 
 
 static void foot_pins() {
     using namespace detail;
-    uint64_t state = 3;
-    auto noise = [&state](double scale) {
-        state = state * 6364136223846793005ULL + 1442695040888963407ULL;
-        return ((state >> 11) * (1.0 / 9007199254740992.0) * 2 - 1) * scale;
-    };
+    std::mt19937_64 rng(3);  // the same legs on every run
+    std::uniform_real_distribution<double> within(-1.0, 1.0), share(0.0, 1.0);
+    auto noise = [&](double scale) { return within(rng) * scale; };
     for (int trial = 0; trial < 200; ++trial) {
         const Vec3 hip{noise(1), 1 + noise(0.1), noise(1)};
         const Vec3 knee{hip.x + noise(0.15), hip.y - 0.42 + noise(0.05), hip.z + noise(0.15)};
@@ -278,7 +277,7 @@ static void foot_pins() {
         const bool far = trial % 4 == 3;
         Vec3 way = sub(ankle, hip);
         way = {way.x + noise(0.2), way.y, way.z + noise(0.2)};
-        const double span = far ? thigh + shin + 0.3 : (0.6 + 0.38 * (noise(0.5) + 0.5)) * (thigh + shin);
+        const double span = far ? thigh + shin + 0.3 : (0.6 + 0.38 * share(rng)) * (thigh + shin);
         const Vec3 target = add(hip, scaled(way, span / norm(way)));
         const auto turns = FootPins::reach(hip, knee, ankle, target, {0, 0, 1});
         const Vec3 new_knee = add(hip, rotate(turns.thigh, sub(knee, hip)));
