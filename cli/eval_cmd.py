@@ -31,8 +31,8 @@ default), or held legs and a still stance's planted feet re-seated once the net'
 folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MODEL_CARD.md, rule 62), or a
 folded pelvis that keeps its heading while no camera frame is in the window on or off (@seated-yaw,
 @no-seated-yaw; off by default: MODEL_CARD.md, rule 65), or a body estimate never shorter than the highest quiet
-head says on or off (@quiet-lift, @no-quiet-lift; off by default: MODEL_CARD.md, rule 77), so --models egoposevr@no-leg-hold,egoposevr says,
-paired, what one stage of the runtime changes.
+head says on or off (@quiet-lift, @no-quiet-lift; by default as the model file says, ModelMetadata.quiet_lift:
+MODEL_CARD.md, rules 77 and 78), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
 @no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
 (at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
 68 and 69; @first-frame-wait with); @low-head-wait makes a stream whose first sample has the head low (seated or

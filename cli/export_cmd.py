@@ -11,7 +11,9 @@ trained on them with `egoposevr train --encoders DIR`.
 nets: one graph, the members' rotations (made orthonormal) and contact probabilities averaged.
 
 --lean-gate writes into the files of models with KPO (egoposevr) that the runtime serves them with the lean
-gate (model/runtime/stance.py): for nets that were chosen served with it (MODEL_CARD).
+gate (model/runtime/stance.py): for nets that were chosen served with it (MODEL_CARD). --quiet-lift writes
+into every model file that the runtime lifts a body estimate shorter than the wearer's quiet head
+(model/runtime/body.py, QuietHead): for nets that hang the body from the eyes' head joint (MODEL_CARD).
 
 --add-batch-axis rewrites model files exported for batch 1 (before the server batched sessions) in place
 so that their fusion net takes a batch axis, checked against the original row by row.
@@ -53,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lean-gate", action="store_true",
                         help="the files of models with KPO ask the runtime for the lean gate "
                              "(model/runtime/stance.py): for nets chosen served with it")  # fmt: skip
+    parser.add_argument("--quiet-lift", action="store_true",
+                        help="the model files ask the runtime to lift a body estimate shorter than the "
+                             "wearer's quiet head (model/runtime/body.py): for nets anchored at the eyes")  # fmt: skip
     parser.add_argument("--add-batch-axis", type=Path, nargs="+", metavar="ONNX",
                         help="give these fusion graphs a batch axis, in place (no --runs/--out)")  # fmt: skip
     parser.add_argument("--reexport", type=Path, nargs="+", metavar="ONNX",
@@ -91,7 +96,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         names = resolve(args.model)
-        errors = export_zoo(names, args.runs, args.out, args.encoders, args.lean_gate, args.command_line)
+        errors = export_zoo(
+            names, args.runs, args.out, args.encoders, args.lean_gate, args.command_line, args.quiet_lift
+        )
     except (ValueError, FileNotFoundError) as error:
         print(f"egoposevr export: {error}", file=sys.stderr)
         return 2

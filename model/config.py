@@ -127,6 +127,10 @@ class ModelMetadata:
     # The runtime's lean gate (runtime/stance.py) on for this model: the nets were chosen served with it, and
     # a net that was not can freeze wrong early guesses under it (MODEL_CARD.md, rules 37 and 44).
     lean_gate: bool = False
+    # The body estimate's quiet-head lift (runtime/body.py, QuietHead) on for this model: its nets hang the
+    # body from the head joint where the eyes are, so a body too short for the wearer floats its feet
+    # (MODEL_CARD.md, rules 77 and 78). Files written before the field read False.
+    quiet_lift: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

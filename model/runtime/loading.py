@@ -110,6 +110,12 @@ class ModelInfo:
         return self.metadata.lean_gate
 
     @property
+    def quiet_lift(self) -> bool:
+        """Whether the file asks for the body estimate's quiet-head lift (runtime/body.py); a pipeline may
+        override it."""
+        return self.metadata.quiet_lift
+
+    @property
     def config(self) -> FusionConfig:
         return self.metadata.config
 

@@ -102,7 +102,7 @@ class Pipeline(GivenBody):
         sure_plant: bool = False,
         warm_reseat: bool = True,
         seated_yaw: bool = False,
-        quiet_lift: bool = False,
+        quiet_lift: bool | None = None,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -132,8 +132,9 @@ class Pipeline(GivenBody):
         # with the head; off by default (MODEL_CARD.md, rule 65)
         self.seated_yaw = seated_yaw
         # the body estimate is never shorter than the highest quiet head says (body.QuietHead): a body the
-        # camera measured short floats its planted feet; off by default (MODEL_CARD.md, rule 77)
-        self.quiet_lift = quiet_lift
+        # camera measured short floats its planted feet; None: as the model file says (ModelMetadata.quiet_lift;
+        # MODEL_CARD.md, rules 77 and 78)
+        self.quiet_lift = model.info.quiet_lift if quiet_lift is None else quiet_lift
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0

@@ -276,11 +276,13 @@ def export_model(
     out_path: Path,
     lean_gate: bool = False,
     invocation: dict[str, Any] | None = None,
+    quiet_lift: bool = False,
 ) -> float:
     """The zoo entry ``name`` -> ``<name>.onnx`` (its fusion net, or with several runs their
     :class:`SeedEnsemble`); returns the parity error. ``lean_gate``: a model with KPO asks the runtime for
-    the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there).
-    ``invocation``: as :func:`export_visual`."""
+    the lean gate (``ModelMetadata.lean_gate``; the others plant no feet, so it means nothing there), and
+    ``quiet_lift`` for the body estimate's quiet-head lift (``ModelMetadata.quiet_lift``; any model that keeps
+    a body). ``invocation``: as :func:`export_visual`."""
     entry = ZOO[name]
     paths = [runs_dir / f"fusion-{entry.fusion_name}.pt" for runs_dir in runs_dirs]
     ckpts = [load_checkpoint(path) for path in paths]
@@ -295,6 +297,7 @@ def export_model(
     _set_metadata(out_path, ModelMetadata(
         format=FORMAT_VERSION, kind="model", name=name, description=entry.description,
         inputs=tuple(entry.inputs), config=cfg, kpo=entry.kpo, lean_gate=lean_gate and entry.kpo,
+        quiet_lift=quiet_lift,
         visual_encoder=f"visual-{entry.visual}.onnx" if entry.visual else "",
         joint_names=JOINT_NAMES, rig_offsets_m=offsets, training=training,
         units="hmd: 72-d features (model/hmd.py) in the heading frame [+ 6 of tracking state with "
@@ -567,12 +570,13 @@ def export_zoo(
     encoders_dir: Path | None = None,
     lean_gate: bool = False,
     command: Sequence[str] | None = None,
+    quiet_lift: bool = False,
 ) -> dict[str, float | None]:
     """Every named model and the visual encoders they use -> out_dir; {file name: parity error}. With
     ``encoders_dir`` (the fusion nets were trained with ``train --encoders``) the encoders and their body
     regressors are that folder's, copied as they are (None: nothing exported, nothing to check). Several
     runs folders make each model the :class:`SeedEnsemble` of their nets; they must then have been trained
-    on one set of encoders, given as ``encoders_dir``. ``lean_gate``: as :func:`export_model`; ``command``: the
+    on one set of encoders, given as ``encoders_dir``. ``lean_gate``, ``quiet_lift``: as :func:`export_model`; ``command``: the
     command line every file's record names."""
     if len(runs_dirs) > 1 and encoders_dir is None:
         raise ValueError(
@@ -591,5 +595,5 @@ def export_zoo(
             errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, invocation)
     for name in names:
         out_path = out_dir / f"{name}.onnx"
-        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_path, lean_gate, invocation)
+        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_path, lean_gate, invocation, quiet_lift)
     return errors

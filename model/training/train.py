@@ -51,7 +51,7 @@ from ..rig import DEFAULT_OFFSETS_M, joints_from_devices
 from ..rotations import matrix_to_sixd, quat_xyzw_to_matrix
 from ..runtime.contact import FEET as ANKLES_AND_FEET
 from ..runtime.loading import load_encoder
-from ..skeleton import ARM_JOINTS, HEAD, JOINT_INDEX, UPPER_BODY, rest_offsets
+from ..skeleton import ARM_JOINTS, HEAD, JOINT_INDEX, LOWER_BODY, UPPER_BODY, rest_offsets
 from ..synth.headset import TRACKING_CONE_DEG
 from ..zoo import ZOO, fusion_names
 from .augment import (
@@ -148,7 +148,10 @@ class TrainConfig:
     keep_upper_weight: float = 0.0
     # Which joints keep_upper_weight keeps: "upper", UPPER_BODY's 13 (their rotations, their joints under the
     # head); "arms", ARM_JOINTS' 8 (their rotations, their joints in the chest's frame), so the spine, the neck
-    # and the trunk's lean over the hips stay free (MODEL_CARD.md, rule 42).
+    # and the trunk's lean over the hips stay free (MODEL_CARD.md, rule 42); "arms_legs", those 8 and
+    # LOWER_BODY's 9 (their rotations, their joints in the pelvis's frame, turned as the pelvis is) and the
+    # contact probabilities: only the trunk under the head is free, for a fine-tune that moves the head joint
+    # and keeps the legs and feet its start served (MODEL_CARD.md, rule 78).
     keep_joints: str = "upper"
     # With a fine-tune: train at today's default head offsets (or ``--head-offsets-from``'s) although the net
     # it starts from was trained at others, so the fine-tune learns the body under the new head joint instead
@@ -185,7 +188,13 @@ class TrainConfig:
 FOOT_JOINTS: Final = [j for ankle_and_foot in ANKLES_AND_FEET for j in ankle_and_foot]
 CHEST: Final = JOINT_INDEX["spine3"]  # the collars' parent
 # TrainConfig.keep_joints: the joints each choice keeps (upper_body_term)
-KEPT_JOINTS: Final = {"upper": UPPER_BODY, "arms": ARM_JOINTS}
+KEPT_JOINTS: Final = {
+    "upper": UPPER_BODY,
+    "arms": ARM_JOINTS,
+    "arms_legs": np.concatenate([ARM_JOINTS, LOWER_BODY]),
+}
+# the keep_joints choices that leave the trunk under the head free, so a fine-tune may move the head joint
+TRUNK_FREE_KEEPS: Final = ("arms", "arms_legs")
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {
@@ -899,10 +908,14 @@ def fusion_loss_fn(
             losses["skate"] = skate_term(error, world_from_heading[0], contact) * tc.skate_weight
         if keeper is not None:
             with torch.no_grad():
-                kept = (
-                    keeper.forward_with_contact(hmd, visual)[0] if cfg.contact_head else keeper(hmd, visual)
+                kept, kept_contact = (
+                    keeper.forward_with_contact(hmd, visual)
+                    if cfg.contact_head
+                    else (keeper(hmd, visual), None)
                 )
             kept_terms = upper_body_term(sixd, pos, kept, anchor, offsets, tc)
+            if tc.keep_joints == "arms_legs" and kept_contact is not None:
+                kept_terms = kept_terms + kept_contact_term(contact_logits, kept_contact) * tc.contact_weight
             losses["keep_upper"] = kept_terms * tc.keep_upper_weight
         if teacher is None:
             return losses
@@ -948,9 +961,13 @@ def upper_body_term(
     joints), weighted as the truth's terms are (``tc.rotation_weight``, ``tc.position_weight``).
     ``tc.keep_joints`` (KEPT_JOINTS) "upper": UPPER_BODY's 13 joints, placed under the head at anchor (B, 3)
     (pos is sixd's so placed); "arms": ARM_JOINTS' 8, placed in the chest's frame from their own rotations
-    and the bone offsets (B, J, 3), so that how the trunk leans is not kept."""
-    if tc.keep_joints == "arms":
-        pos, kept_pos = _arms_in_chest_frame(sixd, offsets), _arms_in_chest_frame(kept_sixd, offsets)
+    and the bone offsets (B, J, 3), so that how the trunk leans is not kept; "arms_legs": those and
+    LOWER_BODY's 9, placed in the pelvis's frame turned as the pelvis is (:func:`_limbs_unanchored`)."""
+    if tc.keep_joints in TRUNK_FREE_KEEPS:
+        pos, kept_pos = (
+            _limbs_unanchored(sixd, offsets, tc.keep_joints),
+            _limbs_unanchored(kept_sixd, offsets, tc.keep_joints),
+        )
     else:
         kept_pos = _anchored_joints(kept_sixd, anchor, offsets)
     kept = torch.as_tensor(KEPT_JOINTS[tc.keep_joints], device=sixd.device)
@@ -959,14 +976,34 @@ def upper_body_term(
     return rot * tc.rotation_weight + joints * tc.position_weight
 
 
-def _arms_in_chest_frame(sixd: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """Joints (B, J, 3) of the rotations sixd (B, J, 6) with every joint but ARM_JOINTS unrotated, less the
-    chest's (spine3's): the arms' joints in the chest's own frame, which its lean does not move."""
-    arms = torch.as_tensor(ARM_JOINTS, device=sixd.device)
+def _limbs_unanchored(sixd: torch.Tensor, offsets: torch.Tensor, keep_joints: str) -> torch.Tensor:
+    """Joints (B, J, 3) of the rotations sixd (B, J, 6) where the trunk's are left out: the arms' in the
+    chest's own frame (every joint but ARM_JOINTS unrotated, less the chest's, spine3's), which its lean does
+    not move; with "arms_legs" the legs' too, in the pelvis's frame turned as the pelvis is (every joint but
+    LOWER_BODY unrotated, less the pelvis's), which the head joint's place does not move."""
+    pos = _only_rotated(sixd, offsets, ARM_JOINTS)
+    placed = pos - pos[:, CHEST][:, None]
+    if keep_joints == "arms_legs":
+        legs = torch.as_tensor(LOWER_BODY, device=sixd.device)
+        hung = _only_rotated(sixd, offsets, LOWER_BODY)
+        placed[:, legs] = hung[:, legs] - hung[:, :1]
+    return placed
+
+
+def _only_rotated(sixd: torch.Tensor, offsets: torch.Tensor, joints: np.ndarray) -> torch.Tensor:
+    """Joints (B, J, 3) on the bone offsets (B, J, 3) with only ``joints``' rotations of sixd (B, J, 6), the
+    others unrotated, the pelvis at the origin."""
+    chosen = torch.as_tensor(joints, device=sixd.device)
     rot = torch.eye(3, dtype=sixd.dtype, device=sixd.device).expand(*sixd.shape[:2], 3, 3).clone()
-    rot[:, arms] = sixd_to_matrix(sixd[:, arms])
+    rot[:, chosen] = sixd_to_matrix(sixd[:, chosen])
     pos, _ = forward_kinematics(rot, torch.zeros(len(sixd), 3, device=sixd.device), offsets)
-    return pos - pos[:, CHEST][:, None]
+    return pos
+
+
+def kept_contact_term(contact_logits: torch.Tensor, kept_logits: torch.Tensor) -> torch.Tensor:
+    """The binary cross-entropy of the contact logits (B, 2) against the probabilities of the kept ones
+    (B, 2, no gradient): a fine-tune that lifts and plants the feet when its start did."""
+    return F.binary_cross_entropy_with_logits(contact_logits, torch.sigmoid(kept_logits))
 
 
 def _anchored_joints(sixd: torch.Tensor, anchor: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -1125,9 +1162,10 @@ def _check_keeps_a_start(initial: InitialWeights | None, tc: TrainConfig) -> Non
         raise ValueError(f"keep_joints must be one of {sorted(KEPT_JOINTS)}, got {tc.keep_joints!r}")
     if tc.keep_upper_weight > 0 and initial is None:
         raise TeacherError("keeping the upper body (--keep-upper) needs the net it starts from (--init-from)")
-    if tc.keep_upper_weight > 0 and tc.reanchor and tc.keep_joints != "arms":
+    if tc.keep_upper_weight > 0 and tc.reanchor and tc.keep_joints not in TRUNK_FREE_KEEPS:
         raise TeacherError(
-            "--reanchor keeps no more than the arms (--keep-joints arms): the trunk under the head is what it moves"
+            "--reanchor keeps no more than the arms and the legs (--keep-joints arms or arms_legs): the trunk "
+            "under the head is what it moves"
         )
 
 

@@ -100,3 +100,11 @@ def test_a_model_file_written_before_the_lean_gate_field_reads_as_without_it():
     assert props["lean_gate"] == "true" and from_properties(ModelMetadata, props).lean_gate
     del props["lean_gate"]
     assert from_properties(ModelMetadata, props).lean_gate is False
+
+
+def test_a_model_file_written_before_the_quiet_lift_field_reads_as_without_it():
+    """Files exported before ModelMetadata.quiet_lift existed: served without the quiet-head lift."""
+    props = to_properties(model_metadata(quiet_lift=True))
+    assert props["quiet_lift"] == "true" and from_properties(ModelMetadata, props).quiet_lift
+    del props["quiet_lift"]
+    assert from_properties(ModelMetadata, props).quiet_lift is False

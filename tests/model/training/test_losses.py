@@ -13,6 +13,7 @@ from egoposevr.model.training.train import (  # noqa: E402
     _anchored_joints,
     _check_keeps_a_start,
     _fit_terms,
+    kept_contact_term,
     skate_term,
     upper_body_term,
 )
@@ -94,3 +95,28 @@ def test_keeping_the_arms_leaves_the_trunk_free_to_lean_and_keeping_the_upper_bo
         ValueError, match="keep_joints"
     ):  # a name that is no joint set is refused, not "upper"
         _check_keeps_a_start(None, dataclasses.replace(PRESETS["tiny"], keep_joints="arm"))
+
+
+def test_keeping_arms_and_legs_leaves_only_the_trunk_under_the_head_free():
+    """A fine-tune that moves the head joint (--reanchor) may lean the trunk; the legs, their facing and
+    the feet's contacts are kept as its start served them."""
+    start = _pose({})
+    leaned = _pose({3: 10.0, 6: 10.0, 9: 5.0})  # the spine leans, arms and legs as they were
+    knee = _pose({4: 40.0})  # the left knee bends 40 degrees, the rest as it was
+    turned = _pose({0: 20.0})  # the whole body turns about the pelvis: the legs' facing changes
+    assert _kept_cost(leaned, start, "arms_legs") == pytest.approx(0.0, abs=1e-6)
+    assert _kept_cost(knee, start, "arms") == pytest.approx(0.0, abs=1e-6)  # "arms" lets the legs go
+    assert _kept_cost(knee, start, "arms_legs") > 0.05
+    assert _kept_cost(turned, start, "arms_legs") > 0.02
+    _check_keeps_a_start(  # a fine-tune that moves the head joint may keep the legs
+        object(),
+        dataclasses.replace(PRESETS["tiny"], keep_joints="arms_legs", keep_upper_weight=1.0, reanchor=True),
+    )
+
+
+def test_the_kept_contacts_cost_least_where_the_feet_land_as_the_start_had_them():
+    start = torch.tensor([[4.0, -4.0], [-3.0, 2.0]])  # logits: a left foot down, a right one up; then swapped
+    same, flipped, unsure = start.clone(), -start, torch.zeros(2, 2)
+    assert (
+        kept_contact_term(same, start) < kept_contact_term(unsure, start) < kept_contact_term(flipped, start)
+    )

@@ -1497,6 +1497,20 @@ def test_a_model_file_says_whether_it_is_served_with_the_lean_gate(
     assert all(served["egoposevr"][k] == served["egoposevr@lean-gate"][k] for k in keys)
 
 
+def test_a_model_file_says_whether_its_body_is_lifted_to_the_quiet_head(tiny_runs, tiny_weights, tmp_path):
+    """export --quiet-lift writes the quiet-head lift into every model file it writes, and a pipeline takes
+    it from the file unless told otherwise (eval's @quiet-lift, @no-quiet-lift)."""
+    lifted = tmp_path / "lifted"
+    assert main(["export", "--runs", str(tiny_runs), "--out", str(lifted), "--model", "egoposevr,hmd-rgbd",
+                 "--quiet-lift"]) == 0  # fmt: skip
+    ego, plain = LoadedModel.load(lifted / "egoposevr.onnx"), LoadedModel.load(lifted / "hmd-rgbd.onnx")
+    assert ego.info.quiet_lift and plain.info.quiet_lift and not ego.info.lean_gate
+    shipped = LoadedModel.load(tiny_weights / "egoposevr.onnx")
+    assert not shipped.info.quiet_lift  # the default
+    assert Pipeline(ego).quiet_lift and not Pipeline(ego, quiet_lift=False).quiet_lift
+    assert not Pipeline(shipped).quiet_lift and Pipeline(shipped, quiet_lift=True).quiet_lift
+
+
 def _eval_runs(args: list[str], runs: tuple[tuple[str, list[str]], ...], tmp_path: Path) -> dict[str, dict]:
     """{name: the models of `egoposevr eval`'s JSON} for each (name, further arguments) run of args."""
     served = {}
