@@ -97,8 +97,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         names = resolve(args.model)
         errors = export_zoo(
-            names, args.runs, args.out, args.encoders, args.lean_gate, args.command_line, args.quiet_lift
-        )
+            names, args.runs, args.out, args.encoders,
+            lean_gate=args.lean_gate, command=args.command_line, quiet_lift=args.quiet_lift,
+        )  # fmt: skip
     except (ValueError, FileNotFoundError) as error:
         print(f"egoposevr export: {error}", file=sys.stderr)
         return 2

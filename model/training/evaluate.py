@@ -164,11 +164,11 @@ def _global_rot(local_rot: np.ndarray) -> np.ndarray:
 
 
 def sequence_errors(
-    joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any], served_scale: np.ndarray | None = None
+    joints: np.ndarray, rots: np.ndarray, seq: dict[str, Any], served_scale: np.ndarray
 ) -> dict[str, np.ndarray]:
     """Per-sample, per-joint errors of one sequence: position (N, J) m, aligned (N, J) m, rotation (N, J) deg,
-    and the jitter of the served joints (N-3,) m/s³; given the bone scale (J,) served at its end, the body
-    height's error (1,) % (none without it)."""
+    the jitter of the served joints (N-3,) m/s³, and, from the bone scale (J,) served at its end, the body
+    height's error (1,) %."""
     gt = seq["gt_joints_m"].astype(np.float64)
     gt_rot = quat_xyzw_to_matrix(seq["gt_local_quat"].astype(np.float64))
     dt_s = np.diff(seq["hmd_t_us"]).mean() * 1e-6 if len(joints) > 1 else 1.0
@@ -181,9 +181,7 @@ def sequence_errors(
         "jitter": np.linalg.norm(third, axis=-1).mean(-1),
         "plausibility": plausibility(joints, gt, np.asarray(seq["hmd_t_us"]), truth_on_devices(gt, seq)),
         "lost": ~np.asarray(seq["hmd_valid"], dtype=bool)[:, 1:],  # (N, 2) left, right controller lost
-        "body_height": np.zeros(0)
-        if served_scale is None
-        else np.array([body_height_error_pct(served_scale, seq)]),
+        "body_height": np.array([body_height_error_pct(served_scale, seq)]),
     }
 
 
@@ -224,6 +222,7 @@ def sequence_totals(errors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         "facing_head_deg": total(facing[:, 0]),
         "facing_hands_deg": total(facing[:, 1:]),
         "jitter": total(errors["jitter"]),
+        # errors put together without a served body (no sequence_errors) have no height error to pool
         "body_height_err_pct": total(errors.get("body_height", np.zeros(0))),
         **plausibility_totals(errors["plausibility"]),
     }

@@ -595,5 +595,7 @@ def export_zoo(
             errors[name] = export_visual(runs_dir / f"visual-{kind}.pt", out_dir / name, invocation)
     for name in names:
         out_path = out_dir / f"{name}.onnx"
-        errors[f"{name}.onnx"] = export_model(name, runs_dirs, out_path, lean_gate, invocation, quiet_lift)
+        errors[f"{name}.onnx"] = export_model(
+            name, runs_dirs, out_path, lean_gate, invocation, quiet_lift=quiet_lift
+        )
     return errors
