@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ..model.config import KEEP_JOINTS_CHOICES, TRUNK_FREE_KEEPS
+
 if TYPE_CHECKING:
     from ..model.training.train import InitialVisual, InitialWeights, TrainConfig
 
@@ -212,7 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--keep-joints",
-        choices=("upper", "arms", "arms_legs"),
+        choices=KEEP_JOINTS_CHOICES,
         default=None,
         help="with --keep-upper: the joints it keeps: upper, the 13 of the upper body under the head "
         "(default); arms, the collars, shoulders, elbows and wrists in the chest's frame, the trunk's lean free; "
@@ -385,7 +387,7 @@ def _out_of_range(args: argparse.Namespace) -> str | None:
         (args.keep_upper and args.init_from is None, "--keep-upper W needs --init-from (the net whose upper body it keeps)"),
         (args.keep_joints and not args.keep_upper, "--keep-joints needs --keep-upper W > 0 (the term it chooses joints for)"),
         (args.reanchor and args.init_from is None, "--reanchor needs --init-from (the net it moves to another head joint)"),
-        (args.reanchor and args.keep_upper and args.keep_joints not in ("arms", "arms_legs"), "--reanchor keeps no more than the arms and the legs (--keep-joints arms or arms_legs): the trunk under the head is what it moves"),
+        (args.reanchor and args.keep_upper and args.keep_joints not in TRUNK_FREE_KEEPS, "--reanchor keeps no more than the arms and the legs (--keep-joints arms or arms_legs): the trunk under the head is what it moves"),
         (args.foot_weight is not None and not 0.0 < args.foot_weight <= 100.0, "--foot-weight W needs 0 < W <= 100"),
         (args.arm_swap is not None and not 0.0 <= args.arm_swap <= 1.0, "--arm-swap P needs 0 <= P <= 1"),
         (args.drop_camera is not None and not 0.0 <= args.drop_camera <= 1.0, "--drop-camera P needs 0 <= P <= 1"),

@@ -18,6 +18,12 @@ from typing import Any, Final, TypeVar
 import pydantic
 
 FORMAT_VERSION: Final = "1"
+# train --keep-joints: the joints a fine-tune's kept term holds against the net it starts from (the training
+# module maps each choice to its joints), and the choices that leave the trunk under the head free, the only
+# ones a fine-tune that moves the head joint (--reanchor) may keep. Here, torch-free, so that the command line
+# checks them before torch and the data load.
+KEEP_JOINTS_CHOICES: Final = ("upper", "arms", "arms_legs")
+TRUNK_FREE_KEEPS: Final = ("arms", "arms_legs")
 _STRICT = pydantic.ConfigDict(extra="forbid")
 T = TypeVar("T")
 
