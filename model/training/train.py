@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from .. import provenance
-from ..config import KEEP_JOINTS_CHOICES, TRUNK_FREE_KEEPS, FusionConfig, VisualConfig, parse, to_fields
+from ..config import TRUNK_FREE_KEEPS, FusionConfig, VisualConfig, parse, to_fields
 from ..hmd import hmd_features, hmd_input_dim, tracking_features
 from ..inputs import (
     VisibilityFilter,
@@ -188,9 +188,12 @@ class TrainConfig:
 FOOT_JOINTS: Final = [j for ankle_and_foot in ANKLES_AND_FEET for j in ankle_and_foot]
 CHEST: Final = JOINT_INDEX["spine3"]  # the collars' parent
 # TrainConfig.keep_joints: the joints each choice keeps (upper_body_term)
-KEPT_JOINTS: Final = dict(
-    zip(KEEP_JOINTS_CHOICES, (UPPER_BODY, ARM_JOINTS, np.concatenate([ARM_JOINTS, LOWER_BODY])), strict=True)
-)
+# (its keys are config.KEEP_JOINTS_CHOICES, which the command line offers: tests hold the two together)
+KEPT_JOINTS: Final = {
+    "upper": UPPER_BODY,
+    "arms": ARM_JOINTS,
+    "arms_legs": np.concatenate([ARM_JOINTS, LOWER_BODY]),
+}
 LOST_HAND_JOINTS: Final = ((18, 20), (19, 21))  # the elbow and wrist a lost left / right controller held
 
 PRESETS: dict[str, TrainConfig] = {

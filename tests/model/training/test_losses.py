@@ -5,10 +5,13 @@ import math
 
 import pytest
 
+from egoposevr.model.config import KEEP_JOINTS_CHOICES, TRUNK_FREE_KEEPS
+
 torch = pytest.importorskip("torch")
 from egoposevr.model.training.nets.kinematics import default_offsets, matrix_to_sixd  # noqa: E402
 from egoposevr.model.training.plausibility import FEET  # noqa: E402
 from egoposevr.model.training.train import (  # noqa: E402
+    KEPT_JOINTS,
     PRESETS,
     _anchored_joints,
     _check_keeps_a_start,
@@ -112,6 +115,13 @@ def test_keeping_arms_and_legs_leaves_only_the_trunk_under_the_head_free():
         object(),
         dataclasses.replace(PRESETS["tiny"], keep_joints="arms_legs", keep_upper_weight=1.0, reanchor=True),
     )
+
+
+def test_every_keep_joints_choice_the_command_line_offers_names_joints_to_keep():
+    """The command line offers config's choices before torch loads; training maps each to its joints, and
+    the ones --reanchor allows are among them."""
+    assert tuple(KEPT_JOINTS) == KEEP_JOINTS_CHOICES
+    assert set(TRUNK_FREE_KEEPS) < set(KEEP_JOINTS_CHOICES)
 
 
 def test_the_kept_contacts_cost_least_where_the_feet_land_as_the_start_had_them():
