@@ -18,6 +18,7 @@ from egoposevr.recordings.egrec import KIND_CLIENT, read_header, read_records
 
 WALK = recorded_messages("walk-0000", limit=400)  # ~3.3 s: 300 hmd samples at 90 Hz + 100 frames
 SQUAT = recorded_messages("squat-0001", limit=400)
+WALK_5S = recorded_messages("walk-0000")  # the whole walk: 450 hmd samples + 150 frames
 
 
 def test_http_endpoints(server):
@@ -91,22 +92,28 @@ def _stalled_viewer_case(server):
     healthy.hello("render", session)
     headset.collect()
     healthy.collect()
-    baseline = replay(headset, WALK[:120])  # no stalled viewer yet
+    baseline = replay(headset, WALK_5S[:120])  # no stalled viewer yet
     baseline_ms = _median_latency_ms(headset, baseline)
     baseline_answered = len(headset.poses()) / len(baseline)
     stalled = raw_client(server.url, session, receive_buffer=4096)  # never reads
     try:
         dropped_before = server.metric("egoposevr_dropped_poses_total", role="render")
-        headset.received.clear()
-        sent = replay(headset, WALK[120:])
-        headset.wait_for(lambda: _accounted(headset, sent))
-        answered = headset.poses()
-        # The headset was not held back into skipping. A server that waited on the stalled viewer would stop
-        # answering once the viewer's 8 KiB buffers filled, a few poses in; half of the moment before's share
-        # leaves room for a pause of the machine's own (one full-suite run answered 174 of 210, 2026-12-03).
-        assert len(answered) / len(sent) >= 0.5 * baseline_answered
-        # Generous bound (shared 2-core machines are noisy): a viewer blocking the server would add tens of ms.
-        assert _median_latency_ms(headset, sent) < 2 * baseline_ms + 3
+        # How many samples a shared machine answers in real time, and how fast, is a speed: a stretch that a
+        # pause of the machine's own spoils (CI once answered 80 of 210, another run 174) is tried again on the
+        # walk's next stretch. A server that waited on the stalled viewer fails every stretch, since the viewer
+        # stays stalled throughout: it would stop answering once the viewer's 8 KiB buffers filled, a few poses
+        # in, or, if it sent to the viewer first, add its wait to each answer.
+        for stretch in (WALK_5S[120:280], WALK_5S[280:440], WALK_5S[440:]):
+            headset.received.clear()
+            sent = replay(headset, stretch)
+            headset.wait_for(lambda s=sent: _accounted(headset, s))
+            answered = headset.poses()
+            share = len(answered) / len(sent)
+            median_ms = _median_latency_ms(headset, sent)
+            if share >= 0.5 * baseline_answered and median_ms < 2 * baseline_ms + 3:
+                break
+        assert share >= 0.5 * baseline_answered, (len(answered), len(sent), baseline_answered)
+        assert median_ms < 2 * baseline_ms + 3, (median_ms, baseline_ms)
         healthy.wait_for(lambda: len([p for p in healthy.poses() if p.seq in sent]) >= len(answered))
         assert server.metric("egoposevr_dropped_poses_total", role="render") > dropped_before
     finally:  # a failure here must not leave sockets open for the next test's warnings to trip on
