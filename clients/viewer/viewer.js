@@ -14,8 +14,9 @@ const { encode, decode } = window.MessagePack;
 const LEFT = new Set([1, 4, 7, 10, 13, 16, 18, 20]);
 const RIGHT = new Set([2, 5, 8, 11, 14, 17, 19, 21]);
 // Devices on the body (model/rig.py's DEFAULT_OFFSETS_M): offsets in the joint's frame; device = joint turned
-// 180° about y. The headset's is where the training bodies have their eyes; models trained before 2026-11-27
-// hang their head joint from (0, 0.06, 0.11), so under them the box is drawn 3.6 cm under the headset.
+// 180° about y. The headset's is where the training bodies have their eyes, which every bundled model hangs its
+// head joint from; a model file made before 2026-11-27 hangs it from (0, 0.06, 0.11), so under such a file the
+// box is drawn 3.6 cm under the headset.
 const DEVICES = [
   { joint: 15, offset: [0.0, 0.024, 0.083], size: [0.18, 0.1, 0.12] },
   { joint: 20, offset: [0.085, -0.015, 0.015], size: [0.05, 0.05, 0.14] },

@@ -1,7 +1,10 @@
 """Typed configs and metadata: what export writes, the runtime reads back exactly, and refuses clearly."""
 
 import json
+import re
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from egoposevr.model.config import (
@@ -14,8 +17,11 @@ from egoposevr.model.config import (
     parse,
     to_properties,
 )
+from egoposevr.model.runtime.loading import LoadedModel
+from egoposevr.model.runtime.procedural import ProceduralModel
 from egoposevr.model.weights import model_files
 
+PROTOCOL_MD = Path(__file__).resolve().parents[2] / "PROTOCOL.md"
 CAMERA = CameraInfo(
     width=160, height=128, intrinsics=(80.0, 80.0, 79.5, 63.5), hfov_deg=90.0, pitch_down_deg=78.0,
     cam_from_head=tuple(float(i == j) for i in range(4) for j in range(4)),
@@ -108,3 +114,18 @@ def test_a_model_file_written_before_the_quiet_lift_field_reads_as_without_it():
     assert props["quiet_lift"] == "true" and from_properties(ModelMetadata, props).quiet_lift
     del props["quiet_lift"]
     assert from_properties(ModelMetadata, props).quiet_lift is False
+
+
+def test_every_bundled_model_hangs_the_body_from_the_head_joint_protocol_md_states():
+    """A client places the served body from PROTOCOL.md's `head` row; each bundled file records its own offset
+    (`rig_offsets_m`), so a file moved to another head joint must come with the row that says so."""
+    row = next(line for line in PROTOCOL_MD.read_text().splitlines() if line.startswith("| `head` |"))
+    stated = re.search(r"for every bundled model ([\d.]+) cm behind and ([\d.]+) cm below", row)
+    assert stated, "PROTOCOL.md's head row no longer states one offset for every bundled model"
+    behind_m, below_m = (float(cm) / 100 for cm in stated.groups())
+    files = model_files()
+    assert len(files) >= 7
+    heads = {name: LoadedModel.load(path).info.rig_offsets_m[0] for name, path in files.items()}
+    heads["procedural"] = np.asarray(ProceduralModel().info.rig_offsets_m[0])
+    for name, head in heads.items():
+        np.testing.assert_allclose(head, (0.0, below_m, behind_m), atol=1e-6, err_msg=name)
