@@ -274,6 +274,7 @@ def export_model(
     name: str,
     runs_dirs: list[Path],
     out_path: Path,
+    *,
     lean_gate: bool = False,
     invocation: dict[str, Any] | None = None,
     quiet_lift: bool = False,
@@ -596,6 +597,6 @@ def export_zoo(
     for name in names:
         out_path = out_dir / f"{name}.onnx"
         errors[f"{name}.onnx"] = export_model(
-            name, runs_dirs, out_path, lean_gate, invocation, quiet_lift=quiet_lift
+            name, runs_dirs, out_path, lean_gate=lean_gate, invocation=invocation, quiet_lift=quiet_lift
         )
     return errors
