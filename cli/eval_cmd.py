@@ -32,7 +32,9 @@ folds the legs then off or on (@no-warm-reseat, @warm-reseat; on by default: MOD
 folded pelvis that keeps its heading while no camera frame is in the window on or off (@seated-yaw,
 @no-seated-yaw; off by default: MODEL_CARD.md, rule 65), or a body estimate never shorter than the highest quiet
 head says on or off (@quiet-lift, @no-quiet-lift; by default as the model file says, ModelMetadata.quiet_lift:
-MODEL_CARD.md, rules 77 and 78), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
+MODEL_CARD.md, rules 77 and 78), or a body estimate that takes a bone's first sighting by the camera as its
+first measurement instead of the median of five (@early-body, @no-early-body; off by default), so --models
+egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
 @no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
 (at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
 68 and 69; @first-frame-wait with); @low-head-wait makes a stream whose first sample has the head low (seated or
@@ -88,6 +90,8 @@ SWITCHES = {
     "no-seated-yaw": ("seated_yaw", False),
     "quiet-lift": ("quiet_lift", True),
     "no-quiet-lift": ("quiet_lift", False),
+    "early-body": ("early_body", True),
+    "no-early-body": ("early_body", False),
     "no-camera": ("send_frames", False),
     "first-frame-wait": ("first_frame_wait", True),
     "no-first-frame-wait": ("first_frame_wait", False),
@@ -110,7 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
         "@no-warm-reseat, @no-seated-yaw, @no-quiet-lift) or on (@lean-gate, @reseat, @body-hold, @sure-plant, "
-        "@warm-reseat, @seated-yaw, @quiet-lift), its first samples answered before the first camera frame "
+        "@warm-reseat, @seated-yaw, @quiet-lift, @early-body), its first samples answered before the first camera frame "
         "(@no-first-frame-wait; by "
         "default they wait for it, @first-frame-wait), a low head's first answer made once the net's visual window "
         "is full (@low-head-wait, @no-low-head-wait), without the camera (@no-camera), with the truth's body "

@@ -86,6 +86,11 @@ ARM_BONES: Final = (18, 19, 20, 21)  # upper arms and forearms, which a T-pose c
 # (validation upper-body MPJPE 2.59 cm with 30, 2.49 cm with 5: the CMU clips there last 2-4 s). The fallback
 # trusts a leg bone from STEADY_SAMPLES on; medians are refreshed every frame until then, every 10th after.
 MIN_VISUAL_SAMPLES: Final = 5
+# A stream's body measured from its first sighting on (Pipeline(early_body=True)): the height's body, which the
+# first answers serve until then, has still standers' legs about 2 cm short of where the camera puts them a
+# quarter second later, and held legs then lengthen under a still person (MODEL_CARD.md, "Where a still
+# person's first second goes under today's pair"). Off by default until a rule has judged it.
+EARLY_BODY_SIGHTINGS: Final = 1
 STEADY_SAMPLES: Final = 30  # one second of frames at 30 Hz with the bone in view
 VISUAL_WINDOW: Final = 600  # the median over the last 20 s of sightings
 VISUAL_SCALE_RANGE: Final = (0.7, 1.4)  # per leg bone in the fallback, relative to the mean body
@@ -367,10 +372,16 @@ class BodyCalibrator:
         regressor: BodyRegressor | None = None,
         head_offset_y_m: float | None = None,
         lift_to_quiet_head: bool = False,
+        first_measure_sightings: int = MIN_VISUAL_SAMPLES,
     ) -> None:
         """head_offset_y_m: how far under the view pose the pushed head joints are (the model's rig offset);
         None when it is the regressor's own. lift_to_quiet_head: the estimate is never shorter than the highest
-        quiet head (:class:`QuietHead`; ignored once a calibration measured the height)."""
+        quiet head (:class:`QuietHead`; ignored once a calibration measured the height).
+        first_measure_sightings: how many sightings of a bone make its first measurement (MIN_VISUAL_SAMPLES,
+        or EARLY_BODY_SIGHTINGS for a body measured from the first frame on)."""
+        if first_measure_sightings < 1:
+            raise ValueError(f"first_measure_sightings {first_measure_sightings}: at least 1")
+        self.first_measure_sightings = first_measure_sightings
         self.regressor = regressor
         self.quiet_head = QuietHead() if lift_to_quiet_head else None
         # What the regressor's height scale needs added to the heights pushed here to mean what it did when
@@ -457,7 +468,7 @@ class BodyCalibrator:
             seen.append(float(lengths[k]))
             self._count[j] += 1  # the window stops growing at VISUAL_WINDOW; the count does not
             count = self._count[j]
-            if count >= MIN_VISUAL_SAMPLES and (count < STEADY_SAMPLES or count % 10 == 0):
+            if count >= self.first_measure_sightings and (count < STEADY_SAMPLES or count % 10 == 0):
                 self.measured[j] = float(np.clip(np.median(seen) / _REST_BONE_M[j], *MEASURED_SCALE_RANGE))
                 changed = True
         if changed:

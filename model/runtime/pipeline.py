@@ -28,7 +28,14 @@ from ..rig import TRACKED_JOINTS, joints_from_devices, stillness_point
 from ..rotations import heading_of
 from ..skeleton import HEAD, NUM_JOINTS, PARENTS, rest_offsets
 from . import kernels, stance
-from .body import BodyCalibrator, GivenBody, ServedScale, held_target
+from .body import (
+    EARLY_BODY_SIGHTINGS,
+    MIN_VISUAL_SAMPLES,
+    BodyCalibrator,
+    GivenBody,
+    ServedScale,
+    held_target,
+)
 from .calibration import Calibration, body_measurements, canonical_poses
 from .contact import FootContacts
 from .filters import DevicePoseFilter, OneEuroCascade
@@ -103,6 +110,7 @@ class Pipeline(GivenBody):
         warm_reseat: bool = True,
         seated_yaw: bool = False,
         quiet_lift: bool | None = None,
+        early_body: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -135,6 +143,10 @@ class Pipeline(GivenBody):
         # camera measured short floats its planted feet; None: as the model file says (ModelMetadata.quiet_lift;
         # MODEL_CARD.md, rules 77 and 78)
         self.quiet_lift = model.info.quiet_lift if quiet_lift is None else quiet_lift
+        # the body estimate takes the camera's first sighting of a bone as its first measurement
+        # (body.EARLY_BODY_SIGHTINGS), not the median of MIN_VISUAL_SAMPLES: a still stander's first answers then
+        # have the camera's legs, not the height's; off by default until a rule has judged it
+        self.early_body = early_body
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -171,7 +183,10 @@ class Pipeline(GivenBody):
         self.tracking = TrackingState()
         self.offsets = rest_offsets(self.bone_scale)
         self.body = BodyCalibrator(
-            self.model.info.body_regressor, float(self.model.info.rig_offsets_m[0, 1]), self.quiet_lift
+            self.model.info.body_regressor,
+            float(self.model.info.rig_offsets_m[0, 1]),
+            self.quiet_lift,
+            first_measure_sightings=EARLY_BODY_SIGHTINGS if self.early_body else MIN_VISUAL_SAMPLES,
         )
         self.served_scale = ServedScale()
         # body_hold's clock: the sample when the camera first measured a bone this session, or the first after

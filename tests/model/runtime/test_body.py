@@ -9,6 +9,7 @@ import pytest
 
 from egoposevr.model.runtime.body import (
     BODY_HOLD_AFTER_S,
+    EARLY_BODY_SIGHTINGS,
     HELD_LEG_BONES,
     MIN_VISUAL_SAMPLES,
     QUIET_HEAD_RANGE_M,
@@ -184,6 +185,28 @@ def test_a_calibrator_with_a_regressor_keeps_the_height_scale_until_the_camera_m
     changed = [body.push_visual(keypoints, np.ones(22, dtype=bool)) for _ in range(MIN_VISUAL_SAMPLES)]
     assert changed[-1] and not any(changed[:-1])
     np.testing.assert_allclose(body.bone_scale[[1, 12, 15]], 1.05 * WIDE_HIPS[[1, 12, 15]], rtol=0.03)
+
+
+def test_an_early_body_is_measured_from_the_first_sighting_and_then_as_the_default_one():
+    """first_measure_sightings=EARLY_BODY_SIGHTINGS: the regressor answers from a bone's first sighting, where
+    the default waits for MIN_VISUAL_SAMPLES; from then on the two estimates are the same."""
+    regressor = BodyRegressor.fit(*family_rows(60), encoder_sha256="x", head_offset_y_m=0.024, ridge=0.1)
+    early = BodyCalibrator(regressor, first_measure_sightings=EARLY_BODY_SIGHTINGS)
+    default = BodyCalibrator(regressor)
+    keypoints, _ = forward_kinematics(
+        np.broadcast_to(np.eye(3), (22, 3, 3)), np.zeros(3), rest_offsets(1.05 * WIDE_HIPS)
+    )
+    for body in (early, default):
+        body.push(head_at(1.05 * STANDING_HEAD_HEIGHT_M), ALL)
+    assert early.push_visual(keypoints, np.ones(22, dtype=bool))
+    assert not default.push_visual(keypoints, np.ones(22, dtype=bool))
+    np.testing.assert_allclose(early.bone_scale[[1, 12, 15]], 1.05 * WIDE_HIPS[[1, 12, 15]], rtol=0.03)
+    for _ in range(MIN_VISUAL_SAMPLES - 1):
+        for body in (early, default):
+            body.push_visual(keypoints, np.ones(22, dtype=bool))
+    np.testing.assert_array_equal(early.bone_scale, default.bone_scale)
+    with pytest.raises(ValueError, match="first_measure_sightings"):
+        BodyCalibrator(regressor, first_measure_sightings=0)
 
 
 def test_a_regressor_survives_a_round_trip_and_a_corrupt_file_is_refused(tmp_path):
