@@ -33,7 +33,8 @@ folded pelvis that keeps its heading while no camera frame is in the window on o
 @no-seated-yaw; off by default: MODEL_CARD.md, rule 65), or a body estimate never shorter than the highest quiet
 head says on or off (@quiet-lift, @no-quiet-lift; by default as the model file says, ModelMetadata.quiet_lift:
 MODEL_CARD.md, rules 77 and 78), or a body estimate that takes a bone's first sighting by the camera as its
-first measurement instead of the median of five (@early-body, @no-early-body; off by default), so --models
+first measurement instead of the median of five (@early-body, @no-early-body; on by default: MODEL_CARD.md,
+rule 86), so --models
 egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
 @no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
 (at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
@@ -113,7 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated model names (default all); LABEL=FILE serves a model file under a label of "
         "your own (a candidate beside the bundled model of its name); NAME@SWITCH serves it with one runtime "
         "stage off (@no-foot-contacts, @no-steady-stance, @no-leg-hold, @no-lean-gate, @no-body-hold, "
-        "@no-warm-reseat, @no-seated-yaw, @no-quiet-lift) or on (@lean-gate, @reseat, @body-hold, @sure-plant, "
+        "@no-warm-reseat, @no-seated-yaw, @no-quiet-lift, @no-early-body) or on (@lean-gate, @reseat, @body-hold, @sure-plant, "
         "@warm-reseat, @seated-yaw, @quiet-lift, @early-body), its first samples answered before the first camera frame "
         "(@no-first-frame-wait; by "
         "default they wait for it, @first-frame-wait), a low head's first answer made once the net's visual window "

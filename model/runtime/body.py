@@ -89,7 +89,7 @@ MIN_VISUAL_SAMPLES: Final = 5
 # A stream's body measured from its first sighting on (Pipeline(early_body=True)): the height's body, which the
 # first answers serve until then, has still standers' legs about 2 cm short of where the camera puts them a
 # quarter second later, and held legs then lengthen under a still person (MODEL_CARD.md, "Where a still
-# person's first second goes under today's pair"). Off by default until a rule has judged it.
+# person's first second goes under today's pair"). The pipeline's default since rule 86.
 EARLY_BODY_SIGHTINGS: Final = 1
 STEADY_SAMPLES: Final = 30  # one second of frames at 30 Hz with the bone in view
 VISUAL_WINDOW: Final = 600  # the median over the last 20 s of sightings
