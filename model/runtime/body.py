@@ -10,7 +10,8 @@ FK, KPO and the rotation re-derivation need the wearer's bone lengths. Four sour
    give the height instead (:meth:`BodyCalibrator.height_scale`).
 2. **Camera sightings.** The visor camera sees the hips, the lower spine and the legs most of the time. Each
    frame whose keypoints at both ends of one of ``SIGHTED_BONES`` pass Alg. 1's visibility mask gives one
-   length; once a bone has ``MIN_VISUAL_SAMPLES`` of them, their median is its measurement.
+   length; once a bone has ``first_measure_sightings`` of them (the pipeline's ``EARLY_BODY_SIGHTINGS``, one,
+   since rule 86; ``MIN_VISUAL_SAMPLES`` without it), their median is its measurement.
 3. **A fitted body regressor** (:class:`BodyRegressor`, one per RGB-D visual encoder, made by ``egoposevr
    fit-body`` from the training split): from the height and the measured lengths to every bone's length,
    including the arms, collars, neck and head the camera never sees. Proportions come in families (the
@@ -99,7 +100,7 @@ PREDICTED_SCALE_RANGE: Final = (0.3, 2.5)  # the regressor's output, per bone (C
 FAMILIES: Final = 2  # body proportion families the regressor looks for in its training bodies
 DISCRIMINANT_RIDGE: Final = 1e-3  # added to the features' covariance (the constant feature has none)
 # The served skeleton follows the estimate at most this fast (scale per second, per bone). A new measurement
-# (the regressor's first answer at a session's fifth camera frame changes the legs by ~5 %) never resizes the
+# (the regressor's first answers, from a session's first camera frames, change the legs by ~5 %) never resizes the
 # body in one sample: KPO plants the soles on the position filter's body, whose bones lag behind, so a jump
 # put planted feet up to 7 cm off or through the floor for the next few samples. 0.5 is the slowest of 0.25 /
 # 0.5 / 1 that cost the training split at most 0.03 cm of lower body (MODEL_CARD.md, "A body that grows").
