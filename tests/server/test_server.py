@@ -16,9 +16,9 @@ from egoposevr.model.weights import WEIGHTS_DIR
 from egoposevr.protocol import ListModels, Ping, SelectModel, decode
 from egoposevr.recordings.egrec import KIND_CLIENT, read_header, read_records
 
-WALK = recorded_messages("walk-0000", limit=400)  # ~3.3 s: 300 hmd samples at 90 Hz + 100 frames
-SQUAT = recorded_messages("squat-0001", limit=400)
 WALK_5S = recorded_messages("walk-0000")  # the whole walk: 450 hmd samples + 150 frames
+WALK = WALK_5S[:400]  # ~3.3 s: 300 hmd samples at 90 Hz + 100 frames
+SQUAT = recorded_messages("squat-0001", limit=400)
 
 
 def test_http_endpoints(server):
