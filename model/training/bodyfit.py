@@ -4,10 +4,11 @@ For every sequence of one or more datasets' fitting split, the serving code's ow
 :class:`~egoposevr.model.runtime.body.BodyCalibrator` is fed what a session would feed it, in arrival order —
 every camera frame through the encoder and Alg. 1's visibility filter, every headset sample's head joint.
 Each moment its evidence changes (height scale, measured bone medians) is one training row, with the
-sequence's true bone scales as the target. Several datasets let the regressor see bodies in poses one set
-lacks (the walks of one, the seated people of another). A check split, read in each dataset that has it,
-reports the summed bone-length error of the height scale, of the fallback without a regressor and of the
-regressor.
+sequence's true bone scales as the target. The calibrator takes a bone's first measurement where the served
+pipeline does (``EARLY_BODY_SIGHTINGS``), so the regressor is fitted on the evidence it is asked about. Several
+datasets let the regressor see bodies in poses one set lacks (the walks of one, the seated people of another). A
+check split, read in each dataset that has it, reports the summed bone-length error of the height scale, of the
+fallback without a regressor and of the regressor.
 
 Shape legend: ``N`` sequences, ``J`` = 22 joints.
 """
@@ -25,7 +26,13 @@ import onnxruntime as ort
 from .. import provenance
 from ..inputs import VisibilityFilter, decode_rgbd
 from ..rig import joints_from_devices
-from ..runtime.body import REGRESSOR_SUFFIX, BodyCalibrator, BodyRegressor, regressor_path
+from ..runtime.body import (
+    EARLY_BODY_SIGHTINGS,
+    REGRESSOR_SUFFIX,
+    BodyCalibrator,
+    BodyRegressor,
+    regressor_path,
+)
 from ..runtime.frames import encode_frame
 from ..runtime.loading import LoadedModel
 from ..skeleton import NUM_JOINTS, rest_offsets
@@ -45,8 +52,10 @@ def observe_body(model: LoadedModel, seq: dict[str, Any]) -> tuple[BodyCalibrato
     """A calibrator without a regressor, fed one sequence in arrival order (head heights, and frames
     ``CAMERA_LATENCY_US`` after capture), and a snapshot of its evidence whenever that changed. The
     snapshots are the regressor's training rows: a session starts with some bones measured and others not,
-    and a regressor fitted on whole sequences only mistakes that for an unusual body."""
-    body = BodyCalibrator()
+    and a regressor fitted on whole sequences only mistakes that for an unusual body. A bone is measured from
+    its first sighting on, as the served pipeline measures it (``Pipeline(early_body=True)``, the default); the
+    rows from the fifth sighting on are the ones a pipeline without it asks about."""
+    body = BodyCalibrator(first_measure_sightings=EARLY_BODY_SIGHTINGS)
     visibility = VisibilityFilter()
     camera = seq["camera"]
     cam_from_head = np.asarray(camera["cam_from_head"], dtype=np.float64).reshape(4, 4)
