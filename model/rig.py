@@ -57,6 +57,13 @@ def joints_from_devices(
     return joint_pos, joint_rot
 
 
+def head_joint_in_view_m(head_offset_m: np.ndarray) -> np.ndarray:
+    """Where a head offset (3,) like HEAD_OFFSET_M (in the joint's frame: the view pose ahead of and above the head
+    joint) puts the head joint in the view pose's own frame (x right, y up, z back; PROTOCOL.md's ``head``
+    space), m (3,): (0, -0.024, 0.083) for HEAD_OFFSET_M, 2.4 cm below and 8.3 cm behind the eyes."""
+    return -DEVICE_FROM_JOINT @ np.asarray(head_offset_m, dtype=np.float64)
+
+
 def stillness_point(head_m: np.ndarray, head_rot: np.ndarray, head_offset_m: np.ndarray) -> np.ndarray:
     """The point the stillness gates watch (3,), from the head joint head_m (3,) and its global rotation
     head_rot (3, 3) that :func:`joints_from_devices` found with the head offset head_offset_m (3,)."""

@@ -131,6 +131,7 @@ def example_messages() -> dict[str, Message]:
                     description="HMD + RGB-D fusion with KPO",
                     sha256="0123456789abcdef" * 4,
                     encoder_sha256="fedcba9876543210" * 4,
+                    head_joint_m=[0.0, -0.0234375, 0.0830078125],  # float32-exact, near the bundled value
                 ),
                 ModelInfo(name="hmd", inputs=["hmd"], description="HMD-only baseline"),
             ],

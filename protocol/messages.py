@@ -299,6 +299,8 @@ class ModelInfo(BaseModel):
     description: Text = ""
     sha256: Digest | None = None  # the model file served; absent for a model that is code (procedural)
     encoder_sha256: Digest | None = None  # its visual encoder's file, for models that read a camera
+    # Where the model hangs the body's head joint: in the ``head`` device's frame (x right, y up, z back), m
+    head_joint_m: vec(3, Coord) | None = None
 
 
 class Models(Message):

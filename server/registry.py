@@ -18,7 +18,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..model.provenance import file_digest
+from ..model.rig import head_joint_in_view_m
 from ..model.runtime.loading import DEFAULT_PROVIDERS, LoadedModel, ModelError
 from ..model.runtime.procedural import NAME as PROCEDURAL
 from ..model.runtime.procedural import ProceduralModel
@@ -35,6 +38,12 @@ class _Stamp:
     path: Path
     mtime_ns: int
     size: int
+
+
+def _wire_head_joint_m(head_offset_m: np.ndarray) -> list[float]:
+    """A model's head offset (3,) as the ``models`` message gives it: the head joint in the view pose's frame (m;
+    0.0 where it is -0.0)."""
+    return [round(float(v), 6) + 0.0 for v in head_joint_in_view_m(head_offset_m)]
 
 
 def _stamp(path: Path) -> _Stamp:
@@ -81,13 +90,15 @@ class ModelRegistry:
 
     def wire_infos(self) -> list[WireModelInfo]:
         """The ``models`` message's list, with the digests of the files each model serves (PROTOCOL.md
-        §model-digests): which weights answered a session, for a user's report."""
+        §model-digests): which weights answered a session, for a user's report; and where each hangs the body's
+        head joint from the headset (§model-head-joint), which a model file records and a client cannot read."""
         infos = []
         for name, model in self.models.items():
             model_sha256, encoder_sha256 = self._digests.get(name, (None, None))
             infos.append(WireModelInfo(
                 name=name, inputs=list(model.info.inputs), description=model.info.description[:1024],
                 sha256=model_sha256, encoder_sha256=encoder_sha256,
+                head_joint_m=_wire_head_joint_m(model.info.rig_offsets_m[0]),
             ))  # fmt: skip
         return infos
 

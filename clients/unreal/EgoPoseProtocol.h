@@ -124,11 +124,14 @@ struct Welcome {
 
 // One servable model (§5 models). The digests say exactly which weights answered a session (§model-digests):
 // log them with it. A model that is code (procedural) has neither; one that reads no camera has no encoder's.
+// head_joint_m (§model-head-joint): where the model hangs the body's head joint, in the head device's frame (x
+// right, y up, z back; m); none from a server older than the field (assume 0, -0.024, 0.083).
 struct ModelInfo {
     std::string name;
     std::vector<std::string> inputs;  // a subset of "hmd", "rgb", "depth"
     std::string description;
     std::optional<std::string> sha256, encoder_sha256;  // 64 lowercase hex digits
+    std::optional<std::array<float, 3>> head_joint_m;
 };
 
 // The models a session may select and the one it uses now: after the welcome, after list_models, and to every
@@ -460,7 +463,8 @@ inline Models read_models(const msgpack::object_handle& handle) {
     for (uint32_t i = 0; i < list.via.array.size; ++i) {
         const detail::Fields m(list.via.array.ptr[i], f.path("models") + "[" + std::to_string(i) + "]");
         models.models.push_back({m.text("name"), m.texts("inputs"), m.optional_text("description").value_or(""),
-                                 m.optional_text("sha256"), m.optional_text("encoder_sha256")});
+                                 m.optional_text("sha256"), m.optional_text("encoder_sha256"),
+                                 m.optional_floats<3>("head_joint_m")});
     }
     return models;
 }

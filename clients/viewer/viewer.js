@@ -15,8 +15,8 @@ const LEFT = new Set([1, 4, 7, 10, 13, 16, 18, 20]);
 const RIGHT = new Set([2, 5, 8, 11, 14, 17, 19, 21]);
 // Devices on the body (model/rig.py's DEFAULT_OFFSETS_M): offsets in the joint's frame; device = joint turned
 // 180° about y. The headset's is where the training bodies have their eyes, which every bundled model hangs its
-// head joint from; a model file made before 2026-11-27 hangs it from (0, 0.06, 0.11), so under such a file the
-// box is drawn 3.6 cm under the headset.
+// head joint from; a pose's model that says otherwise in `models` (`head_joint_m`, PROTOCOL.md
+// §model-head-joint) has its headset drawn where it says (headsetOffset).
 const DEVICES = [
   { joint: 15, offset: [0.0, 0.024, 0.083], size: [0.18, 0.1, 0.12] },
   { joint: 20, offset: [0.085, -0.015, 0.015], size: [0.05, 0.05, 0.14] },
@@ -26,6 +26,7 @@ const DEVICE_FROM_JOINT = new THREE.Quaternion().setFromAxisAngle(new THREE.Vect
 
 const state = (window.viewerState = {
   connected: false, session: null, model: null, models: [], poses: 0, lastSeq: null, fps: 0,
+  headJoints: {}, // model name -> its head joint in the headset's frame (m), as `models` gives it, or null
   serverMs: null, camera: null, planted: null, skipped: 0, truthSeen: false, renderer: null, errors: [], sessions: [],
   headset: null, // from `session` messages: is an input client connected (null: not told yet)
   calibration: null, // the newest `calibration` message: {status, message, ...}
@@ -65,9 +66,21 @@ function connect(session) {
   ws.onclose = () => { state.connected = false; setTimeout(() => connect(state.session), 1000); };
 }
 
+// The headset's offset from the head joint in the joint's frame (x left, y up, z forward) under a model: its
+// `head_joint_m` is the joint in the headset's frame (x right, y up, z back), the same point seen the other way.
+function headsetOffset(model) {
+  const joint = state.headJoints[model];
+  return joint ? [joint[0], -joint[1], joint[2]] : DEVICES[0].offset;
+}
+
 function onMessage(msg) {
   if (msg.type === "welcome") { state.connected = true; state.model = msg.model; }
-  else if (msg.type === "models") { state.model = msg.active; state.models = msg.models.map((m) => m.name); fillModels(msg.models); }
+  else if (msg.type === "models") {
+    state.model = msg.active;
+    state.models = msg.models.map((m) => m.name);
+    state.headJoints = Object.fromEntries(msg.models.map((m) => [m.name, m.head_joint_m ?? null]));
+    fillModels(msg.models);
+  }
   else if (msg.type === "pose") { onPose(msg); }
   else if (msg.type === "error") {
     state.errors = [...state.errors.slice(-19), `${msg.code}: ${msg.message}`];
@@ -272,7 +285,8 @@ function webglView(stage) {
     joints.forEach((p, j) => spheres[j].position.copy(p));
     const rot = globalRotations(pose);
     DEVICES.forEach((d, k) => {
-      devices[k].position.copy(new THREE.Vector3(...d.offset).applyQuaternion(rot[d.joint]).add(joints[d.joint]));
+      const offset = k === 0 ? headsetOffset(pose.model) : d.offset;
+      devices[k].position.copy(new THREE.Vector3(...offset).applyQuaternion(rot[d.joint]).add(joints[d.joint]));
       devices[k].quaternion.copy(rot[d.joint]).multiply(DEVICE_FROM_JOINT);
     });
     const showTruth = Boolean(pose.truth) && $("truth").checked;

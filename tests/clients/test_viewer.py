@@ -137,6 +137,7 @@ def test_the_viewer_shows_the_avatar_moving_and_switches_models(tmp_path):
             assert title.endswith(
                 f"sha256 {file_digest(WEIGHTS_DIR / 'egoposevr.onnx')[:12]}"
             )  # which weights
+            assert np.allclose(state["headJoints"]["egoposevr"], [0.0, -0.024, 0.083])  # §model-head-joint
             first = browser.screenshot()
             time.sleep(0.8)
             second = browser.screenshot()

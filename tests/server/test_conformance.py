@@ -33,6 +33,7 @@ from loopback import (
 
 from egoposevr.cli.main import main as cli_main
 from egoposevr.model.provenance import file_digest
+from egoposevr.model.rotations import quat_xyzw_to_matrix
 from egoposevr.model.runtime.frames import LOW_HEAD_M
 from egoposevr.model.skeleton import forward_kinematics
 from egoposevr.model.synth.headset import HeadsetRig, device_poses
@@ -349,6 +350,28 @@ def test_each_model_names_the_digests_of_the_files_it_serves(server):
     )
     assert listed["egoposevr"].sha256 == file_digest(WEIGHTS_DIR / "egoposevr.onnx")
     assert listed["egoposevr"].encoder_sha256 == file_digest(WEIGHTS_DIR / "visual-rgbd.onnx")
+
+
+@pytest.mark.protocol("model-head-joint")
+def test_each_model_says_where_it_hangs_the_head_joint_and_the_served_head_joint_is_there(server):
+    """The bundled value PROTOCOL.md states, from every model; and a still wearer's served head joint (row 15)
+    there: exactly under `hmd`, which keeps it on the headset's, within 2.5 cm under the others, which solve it
+    with the body. The offset the bundled models used until 2026-11-27 puts it 4.6 cm away."""
+    with Client(server.url, "head-joint") as client:
+        client.hello("render", "head-joint")
+        client.send(ListModels())
+        listed = {m.name: m for m in client.recv_type("models").models}
+    assert {"hmd", "egoposevr", "procedural"} <= set(listed)
+    for name, info in listed.items():
+        np.testing.assert_allclose(info.head_joint_m, [0.0, -0.024, 0.083], atol=1e-6, err_msg=name)
+    first = _hmd_stream(limit=1)[0]  # a wearer who stands still, looking as the walk begins
+    still = [first.model_copy(update={"seq": k, "t_us": first.t_us + k * 11_111}) for k in range(90)]
+    head = np.array(first.head, dtype=np.float64)
+    for name, within_cm in (("hmd", 0.01), ("egoposevr", 2.5), ("procedural", 2.5)):
+        served = _joints(_serve(server, f"head-joint-{name}", still, model=name)).reshape(-1, 22, 3)[:, 15]
+        stated = head[:3] + quat_xyzw_to_matrix(head[3:]) @ np.asarray(listed[name].head_joint_m)
+        off_cm = 100 * np.linalg.norm(served[30:] - stated, axis=-1)  # after the first third of a second
+        assert off_cm.max() < within_cm, (name, off_cm.max())
 
 
 @pytest.mark.protocol("hello-order")

@@ -1,8 +1,10 @@
 """The model registry without a server: the digests it gives clients (PROTOCOL.md §model-digests) follow the
-files, and an encoder shared by several models is read and hashed once per version."""
+files, an encoder shared by several models is read and hashed once per version, and each model's head joint
+(§model-head-joint) is the one its file records."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -59,3 +61,20 @@ def test_a_shared_encoder_is_hashed_once_per_version_and_its_digest_follows_the_
 
     hashed.clear()
     assert registry.rescan() == [] and hashed == []  # nothing changed: nothing read
+
+
+def test_a_model_file_says_where_it_hangs_the_head_joint_and_the_models_message_carries_it(models_dir):
+    """§model-head-joint: a file that records another head offset (here the one every bundled model had until
+    2026-11-27, 6 cm under and 11 cm behind the eyes) is listed with it; the bundled files with theirs."""
+    onnx = pytest.importorskip("onnx")
+    graph = onnx.load(models_dir / SHARING[1])
+    offsets = next(p for p in graph.metadata_props if p.key == "egoposevr.rig_offsets_m")
+    rows = json.loads(offsets.value)
+    rows[0] = [0.0, 0.06, 0.11]  # in the joint's frame: the eyes above and ahead of the head joint
+    offsets.value = json.dumps(rows)
+    onnx.save(graph, models_dir / SHARING[1])
+    registry = ModelRegistry(models_dir, bundled=False)
+    registry.rescan()
+    heads = {info.name: info.head_joint_m for info in registry.wire_infos()}
+    assert heads["hmd-rgbd-concat"] == [0.0, -0.06, 0.11]  # in the headset's frame: below and behind
+    assert heads["hmd-rgbd"] == heads["procedural"] == [0.0, -0.024, 0.083]

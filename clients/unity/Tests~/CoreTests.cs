@@ -97,6 +97,9 @@ static class CoreTests
         Check(models.Active == "egoposevr" && models.List.Count == 2
             && models.List[0].Sha256 == Repeat("0123456789abcdef") && models.List[0].EncoderSha256 == Repeat("fedcba9876543210")
             && models.List[1].Sha256 == null && models.List[1].EncoderSha256 == null, "models fields, digests where given");
+        Check(models.List[0].HeadJointM != null && models.List[0].HeadJointM[0] == 0f
+            && models.List[0].HeadJointM[1] == -0.0234375f && models.List[0].HeadJointM[2] == 0.0830078125f
+            && models.List[1].HeadJointM == null, "models: the head joint where given (§model-head-joint)");
         var body = (Body)Protocol.DecodeFromServer(File.ReadAllBytes(Path.Combine(goldenDir, "body.msgpack")));
         Check(body.BoneLengthsM.SequenceEqual(ExampleBoneLengths()) && body.Given && !body.Measured, "body fields");
         SameBytes(MsgPack.Encode(new MsgMap().Add("type", "set_body").Add("v", 1L).Add("clear", true)),
@@ -436,6 +439,8 @@ static class CoreTests
         var fusion = listed.List.Find(info => info.Name == "egoposevr");
         Check(fusion != null && fusion.Sha256 != null && fusion.Sha256.Length == 64 && fusion.EncoderSha256 != null,
             "each model names the files it serves (§model-digests)");
+        Check(listed.List.TrueForAll(info => info.HeadJointM != null && Math.Abs(info.HeadJointM[2] - 0.083f) < 1e-6f),
+            "each model says where it hangs the head joint (§model-head-joint)");
         Check(listed.List.Find(info => info.Name == "procedural").Sha256 == null, "a model that is code names none");
         WaitForMessage<Models>(render, m => m.Active == "hmd", "the render client hears of the switch");
         StreamHeadset(input, rgb, depth, 90, next, 30);

@@ -74,6 +74,8 @@ static void server_messages(const std::string& dir) {
           "models[0] digests");
     check(models.models[1].name == "hmd" && !models.models[1].sha256 && !models.models[1].encoder_sha256,
           "models[1] has no digests");
+    check(fusion.head_joint_m == std::array<float, 3>{0.0f, -0.0234375f, 0.0830078125f} && !models.models[1].head_joint_m,
+          "models: the head joint where given (§model-head-joint)");
     refuses_field(bytes, "active", msgpack::object(true), read_models, "models.active: expected a string");
 
     SessionStatus session = read_session(read_message(dir, "session", bytes));

@@ -112,6 +112,8 @@ static void live(const std::string& rgb_path, const std::string& depth_path) {
             check(camera ? is_digest(info.encoder_sha256) : !info.encoder_sha256,
                   info.name + " names an encoder exactly when it reads a camera");
         }
+        check(info.head_joint_m == std::array<float, 3>{0.0f, -0.024f, 0.083f},
+              info.name + " hangs the head joint where every bundled model does (§model-head-joint)");
     }
 
     send(encode(Ping{11, 123}));
@@ -138,8 +140,10 @@ static void live(const std::string& rgb_path, const std::string& depth_path) {
     check(pose.camera == true && pose.model == "egoposevr", "the fusion model used the camera");
     check(pose.t_us == standing_sample(pose.seq).t_us, "pose.t_us answers its hmd");
     for (float value : pose.joints) check(std::isfinite(value), "joints are finite");
-    const double head_dy = pose.joints[3 * 15 + 1] - 1.6;
-    check(std::fabs(head_dy) < 0.3, "the head joint hangs near the headset");
+    // The headset looks along -Z unturned, so the head joint is at its position plus head_joint_m, within ~2 cm.
+    const double head_off_cm = 100 * std::hypot(pose.joints[3 * 15] - 0.0, pose.joints[3 * 15 + 1] - (1.6 - 0.024),
+                                                pose.joints[3 * 15 + 2] - 0.083);
+    check(head_off_cm < 4, "the head joint hangs where head_joint_m says: " + std::to_string(head_off_cm) + " cm off");
 
     send(encode(SelectModel{"procedural"}));
     const Models switched = read_models(

@@ -281,6 +281,9 @@ namespace EgoPose.Protocol
         public string Description;
         public string Sha256; // optional: the served model file's SHA-256, hex (§model-digests); null for code
         public string EncoderSha256; // optional: its visual encoder's, for models that read a camera
+        // optional (§model-head-joint): where the model hangs the body's head joint, in the head device's frame
+        // (x right, y up, z back; m); null from a server older than the field (assume 0, -0.024, 0.083)
+        public float[] HeadJointM;
     }
 
     public sealed class Models : Message
@@ -300,6 +303,11 @@ namespace EgoPose.Protocol
                     .Add("description", info.Description);
                 Fields.AddIfSet(item, "sha256", info.Sha256);
                 Fields.AddIfSet(item, "encoder_sha256", info.EncoderSha256);
+                if (info.HeadJointM != null)
+                {
+                    if (info.HeadJointM.Length != 3) throw new ArgumentException("models.head_joint_m must hold 3 numbers");
+                    item.Add("head_joint_m", info.HeadJointM);
+                }
                 items.Add(item);
             }
             map.Add("active", Active).Add("models", items);
@@ -319,6 +327,7 @@ namespace EgoPose.Protocol
                     Description = Fields.String(info, "description"),
                     Sha256 = Fields.OptionalString(info, "sha256"),
                     EncoderSha256 = Fields.OptionalString(info, "encoder_sha256"),
+                    HeadJointM = info.Get("head_joint_m") == null ? null : Fields.Floats(info, "head_joint_m", 3),
                 });
             }
             return models;
