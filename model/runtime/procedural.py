@@ -5,7 +5,9 @@ avatar legs that VR users know):
 
 - the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
 - the neck hangs under the head joint; standing, the pelvis stays over the planted feet (bending over
-  tilts the spine with straight legs, a squat bends the knees), walking it goes along under the head;
+  tilts the spine with straight legs, a squat bends the knees), walking it goes along under the head; the
+  spine is the rest spine turned onto the pelvis-to-neck line, its bones at their lengths, so the served head
+  joint is the tracked one (the model's ``head_joint_m``, PROTOCOL.md §model-head-joint);
 - with ``seat``, a stream that begins seated (the head lower than this body's stands) plants the feet in
   front of the pelvis, ``SEAT_BACK_PER_DROP`` times that drop (the pelvis hanging upright from the head: a
   chair's sitter has the feet in front of the seat, the seat under the trunk); the seat stays while the sitter
@@ -104,6 +106,7 @@ FEET_AND_ANKLES: Final = [7, 8, 10, 11]
 
 # the joints that turn with the chest: neck, collars, head, arms
 _CHEST: Final = [12, 13, 14, 15, *ARM_CHAINS[0], *ARM_CHAINS[1]]
+_SPINE: Final = [3, 6, 9]  # spine1-3, between the pelvis and the neck
 
 
 _HALF_TURN: Final = np.diag([-1.0, 1.0, -1.0])  # devices look along -z, SMPL faces +z
@@ -159,6 +162,19 @@ def _two_bone(
     norm = np.linalg.norm(bend)
     bend = bend / norm if norm > 1e-9 else np.cross(axis, [0.0, 1.0, 0.0])
     return root + along * axis + height * bend
+
+
+def _turn_between(from_vec: np.ndarray, to_vec: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking the direction of from_vec (3,) to that of to_vec (3,) (Rodrigues'
+    formula with the axis from_vec × to_vec; the identity for directions that agree, or nearly oppose, which a
+    spine never does)."""
+    a = from_vec / max(float(np.linalg.norm(from_vec)), 1e-9)
+    b = to_vec / max(float(np.linalg.norm(to_vec)), 1e-9)
+    axis, cos = np.cross(a, b), float(a @ b)
+    if cos < -0.999:
+        return np.eye(3)
+    skew = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + skew + skew @ skew / (1.0 + cos)
 
 
 def _reach(root: np.ndarray, target: np.ndarray, length: float) -> np.ndarray:
@@ -425,9 +441,11 @@ class ProceduralPipeline(GivenBody):
         shift = pelvis - pelvis_upright
         for joint in (0, 1, 2):  # pelvis and hips
             joints[joint] = upright[joint] + shift
-        for joint in (3, 6, 9):  # the spine between the pelvis and the neck, at its rest heights
-            fraction = (rest_world[joint, 1] - rest_world[0, 1]) / (rest_world[12, 1] - rest_world[0, 1])
-            joints[joint] = pelvis + fraction * (neck - pelvis)
+        # The rest spine turned onto the pelvis-to-neck line: its bones keep their lengths, so the forward
+        # kinematics that serves the pose puts the head joint on the tracked one (joints on the straight line
+        # at their rest heights served it 1.8 cm behind: MODEL_CARD.md, rule 88).
+        turn = _turn_between(rest_world[12] - rest_world[0], neck - pelvis)
+        joints[_SPINE] = pelvis + (rest_world[_SPINE] - rest_world[0]) @ turn.T
         joints[ARM_JOINTS] = upright[ARM_JOINTS] + (joints[9] - upright[9])  # collars and arms ride on spine3
         joints[15] = head
         return joints
