@@ -6,8 +6,8 @@ avatar legs that VR users know):
 - the body's size is the session's height estimate (:class:`~.body.BodyCalibrator`, from the headset);
 - the neck hangs under the head joint; standing, the pelvis stays over the planted feet (bending over
   tilts the spine with straight legs, a squat bends the knees), walking it goes along under the head; the
-  spine is the rest spine turned onto the pelvis-to-neck line, its bones at their lengths, so the served head
-  joint is the tracked one (the model's ``head_joint_m``, PROTOCOL.md §model-head-joint);
+  spine is the rest spine turned onto the pelvis-to-neck line, its bones at their lengths, so a still wearer's
+  served head joint is the tracked one (the model's ``head_joint_m``, PROTOCOL.md §model-head-joint);
 - with ``seat``, a stream that begins seated (the head lower than this body's stands) plants the feet in
   front of the pelvis, ``SEAT_BACK_PER_DROP`` times that drop (the pelvis hanging upright from the head: a
   chair's sitter has the feet in front of the seat, the seat under the trunk); the seat stays while the sitter

@@ -42,6 +42,22 @@ def test_standing_and_gesturing_keeps_the_feet_planted_and_on_the_floor(model):
     assert lower < 0.08
 
 
+def test_a_still_wearers_head_joint_is_the_tracked_one_and_the_spine_keeps_its_bones(model):
+    """The head joint the model's ``head_joint_m`` names (PROTOCOL.md §model-head-joint) is where a still
+    wearer's served one is: the spine is placed with its bones at their lengths, so the served pose's forward
+    kinematics reaches the tracked head (a spine of joints on a straight line served it 1.8 cm behind)."""
+    _, track = served(model, "stand_interact", seconds=1.0)
+    pipeline = pipeline_for(model)
+    for k in range(90):  # one second of the stream's first sample: a wearer who stands still
+        pose = pipeline.push_hmd(int(track.t_us[0]) + k * 11_111, track.poses[0], track.valid[0])
+    tracked = joints_from_devices(track.poses[0], model.info.rig_offsets_m)[0][0]
+    assert np.linalg.norm(pose.joints[15] - tracked) < 0.002
+    offsets = rest_offsets(pipeline.body.bone_scale)
+    for joint, parent in ((3, 0), (6, 3), (9, 6), (12, 9), (15, 12)):
+        length = np.linalg.norm(pose.joints[joint] - pose.joints[parent])
+        assert length == pytest.approx(np.linalg.norm(offsets[joint]), abs=1e-6)
+
+
 def ahead_of_pelvis_m(joints: np.ndarray) -> np.ndarray:
     """(N,) how far the ankles' midpoint is from the pelvis over the floor, joints (N, J, 3)."""
     return np.linalg.norm((joints[:, [7, 8]].mean(axis=1) - joints[:, 0])[:, [0, 2]], axis=-1)
