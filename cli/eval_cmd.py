@@ -34,7 +34,9 @@ folded pelvis that keeps its heading while no camera frame is in the window on o
 head says on or off (@quiet-lift, @no-quiet-lift; by default as the model file says, ModelMetadata.quiet_lift:
 MODEL_CARD.md, rules 77 and 78), or a body estimate that takes a bone's first sighting by the camera as its
 first measurement instead of the median of five (@early-body, @no-early-body; on by default: MODEL_CARD.md,
-rule 86), so --models egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
+rule 86), or the joints' filter applied to the pose relative to the head, the head where the headset puts it
+(@head-relative-filter, @no-head-relative-filter; off by default: MODEL_CARD.md, rule 90), so --models
+egoposevr@no-leg-hold,egoposevr says, paired, what one stage of the runtime changes.
 @no-first-frame-wait answers a stream's first headset samples at once instead of once its first camera frame is in
 (at most 150 ms after the first), as the server does by default (PROTOCOL.md §first-frame; MODEL_CARD.md, rules
 68 and 69; @first-frame-wait with); @low-head-wait makes a stream whose first sample has the head low (seated or
@@ -92,6 +94,8 @@ SWITCHES = {
     "no-quiet-lift": ("quiet_lift", False),
     "early-body": ("early_body", True),
     "no-early-body": ("early_body", False),
+    "head-relative-filter": ("head_relative_filter", True),
+    "no-head-relative-filter": ("head_relative_filter", False),
     "no-camera": ("send_frames", False),
     "first-frame-wait": ("first_frame_wait", True),
     "no-first-frame-wait": ("first_frame_wait", False),

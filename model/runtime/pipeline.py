@@ -111,6 +111,7 @@ class Pipeline(GivenBody):
         seated_yaw: bool = False,
         quiet_lift: bool | None = None,
         early_body: bool = True,
+        head_relative_filter: bool = False,
     ) -> None:
         self.model, self.naive, self.kpo_weights = model, naive, kpo_weights or KpoWeights()
         self.contacts = contacts  # planted feet and the floor (contact.py), with KPO
@@ -148,6 +149,10 @@ class Pipeline(GivenBody):
         # have the camera's legs, not the height's, and held legs do not lengthen under them a quarter second in
         # (still people's leakage 28-39 % lower; on by default since MODEL_CARD.md's rule 86)
         self.early_body = early_body
+        # the joints' One Euro filter smooths the pose relative to the head joint, which is then put where the
+        # (already smoothed) headset puts it: filtering the head-anchored pose made the whole body trail a moving
+        # head by its lag, 2-3 cm at walking speed (MODEL_CARD.md, rule 90); off by default
+        self.head_relative_filter = head_relative_filter
         info = model.info
         self.window = info.config.window
         self.visual_window = info.config.visual_window if model.visual is not None else 0
@@ -419,7 +424,10 @@ class Pipeline(GivenBody):
         joints, glob_pred = kernels.forward_kinematics_one(local, _ORIGIN, self.offsets, _PARENTS)
         if self.seated_yaw:
             joints, glob_pred = self._keep_seated_yaw(local, joints, glob_pred, pending.camera is True)
-        joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))  # anchored at the head
+        if self.head_relative_filter:  # the shape filtered, the head where the headset is
+            joints = self.position_filter(t_us, joints - joints[HEAD]) + tracked_pos[0]
+        else:  # anchored at the head, then filtered
+            joints = self.position_filter(t_us, joints + (tracked_pos[0] - joints[HEAD]))
         lap("fk_filter")
         if self.model.info.kpo:
             targets = np.zeros((NUM_JOINTS, 3))

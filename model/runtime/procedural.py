@@ -503,7 +503,7 @@ class ProceduralPipeline(GivenBody):
 # KPO, no leg hold and no estimated body to keep).
 NETWORK_PIPELINE_OPTIONS: Final = (
     "naive", "kpo_weights", "contacts", "steady_stance", "leg_hold", "lean_gate", "reseat", "body_hold",
-    "sure_plant", "warm_reseat", "seated_yaw", "quiet_lift", "early_body",
+    "sure_plant", "warm_reseat", "seated_yaw", "quiet_lift", "early_body", "head_relative_filter",
 )  # fmt: skip
 # ... and the procedural pipeline's that the network one has no stage for (its net says where seated feet are)
 PROCEDURAL_PIPELINE_OPTIONS: Final = ("seat",)

@@ -261,3 +261,34 @@ def test_a_held_point_settles_at_its_speed_and_one_far_from_its_mean_closes_the_
     np.testing.assert_array_equal(
         settle_step(gap_m * 1e-4, 0.01, 0.0025, reseat=(0.04, 0.5)), gap_m * 1e-4
     )  # reached
+
+
+def test_the_head_relative_filter_keeps_a_walkers_body_on_the_headset_where_the_anchored_one_trails():
+    """Pipeline(head_relative_filter=True): the joints' filter smooths the pose relative to the head and the head
+    goes where the headset puts it, so a walker's served head joint (bundled ``hmd``, no KPO to pull it back)
+    stays on the tracked one; the filter of the head-anchored pose trails it by its lag. The served joints are
+    FK of the served rotations either way."""
+    from egoposevr.model.rig import joints_from_devices
+    from egoposevr.model.runtime.loading import LoadedModel
+    from egoposevr.model.runtime.pipeline import Pipeline
+    from egoposevr.model.skeleton import forward_kinematics, rest_offsets
+    from egoposevr.model.synth.headset import simulate_headset
+    from egoposevr.model.synth.procedural import generate
+    from egoposevr.model.weights import WEIGHTS_DIR
+
+    rng = np.random.default_rng(2)
+    track = simulate_headset(generate("walk", 4.0, 60.0, rng), 90.0, rng)
+    model = LoadedModel.load(WEIGHTS_DIR / "hmd.onnx")
+    tracked = joints_from_devices(track.poses, model.info.rig_offsets_m)[0][:, 0]
+    trail_cm = {}
+    for relative in (False, True):
+        pipeline = Pipeline(model, head_relative_filter=relative)
+        results = [
+            pipeline.push_hmd(int(t), track.poses[i], track.valid[i]) for i, t in enumerate(track.t_us)
+        ]
+        heads = np.array([r.joints[15] for r in results])
+        trail_cm[relative] = float(np.median(100 * np.linalg.norm(heads - tracked, axis=-1)[90:]))
+        last = results[-1]
+        fk, _ = forward_kinematics(last.local_rot, last.transl, rest_offsets(pipeline.served_scale.scale))
+        assert np.allclose(fk, last.joints, atol=1e-6)
+    assert trail_cm[True] < 1.0 and trail_cm[False] > 2 * trail_cm[True], trail_cm
