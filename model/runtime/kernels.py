@@ -1,5 +1,6 @@
 """Compiled kernels for the per-sample serving path: one pose's 6D → matrices, FK, KPO, the rotation
-re-derivation and the SMPL axis-angle export, a One Euro step, and a camera frame's encoder input.
+re-derivation (and its ``swing``, which the procedural model's spine also turns by) and the SMPL axis-angle
+export, a One Euro step, and a camera frame's encoder input.
 
 Why compiled: these work on 3×3 to 66×66 arrays, where numpy spends 1-3 µs of call overhead per operation
 whatever its size; a pose took ~1.4 ms of such calls against ~0.2 ms of arithmetic. numba turns each
@@ -456,7 +457,7 @@ def rederive_rotations_one(
             continue
         j, c = single[i], single_child[i]
         have = glob_pred[j] @ offsets[c]
-        glob[j] = _swing(have, joints[c] - joints[j]) @ glob_pred[j]
+        glob[j] = swing(have, joints[c] - joints[j]) @ glob_pred[j]
     for i in range(multi.shape[0]):
         j = multi[i]
         count = 0
@@ -472,7 +473,7 @@ def rederive_rotations_one(
     for i in walked:
         j, c = single[i], single_child[i]
         hung = glob[parents[j]] @ local_pred[j]
-        glob[j] = _swing(hung @ offsets[c], joints[c] - joints[j]) @ hung
+        glob[j] = swing(hung @ offsets[c], joints[c] - joints[j]) @ hung
     for j in leaves:
         glob[j] = glob[parents[j]] @ local_pred[j]
     local = np.empty_like(glob)
@@ -483,7 +484,7 @@ def rederive_rotations_one(
 
 
 @numba.njit(**_JIT)
-def _swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation (3, 3) turning direction a (3,) onto b (3,): Rodrigues with v = a × b, c = a · b,
     R = I + [v]× + [v]×² / (1 + c); opposite directions take half a turn about an axis perpendicular to a."""
     a = a / max(math.sqrt(a @ a), 1e-12)
@@ -695,3 +696,4 @@ def _call_every_kernel() -> None:
         eye, pos, offsets, glob, parents, np.array([0, 1]), np.array([1, 2]), none,
         np.zeros((0, 3), dtype=np.int64), np.array([2]), np.array([1]),
     )  # fmt: skip
+    swing(np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]))

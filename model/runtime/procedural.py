@@ -164,19 +164,6 @@ def _two_bone(
     return root + along * axis + height * bend
 
 
-def _turn_between(from_vec: np.ndarray, to_vec: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation taking the direction of from_vec (3,) to that of to_vec (3,) (Rodrigues'
-    formula with the axis from_vec × to_vec; the identity for directions that agree, or nearly oppose, which a
-    spine never does)."""
-    a = from_vec / max(float(np.linalg.norm(from_vec)), 1e-9)
-    b = to_vec / max(float(np.linalg.norm(to_vec)), 1e-9)
-    axis, cos = np.cross(a, b), float(a @ b)
-    if cos < -0.999:
-        return np.eye(3)
-    skew = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + skew + skew @ skew / (1.0 + cos)
-
-
 def _reach(root: np.ndarray, target: np.ndarray, length: float) -> np.ndarray:
     """target, or the point towards it at ``length`` from root when it is farther."""
     axis = target - root
@@ -444,7 +431,7 @@ class ProceduralPipeline(GivenBody):
         # The rest spine turned onto the pelvis-to-neck line: its bones keep their lengths, so the forward
         # kinematics that serves the pose puts the head joint on the tracked one (joints on the straight line
         # at their rest heights served it 1.8 cm behind: MODEL_CARD.md, rule 88).
-        turn = _turn_between(rest_world[12] - rest_world[0], neck - pelvis)
+        turn = kernels.swing(rest_world[12] - rest_world[0], neck - pelvis)
         joints[_SPINE] = pelvis + (rest_world[_SPINE] - rest_world[0]) @ turn.T
         joints[ARM_JOINTS] = upright[ARM_JOINTS] + (joints[9] - upright[9])  # collars and arms ride on spine3
         joints[15] = head

@@ -140,9 +140,12 @@ static void live(const std::string& rgb_path, const std::string& depth_path) {
     check(pose.camera == true && pose.model == "egoposevr", "the fusion model used the camera");
     check(pose.t_us == standing_sample(pose.seq).t_us, "pose.t_us answers its hmd");
     for (float value : pose.joints) check(std::isfinite(value), "joints are finite");
-    // The headset looks along -Z unturned, so the head joint is at its position plus head_joint_m, within ~2 cm.
-    const double head_off_cm = 100 * std::hypot(pose.joints[3 * 15] - 0.0, pose.joints[3 * 15 + 1] - (1.6 - 0.024),
-                                                pose.joints[3 * 15 + 2] - 0.083);
+    // The headset at (0, 1.6, 0) looks along -Z unturned, so the head joint is there plus the model's head_joint_m.
+    std::array<float, 3> hung{};
+    for (const ModelInfo& info : models.models)
+        if (info.name == pose.model) hung = info.head_joint_m.value_or(hung);  // none: fails below
+    const double head_off_cm = 100 * std::hypot(pose.joints[3 * 15] - hung[0], pose.joints[3 * 15 + 1] - (1.6 + hung[1]),
+                                                pose.joints[3 * 15 + 2] - hung[2]);
     check(head_off_cm < 4, "the head joint hangs where head_joint_m says: " + std::to_string(head_off_cm) + " cm off");
 
     send(encode(SelectModel{"procedural"}));
